@@ -1,0 +1,47 @@
+# gcvd-flow: `make demo` and `make test` set everything up themselves on a fresh machine.
+SHELL := /bin/bash
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+export MPLBACKEND := Agg
+
+.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime clean sysdeps
+
+setup: $(STAMP)
+
+# open3d-cpu needs Debian's libusb-1.0-0 at import time.
+sysdeps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  echo "installing Debian package libusb-1.0-0 (needed by open3d)"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+
+$(STAMP): requirements.txt requirements-test.txt pyproject.toml | sysdeps
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --disable-pip-version-check -r requirements.txt -r requirements-test.txt
+	$(BIN)/pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m gcvd_flow demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -x -m "not slow"
+
+bench-engine: $(STAMP)
+	$(BIN)/pip install -q --disable-pip-version-check -r benchmarks/requirements-bench.txt
+	$(BIN)/python benchmarks/bench_engine.py
+
+bench-accuracy: $(STAMP)
+	$(BIN)/python benchmarks/bench_accuracy.py
+
+bench-runtime: $(STAMP)
+	$(BIN)/python benchmarks/bench_runtime.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

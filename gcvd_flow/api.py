@@ -1,0 +1,206 @@
+"""The Python API: the same verbs as the CLI (run, plan, why, status, fsck, gc).
+
+A *pipeline spec* bundles what the engine needs to know about a product pipeline: the stage
+graph, its config model and profiles, how to open an input, and how to export results into a
+run directory. ``gcvd`` (the product) and ``toy`` (engine tests and benchmarks) are built in.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from . import keys
+from .config import build_config
+from .dag import Pipeline
+from .errors import UsageError
+from .runner import Runner, StageReport, diff_fields
+from .store import Store, default_cache_dir
+
+RUN_FILE = "run.json"
+
+
+@dataclass
+class PipelineSpec:
+    name: str
+    pipeline: Pipeline
+    config_model: type
+    profiles: dict[str, dict[str, Any]] = field(default_factory=dict)
+    open_source: Callable[[str, Any], Any] | None = None
+    export: Callable[[Path, Runner, Any], dict[str, Any]] | None = None
+
+
+SPECS = {"gcvd": "gcvd_flow.pipeline:SPEC", "toy": "gcvd_flow.toy:SPEC"}
+
+
+def load_spec(name: str) -> PipelineSpec:
+    ref = SPECS.get(name, name)
+    if ":" not in ref:
+        raise UsageError(f"unknown pipeline {name!r}; known: {', '.join(SPECS)}")
+    mod, _, attr = ref.partition(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+@dataclass
+class Invocation:
+    input: str | None
+    out: str | None
+    config_file: str | None = None
+    profile: str | None = None
+    sets: list[str] = field(default_factory=list)
+    cache: str | None = None
+    jobs: int = 1
+    json_mode: bool = False
+    pipeline: str = "gcvd"
+    verify: bool = False
+
+    def recorded(self) -> dict[str, Any]:
+        """What a run dir remembers to recompute keys later (`why`, `status`)."""
+        return {"input": os.path.abspath(self.input) if self.input else None,
+                "config_file": os.path.abspath(self.config_file) if self.config_file else None,
+                "profile": self.profile, "sets": list(self.sets), "pipeline": self.pipeline}
+
+
+def open_store(cache: str | None, verify: bool = False) -> Store:
+    root = Path(cache) if cache else default_cache_dir()
+    try:
+        return Store(root, verify=verify)
+    except OSError as exc:
+        raise UsageError(f"cannot use cache directory {root}: {exc.strerror}") from None
+
+
+def _prepare(inv: Invocation, log: Callable[[str], None]) -> tuple[PipelineSpec, Any, Runner]:
+    spec = load_spec(inv.pipeline)
+    config = build_config(spec.config_model, spec.profiles, inv.profile, inv.config_file, inv.sets)
+    if inv.input is None:
+        raise UsageError("no INPUT given")
+    source = spec.open_source(inv.input, config) if spec.open_source else None
+    store = open_store(inv.cache, inv.verify)
+    seed = int(getattr(config, "seed", 0))
+    runner = Runner(spec.pipeline, store, config, source=source, jobs=inv.jobs,
+                    json_mode=inv.json_mode, seed=seed, log=log)
+    return spec, config, runner
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def read_run_dir(out: str | Path) -> dict[str, Any]:
+    p = Path(out) / RUN_FILE
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{p}: no run recorded in this directory (run `gcvd-flow run` first)") from None
+    except json.JSONDecodeError:
+        raise UsageError(f"{p}: not a valid run record") from None
+
+
+def _previous_stages(out: str | None) -> dict[str, Any] | None:
+    if not out:
+        return None
+    p = Path(out) / RUN_FILE
+    if not p.exists():
+        return None
+    try:
+        return json.loads(p.read_text()).get("stages")
+    except json.JSONDecodeError:
+        return None
+
+
+def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None) -> dict[str, Any]:
+    """Run the pipeline, export results into ``inv.out``; returns the --json document."""
+    t0 = time.perf_counter()
+    spec, config, runner = _prepare(inv, log)
+    reports = runner.run(target)
+    result: dict[str, Any] = {"stages": [r.as_run_json() for r in reports],
+                              "seconds": round(time.perf_counter() - t0, 3)}
+    stage_records = runner.stage_summary()
+    runner.store.add_run({"records": [r["key"] for r in stage_records.values() if r["key"]],
+                          "pipeline": spec.name})
+    if inv.out:
+        out = Path(inv.out)
+        out.mkdir(parents=True, exist_ok=True)
+        if spec.export is not None and target is None:
+            result["outputs"] = spec.export(out, runner, config)
+        doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
+               "stages": stage_records, "env": keys.numeric_env(), "gcvd_flow": _version()}
+        tmp = out / (RUN_FILE + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
+        os.replace(tmp, out / RUN_FILE)
+        result["out"] = str(out)
+    return result
+
+
+def plan(inv: Invocation, log: Callable[[str], None] = _stderr) -> list[StageReport]:
+    _, _, runner = _prepare(inv, log)
+    return runner.plan(_previous_stages(inv.out))
+
+
+def _invocation_from_run(out: str, extra: Invocation | None) -> Invocation:
+    rec = read_run_dir(out)["invocation"]
+    inv = Invocation(input=rec["input"], out=out, config_file=rec.get("config_file"),
+                     profile=rec.get("profile"), sets=list(rec.get("sets") or []),
+                     pipeline=rec.get("pipeline", "gcvd"))
+    if extra is not None:
+        inv.cache = extra.cache
+        inv.json_mode = extra.json_mode
+        if extra.config_file:
+            inv.config_file = extra.config_file
+        if extra.profile:
+            inv.profile = extra.profile
+        inv.sets += list(extra.sets)
+    return inv
+
+
+def why(stage: str, out: str, extra: Invocation | None = None,
+        log: Callable[[str], None] = _stderr) -> dict[str, Any]:
+    """Field-by-field difference between the current key of ``stage`` and its last run."""
+    inv = _invocation_from_run(out, extra)
+    previous = read_run_dir(out)["stages"]
+    spec, _, runner = _prepare(inv, log)
+    spec.pipeline.get(stage)  # unknown stage -> clear error
+    reports = {r.name: r for r in runner.plan(previous, target=stage)}
+    rep = reports[stage]
+    prev = previous.get(stage)
+    if prev is None:
+        reasons = ["this stage has no recorded run in this directory"]
+    elif rep.action == "cached":
+        reasons = []
+    else:
+        reasons = rep.reasons
+    return {"stage": stage, "action": rep.action, "reasons": reasons,
+            "key": rep.key, "previous_key": (prev or {}).get("key")}
+
+
+def status(out: str, extra: Invocation | None = None, log: Callable[[str], None] = _stderr) -> list[StageReport]:
+    inv = _invocation_from_run(out, extra)
+    previous = read_run_dir(out)["stages"]
+    _, _, runner = _prepare(inv, log)
+    return runner.plan(previous)
+
+
+def fsck(cache: str | None) -> dict[str, Any]:
+    return open_store(cache).fsck().as_dict()
+
+
+def gc(cache: str | None, keep: int) -> dict[str, int]:
+    return open_store(cache).gc(keep=keep)
+
+
+def _version() -> str:
+    try:
+        import importlib.metadata
+
+        return importlib.metadata.version("gcvd-flow")
+    except Exception:
+        return "0+unknown"
+
+
+__all__ = ["Invocation", "PipelineSpec", "run", "plan", "why", "status", "fsck", "gc", "diff_fields"]

@@ -1,0 +1,197 @@
+"""`gcvd-flow ...`: the command line.
+
+Exit codes: 0 success, 2 bad usage or bad input (one line on stderr, no traceback),
+1 internal error, 130 interrupted (the cache stays consistent; run again to resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from typing import Any, Sequence
+
+from . import api
+from .errors import UsageError
+
+
+def _add_run_args(p: argparse.ArgumentParser, input_required: bool = True) -> None:
+    if input_required:
+        p.add_argument("input", metavar="INPUT", help="video file, image folder or dataset folder")
+    p.add_argument("--out", required=input_required, metavar="RUN_DIR", help="run directory for the results")
+    _add_config_args(p)
+    p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", dest="config_file", metavar="FILE", help="TOML file of parameters")
+    p.add_argument("--profile", metavar="NAME", help="named parameter profile (e.g. paper, fast)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one parameter (repeatable)")
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
+                   help="camera intrinsics at the source resolution (same as --set ingest.intrinsics=...)")
+    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
+    p.add_argument("--verify", action="store_true", help="re-hash every object read from the cache")
+    p.add_argument("--pipeline", default="gcvd", help=argparse.SUPPRESS)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="gcvd-flow", description=(
+        "Globally consistent video depth and camera poses (GCVD), as a stage-cached pipeline."))
+    sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run the pipeline on a video / folder; results in RUN_DIR")
+    _add_run_args(p)
+    p = sub.add_parser("plan", help="dry run: which stages would run, and why")
+    _add_run_args(p)
+    p.set_defaults(out_required=False)
+
+    p = sub.add_parser("why", help="why STAGE would re-run: field-by-field key difference")
+    p.add_argument("stage")
+    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    _add_config_args(p)
+
+    p = sub.add_parser("status", help="which stages of a run are up to date")
+    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    _add_config_args(p)
+
+    p = sub.add_parser("dag", help="print the stage graph")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.add_argument("--pipeline", default="gcvd", help=argparse.SUPPRESS)
+
+    p = sub.add_parser("fsck", help="re-hash every cached object; quarantine corrupt ones")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+
+    p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--keep", type=int, default=5, metavar="N")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+
+    _add_product_commands(sub)
+    return ap
+
+
+def _add_product_commands(sub) -> None:
+    """Vision commands (synth, eval, demo) live in their own module."""
+    try:
+        from . import product_cli
+    except ImportError:  # pragma: no cover - during early development
+        return
+    product_cli.add_commands(sub)
+
+
+def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | None = None) -> api.Invocation:
+    sets = list(getattr(a, "sets", []) or [])
+    if getattr(a, "intrinsics", None):
+        sets.append(f"ingest.intrinsics={json.dumps(a.intrinsics)}")
+    return api.Invocation(input=input_ if input_ is not None else getattr(a, "input", None),
+                          out=out if out is not None else getattr(a, "out", None),
+                          config_file=getattr(a, "config_file", None), profile=getattr(a, "profile", None),
+                          sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
+                          json_mode=getattr(a, "json_mode", False),
+                          pipeline=getattr(a, "pipeline", "gcvd"), verify=getattr(a, "verify", False))
+
+
+def _print_json(doc: Any) -> None:
+    print(json.dumps(doc, indent=1, sort_keys=False))
+
+
+def dispatch(a: argparse.Namespace) -> int:
+    if a.cmd == "run":
+        res = api.run(_invocation(a))
+        if a.json_mode:
+            _print_json(res)
+        else:
+            for s in res["stages"]:
+                print(f"{s['name']:<20} executed {s['executed']:>5}  cached {s['cached']:>5}  {s['seconds']:8.2f} s")
+            for k, v in (res.get("outputs") or {}).items():
+                print(f"{k}: {v}")
+        return 0
+    if a.cmd == "plan":
+        reps = api.plan(_invocation(a))
+        if a.json_mode:
+            _print_json({"stages": [r.as_plan_json() for r in reps]})
+        else:
+            for r in reps:
+                print(f"{r.name:<20} {r.action:<7} {'; '.join(r.reasons)}")
+        return 0
+    if a.cmd == "why":
+        res = api.why(a.stage, a.out, _invocation(a, input_=None, out=a.out))
+        if a.json_mode:
+            _print_json(res)
+        else:
+            if res["action"] == "cached":
+                print(f"{a.stage}: up to date (key {str(res['key'])[:12]})")
+            else:
+                print(f"{a.stage} would run:")
+                for r in res["reasons"]:
+                    print(f"  - {r}")
+        return 0
+    if a.cmd == "status":
+        reps = api.status(a.out, _invocation(a, input_=None, out=a.out))
+        if a.json_mode:
+            _print_json({"stages": [r.as_plan_json() for r in reps]})
+        else:
+            for r in reps:
+                state = "up to date" if r.action == "cached" else "changed: " + "; ".join(r.reasons)
+                print(f"{r.name:<20} {state}")
+        return 0
+    if a.cmd == "dag":
+        spec = api.load_spec(a.pipeline)
+        stages = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
+                  for s in spec.pipeline.stages]
+        if a.json_mode:
+            _print_json({"stages": stages})
+        else:
+            for s in stages:
+                arrow = " <- " + ", ".join(s["deps"]) if s["deps"] else ""
+                print(f"{s['name']}{' [map]' if s['map'] else ''}{arrow}")
+        return 0
+    if a.cmd == "fsck":
+        rep = api.fsck(a.cache)
+        if a.json_mode:
+            _print_json(rep)
+        else:
+            print(f"checked {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB): "
+                  f"{len(rep['corrupt'])} corrupt (quarantined), {rep['records_removed']} records dropped")
+            for d in rep["corrupt"]:
+                print(f"corrupt: {d}")
+        return 0
+    if a.cmd == "gc":
+        rep = api.gc(a.cache, a.keep)
+        if a.json_mode:
+            _print_json(rep)
+        else:
+            print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
+                  f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
+        return 0
+    handler = getattr(a, "handler", None)
+    if handler is not None:
+        return int(handler(a) or 0)
+    raise UsageError(f"unknown command {a.cmd!r}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    try:
+        return dispatch(a)
+    except UsageError as exc:
+        print(f"gcvd-flow: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("gcvd-flow: interrupted; the cache is consistent, run again to resume", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception:  # noqa: BLE001 - last resort: an internal error, with its traceback
+        traceback.print_exc()
+        print("gcvd-flow: internal error (this is a bug; the traceback is above)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,170 @@
+"""Stage declarations and the pipeline graph.
+
+Two kinds of stage:
+
+* :class:`Stage` — a whole-input stage: ``fn(inputs, params, ctx) -> value``; ``inputs`` maps
+  each dependency's name to its value (for a map dependency a :class:`MapValue`).
+* :class:`MapStage` — maps ``fn(item_inputs, params, ctx) -> value`` over items (frames,
+  pairs). ``items(view, params)`` says which upstream pieces each item reads, as references;
+  every item is cached by the digests of exactly those pieces, so trimming, extending or
+  striding a clip re-uses every item whose own inputs are unchanged, and a crash resumes at
+  the first missing item.
+
+References an item can hold: :class:`ItemRef` (one item of a map stage), :class:`PartRef`
+(a sub-tree of a whole stage's output or a map stage's summary, e.g. one depth map of a list)
+and :class:`ExternalRef` (a piece of the run's input, e.g. a video frame, named by a digest
+of its source bytes and loaded by a picklable loader).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol, Sequence
+
+
+class PipelineError(ValueError):
+    pass
+
+
+# ------------------------------------------------------------------------------ references
+
+
+@dataclass(frozen=True)
+class ItemRef:
+    stage: str
+    index: int
+
+
+@dataclass(frozen=True)
+class PartRef:
+    """A sub-tree of a whole stage's value (``path`` of keys / indices); () is the whole."""
+
+    stage: str
+    path: tuple = ()
+    summary: bool = False  # True: a sub-tree of a map stage's summary instead
+
+
+@dataclass(frozen=True)
+class ExternalRef:
+    digest: str  # content digest of the source piece (e.g. file bytes, or video digest + index)
+    loader: Any  # picklable callable () -> value
+
+
+Ref = ItemRef | PartRef | ExternalRef
+
+
+class Loader(Protocol):
+    def __call__(self) -> Any: ...
+
+
+# ------------------------------------------------------------------------------ stages
+
+
+@dataclass
+class Stage:
+    name: str
+    fn: Callable[..., Any]
+    deps: tuple[str, ...] = ()
+    params: str | None = None  # config section holding this stage's parameters
+    kind: str = "generic"  # artifact schema kind of the output
+    version: int = 0  # bump to force invalidation without a code change
+    description: str = ""
+    # Declares a non-deterministic op for the record; keys do not depend on it.
+    nondeterministic: str | None = None
+    uses_seed: bool = False  # the run's seed is part of the key
+
+    @property
+    def is_map(self) -> bool:
+        return False
+
+
+@dataclass
+class MapStage(Stage):
+    items: Callable[["DepsView", Any], list[dict[str, Ref]]] = None  # type: ignore[assignment]
+    summary: Callable[["DepsView", Any], Any] | None = None
+    # Parameters that choose *which* items exist (start/end/stride) rather than how one is
+    # computed: they are left out of item keys so that a trimmed clip re-uses its items.
+    selection_params: tuple[str, ...] = ()
+
+    @property
+    def is_map(self) -> bool:
+        return True
+
+
+@dataclass
+class Pipeline:
+    stages: list[Stage] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        seen: set[str] = set()
+        for s in self.stages:
+            if s.name in seen:
+                raise PipelineError(f"duplicate stage name {s.name!r}")
+            for d in s.deps:
+                if d not in seen:
+                    raise PipelineError(f"stage {s.name!r} depends on {d!r}, which is not declared before it")
+            if s.is_map and s.items is None:
+                raise PipelineError(f"map stage {s.name!r} has no items function")
+            seen.add(s.name)
+
+    def names(self) -> list[str]:
+        return [s.name for s in self.stages]
+
+    def get(self, name: str) -> Stage:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise PipelineError(f"unknown stage {name!r}; stages: {', '.join(self.names())}")
+
+    def descendants(self, name: str) -> list[str]:
+        out: set[str] = {name}
+        for s in self.stages:
+            if any(d in out for d in s.deps):
+                out.add(s.name)
+        return [s.name for s in self.stages if s.name in out]
+
+    def upto(self, name: str | None) -> list[Stage]:
+        """The stages needed to produce ``name`` (all when None), in order."""
+        if name is None:
+            return list(self.stages)
+        need = {name}
+        for s in reversed(self.stages):
+            if s.name in need:
+                need.update(s.deps)
+        return [s for s in self.stages if s.name in need]
+
+
+# ------------------------------------------------------------------------------ values
+
+
+class DepsView(Protocol):
+    """What an ``items`` / ``summary`` function sees of its dependencies and of the input."""
+
+    source: Any
+
+    def len(self, stage: str) -> int: ...
+
+    def value(self, stage: str) -> Any: ...
+
+    def summary(self, stage: str) -> Any: ...
+
+
+class MapValue(Sequence):
+    """A map stage's output as seen by a whole stage: lazily loaded items plus the summary."""
+
+    def __init__(self, loader: Callable[[int], Any], n: int, summary: Any):
+        self._loader = loader
+        self._n = n
+        self.summary = summary
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return [self._loader(j) for j in range(*i.indices(self._n))]
+        if i < 0:
+            i += self._n
+        if not 0 <= i < self._n:
+            raise IndexError(i)
+        return self._loader(i)

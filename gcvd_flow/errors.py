@@ -1,0 +1,9 @@
+"""Error kinds the CLI maps to exit codes (2 for the user's input, 1 for our bugs)."""
+
+
+class UsageError(ValueError):
+    """Bad usage or bad input: reported as one line on stderr, exit code 2."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C: the cache is consistent; re-running resumes."""

@@ -1,0 +1,171 @@
+"""Where map items are computed: in this process, or in a pool of worker processes.
+
+An item task carries only digests, JSON sub-trees and picklable loaders, never arrays: each
+worker loads its inputs from the store and writes its outputs to the store itself, so the
+parent does not ship megabytes through pipes. Every task takes the item's OS lock and
+re-checks the record first, which is what makes two concurrent runs compute each item once.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Iterator
+
+from .artifacts import Encoder, decode_tree, load_value
+from .store import Store
+
+
+@dataclass
+class ResolvedRef:
+    """An item input: ``how`` is 'artifact' (a manifest digest), 'tree' (a JSON sub-tree of
+    another artifact, decoded on load) or 'external' (``loader()`` gives the value)."""
+
+    how: str
+    digest: str
+    payload: Any = None
+
+    def load(self, store: Store) -> Any:
+        if self.how == "artifact":
+            return load_value(store, self.digest)
+        if self.how == "tree":
+            return decode_tree(store, self.payload)
+        return self.payload()
+
+
+@dataclass
+class ItemTask:
+    store_root: str
+    verify: bool
+    stage_name: str
+    fn: Callable[..., Any]
+    kind: str
+    key: str
+    refs: dict[str, ResolvedRef]
+    params: Any
+    seed: int
+    index: int
+
+
+@dataclass
+class ItemResult:
+    index: int
+    key: str
+    output: str
+    objects: dict[str, int]
+    computed: bool
+    seconds: float
+
+
+class ItemContext:
+    """The ``ctx`` a map item sees: its stage name, the seed and a logger."""
+
+    def __init__(self, stage: str, seed: int, index: int):
+        self.stage = stage
+        self.seed = seed
+        self.index = index
+        self.checkpointer = None
+
+    def log(self, msg: str) -> None:
+        import sys
+
+        print(f"{self.stage}[{self.index}]: {msg}", file=sys.stderr)
+
+
+_STORES: dict[tuple[str, bool], Store] = {}
+
+
+def _store(root: str, verify: bool) -> Store:
+    s = _STORES.get((root, verify))
+    if s is None:
+        s = _STORES[(root, verify)] = Store(root, verify=verify)
+    return s
+
+
+def compute_item(task: ItemTask) -> ItemResult:
+    store = _store(task.store_root, task.verify)
+    t0 = time.perf_counter()
+    rec = store.get_record(task.key)
+    if rec is None:
+        with store.lock(task.key):
+            rec = store.get_record(task.key)  # another process may have finished it meanwhile
+            if rec is None:
+                inputs = {name: r.load(store) for name, r in task.refs.items()}
+                value = task.fn(inputs, task.params, ItemContext(task.stage_name, task.seed, task.index))
+                enc = Encoder(store)
+                out = enc.manifest(task.kind, value)
+                rec = {"record_kind": "item", "stage": task.stage_name, "key": task.key,
+                       "outputs": out, "objects": enc.objects,
+                       "inputs": {n: r.digest for n, r in sorted(task.refs.items())},
+                       "seconds": round(time.perf_counter() - t0, 6)}
+                store.put_record(task.key, rec)
+                return ItemResult(task.index, task.key, out, enc.objects, True,
+                                  time.perf_counter() - t0)
+    return ItemResult(task.index, task.key, rec["outputs"], rec["objects"], False,
+                      time.perf_counter() - t0)
+
+
+class InProcessExecutor:
+    jobs = 1
+
+    def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
+        for t in tasks:
+            yield compute_item(t)
+
+    def close(self) -> None:
+        pass
+
+
+def _worker_init() -> None:
+    # Workers share the machine's cores: one BLAS / torch / OpenCV thread each.
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:
+        pass
+
+
+class ProcessPoolItemExecutor:
+    """Items in parallel worker processes (``--jobs N``); results in completion order."""
+
+    def __init__(self, jobs: int):
+        self.jobs = max(1, jobs)
+        # forkserver: a clean, thread-free parent for workers (fork after torch/OpenCV
+        # created threads can deadlock).
+        ctx = multiprocessing.get_context("forkserver")
+        self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx,
+                                         initializer=_worker_init)
+
+    def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
+        pending: set[Future] = set()
+        it = iter(tasks)
+        exhausted = False
+        while True:
+            while not exhausted and len(pending) < 2 * self.jobs:
+                try:
+                    pending.add(self._pool.submit(compute_item, next(it)))
+                except StopIteration:
+                    exhausted = True
+            if not pending:
+                return
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in done:
+                yield f.result()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def make_executor(jobs: int):
+    return InProcessExecutor() if jobs <= 1 else ProcessPoolItemExecutor(jobs)
