@@ -21,7 +21,7 @@ from .config import build_config
 from .dag import Pipeline
 from .errors import UsageError
 from .runner import Runner, StageReport, diff_fields
-from .store import Store, default_cache_dir
+from .store import CorruptObject, Store, default_cache_dir
 
 RUN_FILE = "run.json"
 
@@ -58,7 +58,7 @@ class Invocation:
     jobs: int = 1
     json_mode: bool = False
     pipeline: str = "gcvd"
-    verify: bool = False
+    verify: bool = True
 
     def recorded(self) -> dict[str, Any]:
         """What a run dir remembers to recompute keys later (`why`, `status`)."""
@@ -67,7 +67,7 @@ class Invocation:
                 "profile": self.profile, "sets": list(self.sets), "pipeline": self.pipeline}
 
 
-def open_store(cache: str | None, verify: bool = False) -> Store:
+def open_store(cache: str | None, verify: bool = True) -> Store:
     root = Path(cache) if cache else default_cache_dir()
     try:
         return Store(root, verify=verify)
@@ -118,7 +118,14 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
     """Run the pipeline, export results into ``inv.out``; returns the --json document."""
     t0 = time.perf_counter()
     spec, config, runner = _prepare(inv, log)
-    reports = runner.run(target)
+    try:
+        reports = runner.run(target)
+    except CorruptObject as exc:
+        # The corrupt object is quarantined now, so records naming it no longer resolve:
+        # one more pass recomputes exactly what it held.
+        log(f"warning: {exc}; recomputing")
+        spec, config, runner = _prepare(inv, log)
+        reports = runner.run(target)
     result: dict[str, Any] = {"stages": [r.as_run_json() for r in reports],
                               "seconds": round(time.perf_counter() - t0, 3)}
     stage_records = runner.stage_summary()

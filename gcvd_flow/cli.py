@@ -33,7 +33,8 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
                    help="camera intrinsics at the source resolution (same as --set ingest.intrinsics=...)")
     p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
-    p.add_argument("--verify", action="store_true", help="re-hash every object read from the cache")
+    p.add_argument("--no-verify", dest="verify", action="store_false",
+                   help="skip re-hashing objects read from the cache (faster, less safe)")
     p.add_argument("--pipeline", default="gcvd", help=argparse.SUPPRESS)
 
 
@@ -92,7 +93,7 @@ def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | Non
                           config_file=getattr(a, "config_file", None), profile=getattr(a, "profile", None),
                           sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
                           json_mode=getattr(a, "json_mode", False),
-                          pipeline=getattr(a, "pipeline", "gcvd"), verify=getattr(a, "verify", False))
+                          pipeline=getattr(a, "pipeline", "gcvd"), verify=getattr(a, "verify", True))
 
 
 def _print_json(doc: Any) -> None:

@@ -86,7 +86,7 @@ class FsckReport:
 class Store:
     """A content-addressed object store plus key → record map in one directory."""
 
-    def __init__(self, root: str | Path, verify: bool = False):
+    def __init__(self, root: str | Path, verify: bool = True):
         self.root = Path(root).expanduser()
         self.verify = verify
         for sub in ("objects", "records", "locks", "tmp", "runs", "pins", "quarantine"):
@@ -302,8 +302,6 @@ class Store:
                 removed_bytes += p.stat().st_size
                 p.unlink(missing_ok=True)
                 removed_objects += 1
-        for _, r in runs[: max(0, len(runs) - keep)]:
-            pass
         for p in sorted((self.root / "runs").glob("*.json"))[: max(0, len(runs) - keep)]:
             p.unlink(missing_ok=True)
         removed_tmp = self._clean_tmp()
@@ -321,7 +319,7 @@ class Store:
             if pid_s.isdigit():
                 try:
                     os.kill(int(pid_s), 0)
-                    alive = int(pid_s) != os.getpid() or True
+                    alive = True
                 except ProcessLookupError:
                     alive = False
                 except PermissionError:

@@ -1,0 +1,253 @@
+"""The stage-cached DAG engine on the toy pipeline: caching, invalidation, resume, locks."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from gcvd_flow import api
+from gcvd_flow.store import Store
+
+from conftest import ROOT, by_stage, cli, cli_json, make_toy_input
+
+
+def toy(*args: str) -> list[str]:
+    return [*args, "--pipeline", "toy"]
+
+
+def run_toy(inp: Path, out: Path, cache: Path, *extra: str) -> dict:
+    return by_stage(cli_json("run", str(inp), "--out", str(out), "--cache", str(cache), "--pipeline", "toy", *extra))
+
+
+def test_rerun_executes_nothing(toy_input, tmp_path):
+    first = run_toy(toy_input, tmp_path / "out", tmp_path / "cache")
+    assert first["decode"]["executed"] == 40 and first["report"]["executed"] == 1
+    second = run_toy(toy_input, tmp_path / "out", tmp_path / "cache")
+    assert all(s["executed"] == 0 for s in second.values()), second
+    assert second["transform"]["cached"] == 40
+
+
+def test_param_change_reruns_only_that_stage_and_descendants(toy_input, tmp_path):
+    run_toy(toy_input, tmp_path / "out", tmp_path / "cache")
+    res = run_toy(toy_input, tmp_path / "out", tmp_path / "cache", "--set", "threshold.cut=100")
+    assert res["decode"]["executed"] == res["transform"]["executed"] == res["summarize"]["executed"] == 0
+    assert res["threshold"]["executed"] == 1 and res["report"]["executed"] == 1
+    # the plan after that run says everything is cached, and a further change is explained
+    plan = by_stage(cli_json("plan", str(toy_input), "--out", str(tmp_path / "out"), "--cache",
+                             str(tmp_path / "cache"), "--pipeline", "toy", "--set", "threshold.cut=150"))
+    assert plan["summarize"]["action"] == "cached"
+    assert plan["threshold"]["action"] == "run"
+    assert any("threshold.cut" in r and "100.0 -> 150.0" in r for r in plan["threshold"]["reasons"])
+    assert plan["report"]["action"] == "run"
+
+
+def test_early_cutoff(toy_input, tmp_path):
+    run_toy(toy_input, tmp_path / "out", tmp_path / "cache")
+    # `sleep` changes transform's key but not its output bytes: downstream stays cached
+    res = run_toy(toy_input, tmp_path / "out", tmp_path / "cache", "--set", "transform.sleep=0.0001")
+    assert res["transform"]["executed"] == 40
+    assert res["summarize"]["executed"] == 0 and res["summarize"]["cached"] == 1
+    assert res["report"]["executed"] == 0
+
+
+def test_map_items_reused_after_trim_extend_and_stride(toy_input, tmp_path):
+    c = tmp_path / "cache"
+    res = run_toy(toy_input, tmp_path / "o", c, "--set", "decode.end=30")
+    assert res["decode"]["executed"] == 30
+    res = run_toy(toy_input, tmp_path / "o", c, "--set", "decode.end=20")
+    assert res["decode"]["executed"] == 0 and res["decode"]["cached"] == 20
+    assert res["transform"]["executed"] == 0
+    assert res["summarize"]["executed"] == 1  # a different set of items
+    res = run_toy(toy_input, tmp_path / "o", c, "--set", "decode.end=38")
+    assert res["decode"]["executed"] == 8 and res["transform"]["executed"] == 8
+    res = run_toy(toy_input, tmp_path / "o", c, "--set", "decode.stride=2")
+    assert res["decode"]["executed"] == 1  # items 0, 2, .., 36 are cached; 38 is new
+    assert res["decode"]["cached"] == 19
+
+
+def test_same_pipeline_in_two_places_gives_identical_keys(tmp_path):
+    a = make_toy_input(tmp_path / "a" / "in")
+    b = tmp_path / "elsewhere" / "deeper" / "in"
+    shutil.copytree(a, b)
+    cli_json("run", str(a), "--out", str(tmp_path / "a" / "out"), "--cache", str(tmp_path / "ca"), "--pipeline", "toy")
+    cli_json("run", str(b), "--out", str(tmp_path / "b" / "out"), "--cache", str(tmp_path / "cb"), "--pipeline", "toy")
+    ra = json.loads((tmp_path / "a" / "out" / "run.json").read_text())["stages"]
+    rb = json.loads((tmp_path / "b" / "out" / "run.json").read_text())["stages"]
+    assert {k: (v["key"], v["output"]) for k, v in ra.items()} == {k: (v["key"], v["output"]) for k, v in rb.items()}
+
+
+def _verify_cache(cache: Path) -> None:
+    """Every record resolves to complete, uncorrupted objects."""
+    store = Store(cache)
+    rep = store.fsck()
+    assert rep.corrupt == [] and rep.records_removed == 0
+    for key, path in store.iter_records():
+        rec = json.loads(path.read_text())
+        for d in rec.get("objects", {}):
+            assert store.has(d)
+
+
+@pytest.mark.parametrize("kill_after", [0.8, 1.6, 2.6])
+def test_kill9_leaves_consistent_cache_and_resumes(toy_input, tmp_path, kill_after):
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    cmd = [sys.executable, "-m", "gcvd_flow", "run", str(toy_input), "--out", str(out), "--cache", str(cache),
+           "--pipeline", "toy", "--set", "transform.sleep=0.05", "--json"]
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(kill_after)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    _verify_cache(cache)
+    store = Store(cache)
+    done_items = sum(1 for _, path in store.iter_records()
+                     if json.loads(path.read_text()).get("stage") == "transform"
+                     and json.loads(path.read_text()).get("record_kind") == "item")
+    res = by_stage(cli_json("run", str(toy_input), "--out", str(out), "--cache", str(cache), "--pipeline", "toy",
+                            "--set", "transform.sleep=0.05"))
+    assert res["transform"]["executed"] == 40 - done_items
+    assert res["transform"]["cached"] == done_items
+    assert res["decode"]["executed"] + res["decode"]["cached"] == 40
+    _verify_cache(cache)
+
+
+def test_concurrent_runs_compute_each_item_once(toy_input, tmp_path):
+    cache = tmp_path / "cache"
+    procs = [subprocess.Popen([sys.executable, "-m", "gcvd_flow", "run", str(toy_input), "--out", str(tmp_path / f"o{i}"),
+                               "--cache", str(cache), "--pipeline", "toy", "--set", "transform.sleep=0.03", "--json"],
+                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    docs = []
+    for p in procs:
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+        docs.append(by_stage(json.loads(out)))
+    assert sum(d["transform"]["executed"] for d in docs) == 40
+    assert sum(d["decode"]["executed"] for d in docs) == 40
+    outs = [json.loads((tmp_path / f"o{i}" / "run.json").read_text())["stages"]["report"]["output"] for i in range(2)]
+    assert outs[0] == outs[1]
+
+
+def test_corrupt_object_found_by_fsck_and_never_returned(toy_input, tmp_path):
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    run_toy(toy_input, out, cache)
+    store = Store(cache)
+    # corrupt the summarize output's array (same size: only hashing can tell)
+    rec = json.loads(store.record_path(json.loads((out / "run.json").read_text())["stages"]["summarize"]["key"]).read_text())
+    victim = max(rec["objects"], key=lambda d: rec["objects"][d])
+    path = store.object_path(victim)
+    os.chmod(path, 0o644)
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF
+    path.write_bytes(bytes(data))
+    # a run reads it, detects the mismatch, quarantines it and recomputes
+    res = run_toy(toy_input, out, cache, "--set", "threshold.cut=10")
+    assert res["summarize"]["executed"] == 1
+    assert store.has(victim)  # recomputed with the right bytes
+    assert Store(cache).fsck().corrupt == []
+    # fsck finds a corruption directly too
+    os.chmod(path, 0o644)
+    path.write_bytes(bytes(data))
+    doc = cli_json("fsck", "--cache", str(cache))
+    assert doc["corrupt"] == [victim]
+    assert (cache / "quarantine" / victim).exists()
+    res = run_toy(toy_input, out, cache)
+    assert res["summarize"]["executed"] == 1
+
+
+def test_objects_are_read_only(toy_input, tmp_path):
+    run_toy(toy_input, tmp_path / "out", tmp_path / "cache")
+    store = Store(tmp_path / "cache")
+    modes = {oct(store.object_path(d).stat().st_mode & 0o777) for d in store.iter_objects()}
+    assert modes == {"0o444"}
+
+
+def test_why_names_param_code_and_input_changes(toy_input, tmp_path):
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    run_toy(toy_input, out, cache)
+    doc = cli_json("why", "threshold", "--out", str(out), "--cache", str(cache), "--set", "threshold.cut=5")
+    assert doc["action"] == "run"
+    assert any(r == "param threshold.cut changed: 200.0 -> 5.0" for r in doc["reasons"]), doc
+    doc = cli_json("why", "summarize", "--out", str(out), "--cache", str(cache), "--set", "decode.end=10")
+    assert any(r.startswith("upstream will run") or r.startswith("input transform changed") for r in doc["reasons"])
+    doc = cli_json("why", "report", "--out", str(out), "--cache", str(cache))
+    assert doc["action"] == "cached" and doc["reasons"] == []
+    # a changed input file: decode's input changes
+    (toy_input / "00003.bin").write_bytes(b"\x01" * 2000)
+    doc = cli_json("why", "decode", "--out", str(out), "--cache", str(cache))
+    assert any(r.startswith("input source changed") for r in doc["reasons"]), doc
+
+
+def test_why_names_changed_code_file():
+    old = {"code_files": {"stages/flow.py": "a", "stages/x:run": "b"}, "params": {"p": 1}, "inputs": {}, "env": {}}
+    new = {"code_files": {"stages/flow.py": "c", "stages/x:run": "b"}, "params": {"p": 1}, "inputs": {}, "env": {}}
+    assert api.diff_fields(old, new) == ["code changed: stages/flow.py"]
+
+
+def test_gc_keeps_last_runs(toy_input, tmp_path):
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    run_toy(toy_input, out, cache, "--set", "transform.scale=3")
+    run_toy(toy_input, out, cache)
+    before = sum(1 for _ in Store(cache).iter_objects())
+    doc = cli_json("gc", "--cache", str(cache), "--keep", "1")
+    assert doc["objects_removed"] > 0
+    assert sum(1 for _ in Store(cache).iter_objects()) == before - doc["objects_removed"]
+    res = run_toy(toy_input, out, cache)
+    assert all(s["executed"] == 0 for s in res.values())
+    res = run_toy(toy_input, out, cache, "--set", "transform.scale=3")
+    assert res["transform"]["executed"] == 40
+
+
+def test_parallel_jobs_match_serial(toy_input, tmp_path):
+    serial = run_toy(toy_input, tmp_path / "o1", tmp_path / "c1")
+    par = run_toy(toy_input, tmp_path / "o2", tmp_path / "c2", "--jobs", "2")
+    assert par["transform"]["executed"] == 40
+    r1 = json.loads((tmp_path / "o1" / "run.json").read_text())["stages"]
+    r2 = json.loads((tmp_path / "o2" / "run.json").read_text())["stages"]
+    assert {k: v["output"] for k, v in r1.items()} == {k: v["output"] for k, v in r2.items()}
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--set", "threshold.cutt=1"], "unknown config key 'threshold.cutt'"),
+    (["--set", "threshold.cut=abc"], "threshold.cut"),
+    (["--set", "nosuch.key=1"], "unknown config key 'nosuch'"),
+    (["--profile", "nope"], "unknown profile 'nope'"),
+    (["--config", "/nonexistent.toml"], "config file not found"),
+])
+def test_bad_usage_is_one_line_exit_2(toy_input, tmp_path, args, needle):
+    p = cli("run", str(toy_input), "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c"), "--pipeline", "toy", *args)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], p.stderr
+    assert not (tmp_path / "o" / "run.json").exists()
+
+
+def test_missing_input_is_exit_2(tmp_path):
+    p = cli("run", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c"), "--pipeline", "toy")
+    assert p.returncode == 2 and "nope" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_config_file_and_profiles(toy_input, tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[threshold]\ncut = 42.0\n[profiles.mine]\nthreshold = { cut = 7.0 }\n")
+    cache = tmp_path / "cache"
+    cli_json("run", str(toy_input), "--out", str(tmp_path / "o"), "--cache", str(cache), "--pipeline", "toy", "--config", str(cfg))
+    rj = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert rj["config"]["threshold"]["cut"] == 42.0
+    cli_json("run", str(toy_input), "--out", str(tmp_path / "o"), "--cache", str(cache), "--pipeline", "toy",
+             "--profile", "fast", "--set", "threshold.cut=8")
+    rj = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert rj["config"]["transform"]["scale"] == 1.0 and rj["config"]["threshold"]["cut"] == 8.0
+
+
+def test_status_and_dag(toy_input, tmp_path):
+    run_toy(toy_input, tmp_path / "o", tmp_path / "c")
+    p = cli("status", "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c"), check=True)
+    assert p.stdout.count("up to date") == 5
+    p = cli("dag", "--pipeline", "toy", check=True)
+    assert "transform [map] <- decode" in p.stdout

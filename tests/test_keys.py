@@ -1,0 +1,132 @@
+"""Canonical encoding, digests and code fingerprints (DESIGN §4)."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from gcvd_flow import keys
+
+
+def test_typed_encoding_distinguishes_one_values():
+    ks = {keys.key_of(v) for v in (1, 1.0, "1", True)}
+    assert len(ks) == 4
+
+
+def test_dict_order_does_not_matter_but_values_do():
+    assert keys.key_of({"a": 1, "b": [1, 2]}) == keys.key_of({"b": [1, 2], "a": 1})
+    assert keys.key_of({"a": 1}) != keys.key_of({"a": 2})
+    assert keys.key_of([1, 2]) != keys.key_of([2, 1])
+
+
+def test_floats_by_exact_value_and_strings_length_prefixed():
+    import math
+
+    assert keys.key_of(0.1) != keys.key_of(math.nextafter(0.1, 1.0))  # one ulp apart
+    assert keys.key_of(["ab", "c"]) != keys.key_of(["a", "bc"])
+    assert keys.key_of(np.float64(0.5)) == keys.key_of(0.5)
+
+
+def test_arrays_encode_dtype_shape_and_content():
+    a = np.arange(6, dtype=np.float32)
+    assert keys.key_of(a) == keys.key_of(a.copy())
+    assert keys.key_of(a) != keys.key_of(a.astype(np.float64))
+    assert keys.key_of(a) != keys.key_of(a.reshape(2, 3))
+
+
+def test_unencodable_values_are_rejected():
+    with pytest.raises(keys.EncodingError):
+        keys.key_of(object())
+
+
+def test_env_has_no_paths_or_names():
+    env = keys.numeric_env()
+    text = repr(env)
+    import socket
+
+    assert "/" not in text
+    assert socket.gethostname() not in text
+    assert set(env) >= {"numpy", "torch", "opencv", "device", "dtype", "deterministic"}
+
+
+@pytest.fixture
+def temp_package(tmp_path, monkeypatch):
+    """A throw-away project package `fpkg` (stage module + helper module) on sys.path."""
+    pkg = tmp_path / "fpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "helper.py").write_text("def scale(x):\n    return x * 2\n")
+    (pkg / "other.py").write_text("def unrelated():\n    return 0\n")
+    (pkg / "stage.py").write_text(textwrap.dedent('''
+        """A stage module."""
+        from fpkg import helper
+
+
+        def run(inputs, params, ctx):
+            """Docstring."""
+            return helper.scale(inputs)
+
+
+        def unused_neighbour():
+            return 1
+    '''))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(keys, "PROJECT_PACKAGES", keys.PROJECT_PACKAGES | {"fpkg"})
+    yield pkg
+    for m in [m for m in sys.modules if m == "fpkg" or m.startswith("fpkg.")]:
+        del sys.modules[m]
+    keys.clear_caches()
+
+
+def _fingerprint(pkg_name: str = "fpkg.stage"):
+    keys.clear_caches()
+    for m in [m for m in sys.modules if m == "fpkg" or m.startswith("fpkg.")]:
+        del sys.modules[m]
+    mod = importlib.import_module(pkg_name)
+    return keys.code_fingerprint(mod.run)
+
+
+def test_reformatting_and_comments_do_not_invalidate(temp_package):
+    fp0, files = _fingerprint()
+    assert any("helper.py" in f for f, _ in files)
+    (temp_package / "stage.py").write_text(textwrap.dedent('''
+        """A stage module, re-documented."""
+        from fpkg import helper  # the helper
+
+
+        def run(inputs,
+                params,
+                ctx):
+            """Another docstring entirely."""
+            # a comment
+            return helper.scale( inputs )
+
+
+        def unused_neighbour():
+            return 1
+    '''))
+    assert _fingerprint()[0] == fp0
+
+
+def test_changed_helper_invalidates(temp_package):
+    fp0, _ = _fingerprint()
+    (temp_package / "helper.py").write_text("def scale(x):\n    return x * 3\n")
+    assert _fingerprint()[0] != fp0
+
+
+def test_changed_function_body_invalidates_but_unrelated_neighbour_does_not(temp_package):
+    fp0, _ = _fingerprint()
+    src = (temp_package / "stage.py").read_text()
+    (temp_package / "stage.py").write_text(src.replace("return 1", "return 2"))
+    assert _fingerprint()[0] == fp0, "editing an unrelated function must not invalidate"
+    (temp_package / "stage.py").write_text(src.replace("helper.scale(inputs)", "helper.scale(inputs) + 1"))
+    assert _fingerprint()[0] != fp0
+
+
+def test_fingerprint_independent_of_location(tmp_path, temp_package):
+    fp0, files0 = _fingerprint()
+    assert all(not f.startswith("/") for f, _ in files0)
