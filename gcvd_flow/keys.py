@@ -39,14 +39,20 @@ class EncodingError(TypeError):
 # digests
 
 
+# Below this size BLAKE3's thread pool costs more (spinning, futexes) than it saves.
+_MT_THRESHOLD = 8 << 20
+
+
 def digest_bytes(data: bytes | memoryview) -> str:
     """Hex BLAKE3 digest of a byte string."""
-    return blake3.blake3(data, max_threads=blake3.blake3.AUTO).hexdigest()
+    if len(data) >= _MT_THRESHOLD:
+        return blake3.blake3(data, max_threads=blake3.blake3.AUTO).hexdigest()
+    return blake3.blake3(data).hexdigest()
 
 
 def digest_file(path: str | Path, chunk: int = 1 << 22) -> str:
     """Hex BLAKE3 digest of a file's bytes, streamed in 4 MiB chunks."""
-    h = blake3.blake3(max_threads=blake3.blake3.AUTO)
+    h = blake3.blake3()
     with open(path, "rb") as f:
         while True:
             block = f.read(chunk)

@@ -380,6 +380,7 @@ class Runner:
                        "seconds": round(time.perf_counter() - t0, 6)}
                 if stage.nondeterministic:
                     rec["nondeterministic"] = stage.nondeterministic
+                self.store.sync()
                 self.store.put_record(key, rec)
                 ckpt.discard()
                 rep.executed = 1
@@ -433,6 +434,7 @@ class Runner:
         rec = {"record_kind": "stage", "stage": stage.name, "key": key, "outputs": out,
                "objects": enc.objects, "children": item_keys, "fields": _jsonable_fields(f),
                "seconds": round(time.perf_counter() - t0, 6)}
+        self.store.sync()
         self.store.put_record(key, rec)
         self._outputs[stage.name] = out
         self._items[stage.name] = list(outputs)  # type: ignore[arg-type]
