@@ -281,7 +281,8 @@ class Store:
     # ---------------------------------------------------------------- runs and gc
 
     def add_run(self, run: dict[str, Any]) -> str:
-        run_id = f"{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}-{uuid.uuid4().hex[:8]}"
+        # nanosecond prefix: runs sort by start order even within one second
+        run_id = f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}"
         path = self.root / "runs" / f"{run_id}.json"
         tmp = self._tmp_file()
         tmp.write_bytes(canonical_json(run))
