@@ -75,9 +75,11 @@ def open_store(cache: str | None, verify: bool = True) -> Store:
         raise UsageError(f"cannot use cache directory {root}: {exc.strerror}") from None
 
 
-def _prepare(inv: Invocation, log: Callable[[str], None]) -> tuple[PipelineSpec, Any, Runner]:
+def _prepare(inv: Invocation, log: Callable[[str], None], target: str | None = None) -> tuple[PipelineSpec, Any, Runner]:
     spec = load_spec(inv.pipeline)
     config = build_config(spec.config_model, spec.profiles, inv.profile, inv.config_file, inv.sets)
+    if target is not None:
+        spec.pipeline.get(target)  # unknown stage -> one clear line
     if inv.input is None:
         raise UsageError("no INPUT given")
     source = spec.open_source(inv.input, config) if spec.open_source else None
@@ -117,7 +119,7 @@ def _previous_stages(out: str | None) -> dict[str, Any] | None:
 def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None) -> dict[str, Any]:
     """Run the pipeline, export results into ``inv.out``; returns the --json document."""
     t0 = time.perf_counter()
-    spec, config, runner = _prepare(inv, log)
+    spec, config, runner = _prepare(inv, log, target)
     try:
         reports = runner.run(target)
     except CorruptObject as exc:

@@ -45,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run the pipeline on a video / folder; results in RUN_DIR")
     _add_run_args(p)
+    p.add_argument("--until", metavar="STAGE", help="stop after STAGE (and what it needs)")
     p = sub.add_parser("plan", help="dry run: which stages would run, and why")
     _add_run_args(p)
     p.set_defaults(out_required=False)
@@ -102,7 +103,7 @@ def _print_json(doc: Any) -> None:
 
 def dispatch(a: argparse.Namespace) -> int:
     if a.cmd == "run":
-        res = api.run(_invocation(a))
+        res = api.run(_invocation(a), target=a.until)
         if a.json_mode:
             _print_json(res)
         else:
@@ -188,7 +189,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except Exception:  # noqa: BLE001 - last resort: an internal error, with its traceback
+    except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback
+        if getattr(exc, "user_error", False):  # bad input found inside a stage
+            print(f"gcvd-flow: error: {exc}", file=sys.stderr)
+            return 2
         traceback.print_exc()
         print("gcvd-flow: internal error (this is a bug; the traceback is above)", file=sys.stderr)
         return 1

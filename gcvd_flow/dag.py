@@ -50,7 +50,14 @@ class ExternalRef:
     loader: Any  # picklable callable () -> value
 
 
-Ref = ItemRef | PartRef | ExternalRef
+@dataclass(frozen=True)
+class Const:
+    """A small JSON-able value handed to an item (keyed by its canonical encoding)."""
+
+    value: Any
+
+
+Ref = ItemRef | PartRef | ExternalRef | Const
 
 
 class Loader(Protocol):
@@ -65,7 +72,7 @@ class Stage:
     name: str
     fn: Callable[..., Any]
     deps: tuple[str, ...] = ()
-    params: str | None = None  # config section holding this stage's parameters
+    params: str | tuple[str, ...] | None = None  # config section(s) of this stage's parameters
     kind: str = "generic"  # artifact schema kind of the output
     version: int = 0  # bump to force invalidation without a code change
     description: str = ""
@@ -82,6 +89,7 @@ class Stage:
 class MapStage(Stage):
     items: Callable[["DepsView", Any], list[dict[str, Ref]]] = None  # type: ignore[assignment]
     summary: Callable[["DepsView", Any], Any] | None = None
+    summary_kind: str | None = None  # schema of the summary (e.g. "camera")
     # Parameters that choose *which* items exist (start/end/stride) rather than how one is
     # computed: they are left out of item keys so that a trimmed clip re-uses its items.
     selection_params: tuple[str, ...] = ()
@@ -114,7 +122,9 @@ class Pipeline:
         for s in self.stages:
             if s.name == name:
                 return s
-        raise PipelineError(f"unknown stage {name!r}; stages: {', '.join(self.names())}")
+        from .errors import UsageError
+
+        raise UsageError(f"unknown stage {name!r}; stages: {', '.join(self.names())}")
 
     def descendants(self, name: str) -> list[str]:
         out: set[str] = {name}

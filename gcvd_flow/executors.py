@@ -22,7 +22,8 @@ from .store import Store
 @dataclass
 class ResolvedRef:
     """An item input: ``how`` is 'artifact' (a manifest digest), 'tree' (a JSON sub-tree of
-    another artifact, decoded on load) or 'external' (``loader()`` gives the value)."""
+    another artifact, decoded on load), 'const' (the payload itself) or 'external'
+    (``loader()`` gives the value)."""
 
     how: str
     digest: str
@@ -33,6 +34,8 @@ class ResolvedRef:
             return load_value(store, self.digest)
         if self.how == "tree":
             return decode_tree(store, self.payload)
+        if self.how == "const":
+            return self.payload
         return self.payload()
 
 

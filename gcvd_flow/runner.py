@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from . import keys
-from .artifacts import Encoder, Tensors, decode_tree, is_leaf, load_manifest, load_value
-from .dag import DepsView, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
+from .artifacts import Encoder, Tensors, decode_tree, is_leaf, load_manifest, load_value, validate
+from .dag import Const, DepsView, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
 from .errors import UsageError
 from .executors import InProcessExecutor, ItemTask, ResolvedRef, make_executor
 from .store import Store
@@ -161,6 +161,21 @@ def params_for_key(params: Any) -> Any:
     return params
 
 
+class ParamBundle:
+    """Several config sections seen by one stage: ``bundle.depth.mesh``; keyed as a dict."""
+
+    def __init__(self, sections: dict[str, Any]):
+        self._sections = sections
+        for k, v in sections.items():
+            setattr(self, k, v)
+
+    def key_dict(self) -> dict[str, Any]:
+        return {k: params_for_key(v) for k, v in self._sections.items()}
+
+    def __reduce__(self):  # picklable for worker processes
+        return (ParamBundle, (self._sections,))
+
+
 class _View:
     """The DepsView handed to ``items`` and ``summary`` functions."""
 
@@ -201,6 +216,8 @@ class Runner:
     def stage_params(self, stage: Stage) -> Any:
         if stage.params is None:
             return None
+        if isinstance(stage.params, tuple):  # a stage reading several config sections
+            return ParamBundle({name: getattr(self.config, name) for name in stage.params})
         return getattr(self.config, stage.params)
 
     def _manifest(self, stage: str) -> dict[str, Any]:
@@ -263,6 +280,8 @@ class Runner:
             return ResolvedRef("tree", digest, node)
         if isinstance(ref, ExternalRef):
             return ResolvedRef("external", ref.digest, ref.loader)
+        if isinstance(ref, Const):
+            return ResolvedRef("const", keys.key_of(ref.value), ref.value)
         raise TypeError(f"unknown reference {ref!r}")
 
     def _input_digests(self, stage: Stage) -> dict[str, str] | None:
@@ -288,7 +307,7 @@ class Runner:
                 rep.reasons.append(f"upstream will run: {', '.join(waiting)}")
                 f = self._key_fields(stage, {d: self._outputs.get(d) for d in stage.deps})
                 if prev_fields:
-                    rep.reasons.extend(r for r in diff_fields(prev_fields, f, stage.params) if not r.startswith("input "))
+                    rep.reasons.extend(r for r in diff_fields(prev_fields, f, stage.params if isinstance(stage.params, str) else None) if not r.startswith("input "))
                 out.append(rep)
                 continue
             f = self._key_fields(stage, ins)
@@ -304,7 +323,7 @@ class Runner:
                 continue
             rep.action = "run"
             if prev_fields:
-                rep.reasons.extend(diff_fields(prev_fields, f, stage.params))
+                rep.reasons.extend(diff_fields(prev_fields, f, stage.params if isinstance(stage.params, str) else None))
             elif previous is None or stage.name not in (previous or {}):
                 rep.reasons.append("no previous run of this stage")
             if stage.is_map:
@@ -429,8 +448,10 @@ class Runner:
         finally:
             prog.close()
         enc = Encoder(self.store)
-        out = enc.manifest(f"map:{stage.kind}", None, items=outputs,
-                           summary=enc.tree(summary) if summary is not None else None)
+        summary_tree = enc.tree(summary) if summary is not None else None
+        if summary_tree is not None and stage.summary_kind:
+            validate(stage.summary_kind, summary_tree)
+        out = enc.manifest(f"map:{stage.kind}", None, items=outputs, summary=summary_tree)
         rec = {"record_kind": "stage", "stage": stage.name, "key": key, "outputs": out,
                "objects": enc.objects, "children": item_keys, "fields": _jsonable_fields(f),
                "seconds": round(time.perf_counter() - t0, 6)}

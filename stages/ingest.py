@@ -1,0 +1,82 @@
+"""Ingest: source frames to the working resolution, and the camera at that resolution.
+
+Default intrinsics guess (no ``--intrinsics``): the GCVD authors' f = 300 px at a 384 px long
+side, i.e. f = 0.78125 * long side (a 65.2 degree horizontal field of view for landscape
+video), principal point at the image centre. It is recorded in the ``camera`` artifact with
+``guessed = true`` and printed, because a wrong focal length biases depth and poses.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+DEFAULT_FOCAL_PER_LONG_SIDE = 300.0 / 384.0
+
+
+class FrameError(ValueError):
+    """A frame of the user's input is unusable (the CLI reports it as bad input, exit 2)."""
+
+    user_error = True
+
+
+def working_size(src_w: int, src_h: int, long_side: int | None) -> tuple[int, int]:
+    """(w, h) with the long side scaled to ``long_side`` (None or 0: keep), even numbers."""
+    if not long_side or long_side >= max(src_w, src_h):
+        return src_w, src_h
+    s = long_side / max(src_w, src_h)
+    w = max(2, int(round(src_w * s / 2)) * 2)
+    h = max(2, int(round(src_h * s / 2)) * 2)
+    return w, h
+
+
+def prepare_frame(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize a source frame uint8 (H0, W0, 3) RGB to ``size`` = (w, h) (area filter)."""
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+    if rgb.shape[2] == 4:
+        rgb = rgb[..., :3]
+    w, h = size
+    if (rgb.shape[1], rgb.shape[0]) == (w, h):
+        return np.ascontiguousarray(rgb, dtype=np.uint8)
+    return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def parse_intrinsics(text: str) -> tuple[float, float, float, float]:
+    """'fx,fy,cx,cy' (commas or spaces) -> floats; ValueError naming the problem."""
+    parts = [p for p in text.replace(",", " ").split() if p]
+    if len(parts) != 4:
+        raise ValueError(f"intrinsics {text!r}: expected 4 numbers fx,fy,cx,cy")
+    try:
+        vals = tuple(float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"intrinsics {text!r}: not numbers") from None
+    if vals[0] <= 0 or vals[1] <= 0 or not all(np.isfinite(vals)):
+        raise ValueError(f"intrinsics {text!r}: focal lengths must be positive and finite")
+    return vals  # type: ignore[return-value]
+
+
+def make_camera(src_w: int, src_h: int, work_w: int, work_h: int,
+                intrinsics: tuple[float, float, float, float] | None,
+                intrinsics_origin: str = "user") -> dict[str, Any]:
+    """Camera at working resolution. ``intrinsics`` are at the *source* resolution.
+
+    Returns {K: (3,3) float64, width, height, source_width, source_height, guessed, origin}.
+    Scaling uses pixel-centre coordinates: c' = (c + 0.5) * s - 0.5.
+    """
+    sx, sy = work_w / src_w, work_h / src_h
+    if intrinsics is None:
+        f = DEFAULT_FOCAL_PER_LONG_SIDE * max(work_w, work_h)
+        fx = fy = f
+        cx, cy = (work_w - 1) / 2.0, (work_h - 1) / 2.0
+        origin = "guess: f = 300/384 * long side (GCVD authors), centred principal point"
+    else:
+        fx0, fy0, cx0, cy0 = intrinsics
+        fx, fy = fx0 * sx, fy0 * sy
+        cx, cy = (cx0 + 0.5) * sx - 0.5, (cy0 + 0.5) * sy - 0.5
+        origin = intrinsics_origin
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+    return {"K": K, "width": int(work_w), "height": int(work_h), "source_width": int(src_w),
+            "source_height": int(src_h), "guessed": intrinsics is None, "origin": origin}

@@ -1,0 +1,309 @@
+"""The GCVD stages as the engine calls them: ``fn(inputs, params, ctx) -> value``.
+
+Each function here is a thin adapter: it unpacks the inputs the pipeline declared
+(gcvd_flow/pipeline.py says which upstream pieces each stage or item reads), calls the
+algorithm in the other ``stages`` modules, and returns arrays / JSON. No file I/O: model
+weights named by a parameter are read through ``_cached_model`` only, whose loaders live in
+``stages.backends`` (and whose *content digest*, not path, is in the cache key).
+
+Array conventions are those of docs/CONTRACT.md (frames uint8 RGB, flows (H, W, 2) px,
+poses camera-to-world 4x4, depth float32 metres up to one global scale).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+
+from stages import ingest as ingest_mod
+
+# ------------------------------------------------------------------------------- helpers
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_model(kind: str, path: str) -> Any:
+    """Load weights once per process (items of a map stage share the model)."""
+    if kind == "raft":
+        from stages.backends.raft import load_raft
+
+        return load_raft(path)
+    if kind == "midas":
+        from stages.backends.midas import load_midas
+
+        return load_midas(path)
+    if kind == "resnet18":
+        from stages.backends.resnet import load_resnet18
+
+        return load_resnet18(path)
+    raise ValueError(f"unknown model kind {kind!r}")
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(np.asarray(T, np.float64))
+
+
+# ------------------------------------------------------------------------------- ingest
+
+
+def ingest_frame(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Source frame -> working resolution. Output {image: uint8 (h, w, 3) RGB (PNG)}."""
+    rgb = inputs["frame"]
+    src_w, src_h = inputs["source_size"]
+    if (rgb.shape[1], rgb.shape[0]) != (src_w, src_h):
+        raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
+                         f"the first frame's {src_w}x{src_h}")
+    size = ingest_mod.working_size(src_w, src_h, p.long_side)
+    return {"image": ingest_mod.prepare_frame(rgb, size)}
+
+
+# ------------------------------------------------------------------------------- flow
+
+
+def flow_pair(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Adjacent pair (i, i+1) -> {fwd, bwd (H, W, 2) float32 px, fwd_valid, bwd_valid bool}."""
+    from stages import flow
+
+    model = _cached_model("raft", p.weights) if p.backend == "raft" else None
+    return flow.compute_pair_flow(inputs["a"]["image"], inputs["b"]["image"], backend=p.backend,
+                                  preset=p.preset, fb_thresh=p.fb_thresh, model=model)
+
+
+# ------------------------------------------------------------------------------- masks
+
+
+def static_mask(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {static: uint8 (H, W), 1 = static}, from its flows to i-1 and i+1."""
+    from stages import masks
+
+    neighbours = []
+    if "next" in inputs:
+        neighbours.append((inputs["next"]["fwd"], inputs["next"]["fwd_valid"]))
+    if "prev" in inputs:
+        neighbours.append((inputs["prev"]["bwd"], inputs["prev"]["bwd_valid"]))
+    if p.backend == "none":
+        h, w = neighbours[0][0].shape[:2]
+        return {"static": np.ones((h, w), np.uint8)}
+    return {"static": masks.motion_static_mask(np.asarray(inputs["K"]), neighbours, dilate=p.dilate)}
+
+
+# ------------------------------------------------------------------------------- priors
+
+
+def depth_prior(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {inv_depth float32 (H, W) median 1, confidence float32 (H, W)}."""
+    from stages import priors
+
+    image = inputs["image"]["image"]
+    if p.backend == "midas":
+        from stages.backends.midas import midas_prior
+
+        inv = midas_prior(_cached_model("midas", p.weights), image)
+        return {"inv_depth": inv.astype(np.float32), "confidence": np.ones_like(inv, np.float32)}
+    direction = inputs["direction"]
+    chain = []
+    for k in range(len([n for n in inputs if n.startswith("chain")])):
+        fl = inputs[f"chain{k:02d}"]
+        chain.append((fl["fwd"], fl["fwd_valid"]) if direction == "fwd" else (fl["bwd"], fl["bwd_valid"]))
+    out = priors.geometric_prior(image, np.asarray(inputs["K"]), chain)
+    return {"inv_depth": out["inv_depth"].astype(np.float32),
+            "confidence": out["confidence"].astype(np.float32)}
+
+
+# ------------------------------------------------------------------------------- keyframes
+
+
+def select_keyframes(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """All frames -> {indices, accumulated, threshold_px, motion} (JSON)."""
+    from stages import keyframes
+
+    flows, masks_ = inputs["flow"], inputs["masks"]
+    n = len(masks_)
+    motion = [keyframes.pair_motion(flows[i]["fwd"], flows[i]["fwd_valid"], masks_[i]["static"])
+              for i in range(n - 1)]
+    h, w = masks_[0]["static"].shape
+    if not p.enabled:  # ablation "w/o keyframes": every frame is a keyframe
+        return {"indices": list(range(n)), "accumulated": [0.0] * n, "threshold_px": 0.0,
+                "motion": motion, "enabled": False}
+    sel = keyframes.select_keyframes(np.asarray(motion), h, w, delta=p.delta, max_gap=p.max_gap)
+    return {"indices": [int(i) for i in sel["indices"]],
+            "accumulated": [float(a) for a in sel["accumulated"]],
+            "threshold_px": float(sel["threshold_px"]), "motion": [float(m) for m in motion],
+            "enabled": True}
+
+
+# ------------------------------------------------------------------------------- association
+
+
+def associate(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Keyframes -> {graph (JSON), edge_flows [{i, j, fwd, bwd, fwd_valid, bwd_valid}]}."""
+    from stages import association
+
+    kf = inputs["keyframes"]["indices"]
+    frames = inputs["ingest"]
+    K = np.asarray(frames.summary["K"])
+    images = [frames[i]["image"] for i in kf]
+    kw: dict[str, Any] = dict(nms=p.nms, min_separation=p.min_separation,
+                              min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent)
+    if p.threshold is not None:
+        kw["similarity_threshold"] = p.threshold
+    if p.backend == "resnet18":
+        from stages.backends.resnet import resnet_descriptor
+
+        model = _cached_model("resnet18", p.weights)
+        kw["descriptor_fn"] = lambda img: resnet_descriptor(model, img)
+    if not p.enabled:
+        kw["descriptors"] = np.eye(len(kf), dtype=np.float32)  # nothing similar: no loop edges
+        kw["similarity_threshold"] = 2.0
+    graph, edge_flows = association.build_graph(kf, images, K, inputs["keyframes"]["threshold_px"] or 1e9, **kw)
+    flows_out = [{"i": int(a), "j": int(b), **{k: v for k, v in fl.items() if k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}}
+                 for (a, b), fl in sorted(edge_flows.items())]
+    return {"graph": graph, "edge_flows": flows_out}
+
+
+# ------------------------------------------------------------------------------- optimisation
+
+# Config section -> OptimizeParams field names, for fields whose names differ.
+_SECTION_FIELDS = {
+    "optimize_edges": {"steps": "edge_steps", "lr": "edge_lr"},
+    "optimize_segments": {"steps": "seg_steps", "lr": "seg_lr", "loss_scale": "seg_loss_scale",
+                          "pair_power": "seg_pair_power", "grad_mult": "seg_grad_mult",
+                          "window": "seg_window"},
+}
+
+
+def optimize_params(bundle: Any) -> dict[str, Any]:
+    """Flatten the config sections a stage reads into ``stages.optimize.OptimizeParams`` fields."""
+    import dataclasses
+
+    from stages.optimize import OptimizeParams
+
+    known = {f.name for f in dataclasses.fields(OptimizeParams)}
+    out: dict[str, Any] = {}
+    for section in ("depth", "losses", "optimize_keyframes", "optimize_edges", "optimize_segments"):
+        model = getattr(bundle, section, None)
+        if model is None:
+            continue
+        rename = _SECTION_FIELDS.get(section, {})
+        for k, v in model.model_dump().items():
+            name = rename.get(k, k)
+            if name in known:
+                out[name] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
+def _stack(items: Any, indices: list[int], field: str) -> np.ndarray:
+    return np.stack([np.asarray(items[i][field]) for i in indices])
+
+
+def _flow_dict(fl: dict[str, Any]) -> dict[str, np.ndarray]:
+    return {k: np.asarray(fl[k]) for k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}
+
+
+def optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """Keyframe windows -> {keyframes, poses (K,4,4) c2w, depths [K x (H,W)], rel_poses, state}."""
+    from stages import optimize
+
+    kf = list(inputs["keyframes"]["indices"])
+    frames = inputs["ingest"]
+    pos = {f: k for k, f in enumerate(kf)}
+    pair_flows = {}
+    for e in inputs["association"]["edge_flows"]:
+        a, c = pos.get(e["i"]), pos.get(e["j"])
+        if a is not None and c is not None and c == a + 1:
+            pair_flows[(a, c)] = _flow_dict(e)
+    missing = [k for k in range(len(kf) - 1) if (k, k + 1) not in pair_flows]
+    if missing:
+        raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
+    res = optimize.optimize_keyframes(
+        _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
+        _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
+        params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer)
+    return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
+            "depths": [np.asarray(d, np.float32) for d in res["depths"]],
+            "rel_poses": [{"a": int(r["a"]), "b": int(r["b"]), "tau": int(r["tau"]),
+                           "T": np.asarray(r["T"], np.float64)} for r in res["rel_poses"]],
+            "state": {k: np.asarray(v) for k, v in res["state"].items()}}
+
+
+def optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """Verified non-sequential keyframe pairs -> {edges: [{a, b, i, j, T_ab, loss}]}.
+
+    T_ab follows stages.optimize (camera a -> camera b coordinates, inv(P_b) @ P_a).
+    """
+    from stages import optimize
+
+    okf = inputs["optimize_keyframes"]
+    kf = list(okf["keyframes"])
+    pos = {f: k for k, f in enumerate(kf)}
+    P = np.asarray(okf["poses"])
+    frames, priors_, masks_ = inputs["ingest"], inputs["priors"], inputs["masks"]
+    K = np.asarray(frames.summary["K"])
+    flows = {(e["i"], e["j"]): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
+    params = optimize_params(b)
+    edges = []
+    for n, e in enumerate(inputs["association"]["graph"].get("nonsequential_edges", [])):
+        i, j = int(e["i"]), int(e["j"])
+        a, c = pos[i], pos[j]
+        res = optimize.optimize_edge(
+            frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
+            masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(P[c]) @ P[a],
+            params=params, seed=ctx.seed + n)
+        edges.append({"a": a, "b": c, "i": i, "j": j, "T_ab": np.asarray(res["T_ab"], np.float64),
+                      "loss": float(res["loss"])})
+    return {"edges": edges}
+
+
+def pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Keyframe poses + sequential and loop edges -> globally consistent keyframe poses."""
+    from stages import pose_graph as pg
+
+    okf = inputs["optimize_keyframes"]
+    P = np.asarray(okf["poses"], np.float64)
+    if not p.enabled or len(P) < 2:
+        return {"poses": P, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
+    # stages.optimize gives T = inv(P_b) @ P_a; the pose graph measures inv(P_a) @ P_b.
+    edges = [{"a": r["a"], "b": r["b"], "T_ab": _inv(r["T"]), "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
+    edges += [{"a": e["a"], "b": e["b"], "T_ab": _inv(e["T_ab"]), "weight": p.loop_weight}
+              for e in inputs["optimize_edges"]["edges"]]
+    res = pg.optimize_pose_graph(P, edges, kind=p.kind, max_iterations=p.max_iterations)
+    return {"poses": np.asarray(res["poses"], np.float64), "enabled": True,
+            "iterations": int(res["iterations"]), "initial_error": float(res["initial_error"]),
+            "final_error": float(res["final_error"])}
+
+
+def optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """All frames with keyframe poses frozen -> {poses (N,4,4) c2w, depths [N x (H,W)]}."""
+    from stages import optimize
+
+    frames, flows = inputs["ingest"], inputs["flow"]
+    n = len(frames)
+    idx = list(range(n))
+    okf = inputs["optimize_keyframes"]
+    res = optimize.optimize_segments(
+        _stack(frames, idx, "image"), _stack(inputs["priors"], idx, "inv_depth"),
+        _stack(inputs["masks"], idx, "static"), np.asarray(frames.summary["K"]),
+        [_flow_dict(flows[i]) for i in range(n - 1)], list(okf["keyframes"]),
+        np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
+        params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
+    return {"poses": np.asarray(res["poses"], np.float64),
+            "depths": [np.asarray(d, np.float32) for d in res["depths"]]}
+
+
+# ------------------------------------------------------------------------------- depth filter
+
+
+def filter_depth(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W)}."""
+    from stages import depth_filter
+
+    m = len([k for k in inputs if k.startswith("d")])
+    depths = np.stack([inputs[f"d{k:02d}"] for k in range(m)])
+    center = int(inputs["center"])
+    if not p.enabled or m == 1:
+        return {"depth": depths[center].astype(np.float32)}
+    fwd = np.stack([inputs[f"f{k:02d}"]["fwd"] for k in range(m - 1)])
+    bwd = np.stack([inputs[f"f{k:02d}"]["bwd"] for k in range(m - 1)])
+    out = depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border)
+    return {"depth": np.asarray(out, np.float32)}
