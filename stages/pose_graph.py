@@ -1,0 +1,182 @@
+"""Keyframe pose-graph optimisation with gtsam Levenberg-Marquardt (DESIGN §5.9).
+
+Nodes are keyframe camera-to-world poses. Each edge (a, b) carries a measured relative pose
+``T_ab = inv(pose_a) @ pose_b`` (frame b expressed in camera a) and an information weight:
+sequential edges at distance tau have weight 1/tau, verified non-sequential (loop) edges 1.
+The information matrix of an edge is ``weight * I`` (noise sigma = 1/sqrt(weight)) over the
+tangent space (6-D for SE(3), 7-D for Sim(3)). The ``fixed`` keyframe gets a tight prior so
+the gauge (and, for Sim(3), the global scale) is pinned.
+
+Sim(3) convention. Node k is the similarity S_k = [s_k R_k | t_k] mapping camera-k coordinates
+in the *local* depth units of keyframe k to world: x_w = s_k R_k x_c + t_k. The relative
+measurement S_ab = inv(S_a) @ S_b = [(s_b/s_a) R_ab | t_ab] has its translation in a's local
+units and scale ratio s_ab = s_b/s_a; edges produced inside one optimisation window share one
+scale (s_ab = 1, the default) while a loop edge may report the scale ratio it observed. Monocular
+scale drift then shows up as an inconsistency that only Sim(3) nodes can absorb. The returned
+``poses`` are rigid (R_k, t_k) and ``scales`` holds s_k (all 1 for SE(3)).
+
+gtsam's Similarity3(R, t, s) has matrix [R t; 0 1/s], i.e. the projective equivalent of
+[sR st; 0 1]; helpers below convert so that gtsam's compose/between equal our 4x4 products.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Literal, TypedDict
+
+import gtsam
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MAX_ITERATIONS: int = 100
+PRIOR_SIGMA: float = 1e-6
+
+
+class PoseGraphResult(TypedDict):
+    poses: np.ndarray  # (K, 4, 4) float64 c2w, rigid
+    scales: np.ndarray  # (K,) float64, Sim(3) node scales (1 for SE(3))
+    initial_error: float
+    final_error: float
+    iterations: int
+
+
+def _sim3_from_matrix(m: np.ndarray) -> gtsam.Similarity3:
+    """[sR | t] (4x4, bottom row 0 0 0 1) -> gtsam.Similarity3 acting identically."""
+    a = np.asarray(m, dtype=np.float64)[:3, :3]
+    s = float(np.cbrt(np.linalg.det(a)))
+    r = a / s
+    # Re-orthonormalise: accumulated float error would make Rot3 reject / drift the matrix.
+    u, _, vt = np.linalg.svd(r)
+    r = u @ vt
+    t = np.asarray(m, dtype=np.float64)[:3, 3]
+    return gtsam.Similarity3(gtsam.Rot3(r), t / s, s)
+
+
+def _matrix_from_sim3(s3: gtsam.Similarity3) -> tuple[np.ndarray, float]:
+    """gtsam.Similarity3 -> (rigid 4x4 [R | t_world], scale s) in our convention."""
+    s = float(s3.scale())
+    r = s3.rotation().matrix()
+    t = np.asarray(s3.translation(), dtype=np.float64).reshape(3) * s
+    out = np.eye(4)
+    out[:3, :3] = r
+    out[:3, 3] = t
+    return out, s
+
+
+def _pose3(m: np.ndarray) -> gtsam.Pose3:
+    m = np.asarray(m, dtype=np.float64)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    return gtsam.Pose3(gtsam.Rot3(u @ vt), m[:3, 3].copy())
+
+
+def edge_measurement(pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
+    """T_ab = inv(pose_a) @ pose_b (4, 4) for c2w poses: the edge measurement of this module.
+
+    Note: the inverse of ``stages.geometry_np.relative_pose(pose_a, pose_b)`` (= T_b<-a).
+    """
+    return np.linalg.inv(np.asarray(pose_a, np.float64)) @ np.asarray(pose_b, np.float64)
+
+
+def optimize_pose_graph(
+    init_poses: np.ndarray,
+    edges: list[dict[str, Any]],
+    kind: Literal["se3", "sim3"] = "se3",
+    fixed: int = 0,
+    max_iterations: int = MAX_ITERATIONS,
+) -> PoseGraphResult:
+    """Optimise keyframe poses.
+
+    Args:
+        init_poses: (K, 4, 4) float64 c2w initial keyframe poses.
+        edges: dicts with ``a``, ``b`` (node indices 0..K-1), ``T_ab`` (4, 4) measured
+            relative pose inv(pose_a) @ pose_b, ``weight`` (information multiplier), and for
+            ``kind="sim3"`` optionally ``s_ab`` (scale ratio s_b/s_a, default 1). Instead of
+            ``T_ab`` an edge may carry ``T_b_from_a`` = inv(pose_b) @ pose_a, the convention of
+            ``stages.optimize`` (``rel_poses[*]["T"]``, ``optimize_edge(...)["T_ab"]``) and
+            ``stages.geometry_np.relative_pose``; it is inverted here so glue code cannot mix
+            the two up silently.
+        kind: "se3" (paper) or "sim3" (absorbs monocular scale drift).
+        fixed: node pinned by a tight prior at its initial pose (and scale 1).
+        max_iterations: LM iteration cap (paper/DESIGN: 100).
+
+    Returns:
+        dict(poses (K, 4, 4) c2w, scales (K,), initial_error, final_error, iterations), errors
+        being gtsam's total factor-graph error 0.5 * sum of squared whitened residuals.
+    """
+    init = np.asarray(init_poses, dtype=np.float64)
+    if init.ndim != 3 or init.shape[1:] != (4, 4):
+        raise ValueError(f"init_poses must be (K, 4, 4), got {init.shape}")
+    n = init.shape[0]
+    if not 0 <= fixed < n:
+        raise ValueError(f"fixed node {fixed} outside 0..{n - 1}")
+    if kind not in ("se3", "sim3"):
+        raise ValueError(f"kind must be 'se3' or 'sim3', got {kind!r}")
+    sim = kind == "sim3"
+    dim = 7 if sim else 6
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k in range(n):
+        if sim:
+            values.insert(k, _sim3_from_matrix(init[k]))
+        else:
+            values.insert(k, _pose3(init[k]))
+
+    prior_noise = gtsam.noiseModel.Isotropic.Sigma(dim, PRIOR_SIGMA)
+    if sim:
+        graph.add(gtsam.PriorFactorSimilarity3(fixed, _sim3_from_matrix(init[fixed]), prior_noise))
+    else:
+        graph.add(gtsam.PriorFactorPose3(fixed, _pose3(init[fixed]), prior_noise))
+
+    for e in edges:
+        a, b = int(e["a"]), int(e["b"])
+        if not (0 <= a < n and 0 <= b < n) or a == b:
+            raise ValueError(f"bad edge ({a}, {b}) for {n} nodes")
+        weight = float(e.get("weight", 1.0))
+        if not weight > 0:
+            raise ValueError(f"edge ({a}, {b}) weight must be > 0, got {weight}")
+        noise = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / np.sqrt(weight))
+        if ("T_ab" in e) == ("T_b_from_a" in e):
+            raise ValueError(f"edge ({a}, {b}) needs exactly one of T_ab, T_b_from_a")
+        if "T_ab" in e:
+            t_ab = np.asarray(e["T_ab"], dtype=np.float64)
+        else:
+            # stages.optimize / geometry_np convention: inv(P_b) @ P_a, the inverse of ours.
+            t_ab = np.linalg.inv(np.asarray(e["T_b_from_a"], dtype=np.float64))
+        if sim:
+            s_ab = float(e.get("s_ab", 1.0))
+            m = t_ab.copy()
+            u, _, vt = np.linalg.svd(m[:3, :3])
+            m[:3, :3] = s_ab * (u @ vt)
+            graph.add(gtsam.BetweenFactorSimilarity3(a, b, _sim3_from_matrix(m), noise))
+        else:
+            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t_ab), noise))
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(max_iterations))
+    # Fixed ordering choice -> deterministic elimination.
+    params.setOrderingType("COLAMD")
+    initial_error = float(graph.error(values))
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = optimizer.optimize()
+    final_error = float(graph.error(result))
+
+    poses = np.empty_like(init)
+    scales = np.ones(n, dtype=np.float64)
+    for k in range(n):
+        if sim:
+            poses[k], scales[k] = _matrix_from_sim3(result.atSimilarity3(k))
+        else:
+            poses[k] = result.atPose3(k).matrix()
+    log.debug(
+        "pose graph %s: %d nodes, %d edges, error %.4g -> %.4g in %d iterations",
+        kind, n, len(edges), initial_error, final_error, optimizer.iterations(),
+    )
+    return PoseGraphResult(
+        poses=poses,
+        scales=scales,
+        initial_error=initial_error,
+        final_error=final_error,
+        iterations=int(optimizer.iterations()),
+    )
