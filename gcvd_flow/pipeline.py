@@ -12,6 +12,7 @@ sections are pydantic models; ``--set section.key=value`` overrides any field.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any, Literal
 
@@ -214,35 +215,37 @@ def _pairs(view, p):
 
 
 def _mask_items(view, p):
+    # Frame i reads its flow to the previous frame (frame 0: to the next one), never to a
+    # later frame: extending a clip then adds mask items without changing existing ones.
     n = view.len("ingest")
     out = []
     for i in range(n):
         it: dict[str, Any] = {"K": PartRef("ingest", ("K",), summary=True)}
-        if i + 1 < n:
-            it["next"] = ItemRef("flow", i)
         if i > 0:
             it["prev"] = ItemRef("flow", i - 1)
+        else:
+            it["next"] = ItemRef("flow", 0)
         out.append(it)
     return out
 
 
 def _prior_items(view, p: PriorsParams):
+    # Frame i chains flows backward over `span` frames (i -> i-1 -> ... -> i-span); the first
+    # `span` frames chain forward instead. Like the masks, existing items never read later
+    # frames once the clip has 2*span frames, so extending a clip only adds items.
     n = view.len("ingest")
     out = []
     for i in range(n):
         it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
         if p.backend == "geometric":
-            # chain forward toward i+span; frames near the end chain backward instead
-            fwd = min(p.span, n - 1 - i)
-            bwd = min(p.span, i)
-            if fwd >= bwd:
-                it["direction"] = Const("fwd")
-                for k in range(fwd):
-                    it[f"chain{k:02d}"] = ItemRef("flow", i + k)
-            else:
+            if i >= p.span or i >= n - 1 - i:
                 it["direction"] = Const("bwd")
-                for k in range(bwd):
+                for k in range(min(p.span, i)):
                     it[f"chain{k:02d}"] = ItemRef("flow", i - 1 - k)
+            else:
+                it["direction"] = Const("fwd")
+                for k in range(min(p.span, n - 1 - i)):
+                    it[f"chain{k:02d}"] = ItemRef("flow", i + k)
         out.append(it)
     return out
 
@@ -304,6 +307,13 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     if n_sel < 2:
         raise UsageError(f"{path}: ingest selects {n_sel} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
+    intr, origin = _camera_intrinsics(src, p)
+    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
+    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
+    K = cam["K"]
+    note = "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin
+    print(f"camera: {src.layout} input {src.size[0]}x{src.size[1]} -> working {w}x{h}, fx={K[0, 0]:.1f} "
+          f"fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} ({note})", file=sys.stderr)
     return src
 
 

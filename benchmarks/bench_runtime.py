@@ -1,0 +1,73 @@
+"""Per-frame runtime and peak memory on synthetic clips of 50/200/500/1000 frames.
+
+Split like the GCVD paper's Table 4: pre-processing (ingest, flow, masks, priors,
+keyframes, association), main (optimize_keyframes, optimize_edges, pose_graph,
+optimize_segments) and post-processing (depth_filter). Each clip runs cold in a fresh cache
+in its own process; peak memory is that process's max RSS.
+
+    make bench-runtime         # or: .venv/bin/python benchmarks/bench_runtime.py --frames 50 200
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PRE = ("ingest", "flow", "masks", "priors", "keyframes", "association")
+MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "optimize_segments")
+POST = ("depth_filter",)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, nargs="+", default=[50, 200, 500, 1000])
+    ap.add_argument("--size", default="256x192")
+    ap.add_argument("--trajectory", default="loop")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-rt-") as tmp:
+        for n in a.frames:
+            clip = Path(tmp) / f"clip{n}"
+            subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(clip), "--frames", str(n),
+                            "--trajectory", a.trajectory, "--size", a.size], cwd=ROOT, check=True,
+                           capture_output=True)
+            cmd = [sys.executable, "-m", "gcvd_flow", "run", str(clip), "--out", str(Path(tmp) / f"run{n}"),
+                   "--cache", str(Path(tmp) / f"cache{n}"), "--json"]
+            before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+            p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=dict(os.environ, CI="1"))
+            if p.returncode != 0:
+                raise SystemExit(p.stderr[-3000:])
+            peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+            doc = json.loads(p.stdout)
+            secs = {s["name"]: s["seconds"] for s in doc["stages"]}
+            row = {"frames": n, "pre_s_per_frame": sum(secs[k] for k in PRE) / n,
+                   "main_s_per_frame": sum(secs[k] for k in MAIN) / n,
+                   "post_s_per_frame": sum(secs[k] for k in POST) / n,
+                   "total_s_per_frame": doc["seconds"] / n,
+                   # ru_maxrss of children is a running max: only meaningful when it grew
+                   "peak_rss_mb": peak_kb / 1024 if peak_kb > before else None,
+                   "stages": secs}
+            rows.append(row)
+            print(f"{n:5d} frames: pre {row['pre_s_per_frame']:.3f}  main {row['main_s_per_frame']:.3f}  "
+                  f"post {row['post_s_per_frame']:.3f}  total {row['total_s_per_frame']:.3f} s/frame  "
+                  f"peak {row['peak_rss_mb'] or float('nan'):.0f} MB", file=sys.stderr, flush=True)
+    if a.json:
+        print(json.dumps(rows, indent=1))
+        return
+    print(f"\n{'frames':>6} {'pre':>8} {'main':>8} {'post':>8} {'total':>8}  {'peak RSS':>9}   (s per frame, 2 CPU cores)")
+    for r in rows:
+        pk = f"{r['peak_rss_mb']:.0f} MB" if r["peak_rss_mb"] else "n/a"
+        print(f"{r['frames']:6d} {r['pre_s_per_frame']:8.3f} {r['main_s_per_frame']:8.3f} "
+              f"{r['post_s_per_frame']:8.3f} {r['total_s_per_frame']:8.3f}  {pk:>9}")
+
+
+if __name__ == "__main__":
+    main()
