@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -41,19 +40,21 @@ def main() -> None:
                            capture_output=True)
             cmd = [sys.executable, "-m", "gcvd_flow", "run", str(clip), "--out", str(Path(tmp) / f"run{n}"),
                    "--cache", str(Path(tmp) / f"cache{n}"), "--json"]
-            before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-            p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=dict(os.environ, CI="1"))
-            if p.returncode != 0:
-                raise SystemExit(p.stderr[-3000:])
-            peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-            doc = json.loads(p.stdout)
+            out_f, err_f = Path(tmp) / f"out{n}.json", Path(tmp) / f"err{n}.txt"
+            with open(out_f, "w") as fo, open(err_f, "w") as fe:
+                p = subprocess.Popen(cmd, cwd=ROOT, stdout=fo, stderr=fe, env=dict(os.environ, CI="1"))
+                # wait4 gives this child's own peak RSS (KiB on Linux)
+                _, status, usage = os.wait4(p.pid, 0)
+            if os.waitstatus_to_exitcode(status) != 0:
+                raise SystemExit(err_f.read_text()[-3000:])
+            peak_kb = usage.ru_maxrss
+            doc = json.loads(out_f.read_text())
             secs = {s["name"]: s["seconds"] for s in doc["stages"]}
             row = {"frames": n, "pre_s_per_frame": sum(secs[k] for k in PRE) / n,
                    "main_s_per_frame": sum(secs[k] for k in MAIN) / n,
                    "post_s_per_frame": sum(secs[k] for k in POST) / n,
                    "total_s_per_frame": doc["seconds"] / n,
-                   # ru_maxrss of children is a running max: only meaningful when it grew
-                   "peak_rss_mb": peak_kb / 1024 if peak_kb > before else None,
+                   "peak_rss_mb": peak_kb / 1024,
                    "stages": secs}
             rows.append(row)
             print(f"{n:5d} frames: pre {row['pre_s_per_frame']:.3f}  main {row['main_s_per_frame']:.3f}  "
