@@ -144,6 +144,8 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
         os.replace(tmp, out / RUN_FILE)
         result["out"] = str(out)
+    result["cache"] = str(runner.store.root)
+    result["_record_paths"] = [str(runner.store.record_path(r["key"])) for r in stage_records.values() if r["key"]]
     return result
 
 

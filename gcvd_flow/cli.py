@@ -12,7 +12,6 @@ import sys
 import traceback
 from typing import Any, Sequence
 
-from . import api
 from .errors import UsageError
 
 
@@ -85,11 +84,11 @@ def _add_product_commands(sub) -> None:
     product_cli.add_commands(sub)
 
 
-def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | None = None) -> api.Invocation:
-    sets = list(getattr(a, "sets", []) or [])
-    if getattr(a, "intrinsics", None):
-        sets.append(f"ingest.intrinsics={json.dumps(a.intrinsics)}")
-    return api.Invocation(input=input_ if input_ is not None else getattr(a, "input", None),
+def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | None = None):
+    from .api import Invocation
+
+    sets = _all_sets(a)
+    return Invocation(input=input_ if input_ is not None else getattr(a, "input", None),
                           out=out if out is not None else getattr(a, "out", None),
                           config_file=getattr(a, "config_file", None), profile=getattr(a, "profile", None),
                           sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
@@ -101,17 +100,61 @@ def _print_json(doc: Any) -> None:
     print(json.dumps(doc, indent=1, sort_keys=False))
 
 
+def _fast_noop(a: argparse.Namespace) -> dict[str, Any] | None:
+    """`run` whose inputs, code and outputs are untouched since its last run: answer at once."""
+    from . import fastpath
+    from .paths import default_cache_dir
+
+    if not a.out:
+        return None
+    cache = a.cache or str(default_cache_dir())
+    return fastpath.check(a.out, stamp_invocation(a), cache)
+
+
+def _all_sets(a: argparse.Namespace) -> list[str]:
+    sets = list(getattr(a, "sets", []) or [])
+    if getattr(a, "intrinsics", None):
+        sets.append(f"ingest.intrinsics={json.dumps(a.intrinsics)}")
+    return sets
+
+
+def stamp_invocation(a: argparse.Namespace) -> dict[str, Any]:
+    """The parts of a `run` invocation that decide its result (not --jobs, --json, ...)."""
+    import os
+
+    return {"input": os.path.abspath(a.input), "pipeline": a.pipeline, "until": a.until,
+            "config_file": os.path.abspath(a.config_file) if a.config_file else None,
+            "profile": a.profile, "sets": _all_sets(a)}
+
+
+def _print_run(res: dict[str, Any], json_mode: bool) -> None:
+    if json_mode:
+        _print_json(res)
+        return
+    for s in res["stages"]:
+        print(f"{s['name']:<20} executed {s['executed']:>5}  cached {s['cached']:>5}  {s['seconds']:8.2f} s")
+    for k, v in (res.get("outputs") or {}).items():
+        print(f"{k}: {v}")
+
+
 def dispatch(a: argparse.Namespace) -> int:
     if a.cmd == "run":
+        res = _fast_noop(a)
+        if res is not None:
+            _print_run(res, a.json_mode)
+            return 0
+        from . import api
+
         res = api.run(_invocation(a), target=a.until)
-        if a.json_mode:
-            _print_json(res)
-        else:
-            for s in res["stages"]:
-                print(f"{s['name']:<20} executed {s['executed']:>5}  cached {s['cached']:>5}  {s['seconds']:8.2f} s")
-            for k, v in (res.get("outputs") or {}).items():
-                print(f"{k}: {v}")
+        record_paths = res.pop("_record_paths")
+        if a.out:
+            from . import fastpath
+
+            fastpath.write(a.out, stamp_invocation(a), res["cache"], res, record_paths)
+        _print_run(res, a.json_mode)
         return 0
+    from . import api
+
     if a.cmd == "plan":
         reps = api.plan(_invocation(a))
         if a.json_mode:

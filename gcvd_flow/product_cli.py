@@ -11,8 +11,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .errors import UsageError
 
 
@@ -77,6 +75,7 @@ def cmd_synth(a: argparse.Namespace) -> int:
 
 def _load_gt(gt: Path) -> dict[str, Any]:
     """Ground truth of a dataset folder: {poses (M,4,4) c2w by source frame, depth_files, scale}."""
+    import numpy as np  # noqa: F401 - heavy imports stay out of CLI start-up
     from .datasets import read_redwood_log, read_tum_poses
 
     if not gt.exists():
@@ -104,6 +103,7 @@ def _load_gt(gt: Path) -> dict[str, Any]:
 def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -> dict[str, Any]:
     """ATE / RPE of poses.txt and depth errors of depth/*.npy against a ground-truth folder."""
     import cv2
+    import numpy as np
 
     from stages import metrics
 
@@ -188,6 +188,7 @@ def cmd_demo(a: argparse.Namespace) -> int:
     inv = api.Invocation(input=str(clip_dir), out=str(out / "run"), profile=a.profile, sets=list(a.sets),
                          cache=cache, json_mode=a.json_mode)
     res = api.run(inv)
+    res.pop("_record_paths", None)
     if not a.json_mode:
         for s in res["stages"]:
             print(f"  {s['name']:<20} executed {s['executed']:>4}  cached {s['cached']:>4}  {s['seconds']:7.2f} s")

@@ -40,6 +40,7 @@ from typing import Any, Iterator
 import blake3
 
 from .keys import digest_bytes, is_digest
+from .paths import default_cache_dir  # noqa: F401 - re-exported
 
 
 class StoreError(RuntimeError):
@@ -48,15 +49,6 @@ class StoreError(RuntimeError):
 
 class CorruptObject(StoreError):
     """An object's bytes do not match its digest (it has been moved to quarantine)."""
-
-
-def default_cache_dir() -> Path:
-    env = os.environ.get("GCVD_FLOW_CACHE")
-    if env:
-        return Path(env)
-    import platformdirs
-
-    return Path(platformdirs.user_cache_dir("gcvd-flow"))
 
 
 def canonical_json(obj: Any) -> bytes:
@@ -392,6 +384,15 @@ class Store:
                 rep.records_removed += 1
                 continue
             if any(self.object_size(d) != s for d, s in rec.get("objects", {}).items()):
+                path.unlink(missing_ok=True)
+                rep.records_removed += 1
+        # a map stage whose items lost their records is incomplete too
+        for key, path in list(self.iter_records()):
+            try:
+                rec = json.loads(path.read_bytes())
+            except (OSError, json.JSONDecodeError):
+                continue
+            if any(not self.record_path(c).exists() for c in rec.get("children", [])):
                 path.unlink(missing_ok=True)
                 rep.records_removed += 1
         rep.tmp_removed = self._clean_tmp()

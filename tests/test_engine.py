@@ -251,3 +251,30 @@ def test_status_and_dag(toy_input, tmp_path):
     assert p.stdout.count("up to date") == 5
     p = cli("dag", "--pipeline", "toy", check=True)
     assert "transform [map] <- decode" in p.stdout
+
+
+def test_noop_fast_path_and_what_invalidates_it(toy_input, tmp_path):
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    base = ["run", str(toy_input), "--out", str(out), "--cache", str(cache), "--pipeline", "toy"]
+    cli_json(*base)
+    doc = cli_json(*base)
+    assert "noop" in doc and all(s["executed"] == 0 for s in doc["stages"])
+    assert by_stage(doc)["transform"]["cached"] == 40
+    # touching an input (same bytes) leaves the fast path, and content hashing finds nothing to do
+    os.utime(toy_input / "00001.bin", ns=(1, 1))
+    doc = cli_json(*base)
+    assert "noop" not in doc and all(s["executed"] == 0 for s in doc["stages"])
+    # a deleted output is re-exported by the full path
+    (out / "report.json").unlink()
+    doc = cli_json(*base)
+    assert "noop" not in doc and (out / "report.json").exists()
+    # a removed record is recomputed
+    assert "noop" in cli_json(*base)
+    store = Store(cache)
+    key = json.loads((out / "run.json").read_text())["stages"]["report"]["key"]
+    store.delete_record(key)
+    doc = cli_json(*base)
+    assert "noop" not in doc and by_stage(doc)["report"]["executed"] == 1
+    # different parameters never take the fast path
+    doc = cli_json(*base, "--set", "threshold.cut=1")
+    assert "noop" not in doc and by_stage(doc)["threshold"]["executed"] == 1
