@@ -19,6 +19,7 @@ two frames, frames of mixed sizes (found when that frame is ingested; nothing of
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,10 @@ import numpy as np
 from .dag import ExternalRef
 from .errors import UsageError
 from .keys import digest_file, key_of
+
+# FFmpeg's own log lines would break the one-line error contract; we report failures ourselves.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
 
 VIDEO_EXTS = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg"}
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
