@@ -278,3 +278,22 @@ def test_noop_fast_path_and_what_invalidates_it(toy_input, tmp_path):
     # different parameters never take the fast path
     doc = cli_json(*base, "--set", "threshold.cut=1")
     assert "noop" not in doc and by_stage(doc)["threshold"]["executed"] == 1
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_exits_130_and_leaves_a_consistent_cache(toy_input, tmp_path, jobs):
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    cmd = [sys.executable, "-m", "gcvd_flow", "run", str(toy_input), "--out", str(out), "--cache", str(cache),
+           "--pipeline", "toy", "--set", "transform.sleep=0.05", "--jobs", jobs]
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.0)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    _verify_cache(cache)
+    res = by_stage(cli_json("run", str(toy_input), "--out", str(out), "--cache", str(cache), "--pipeline", "toy",
+                            "--set", "transform.sleep=0.05"))
+    assert res["transform"]["executed"] + res["transform"]["cached"] == 40
+    if jobs == "1":  # 2 s in, the serial run had finished some items: they are kept
+        assert res["transform"]["cached"] > 0
