@@ -71,6 +71,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep", type=int, default=5, metavar="N")
     p.add_argument("--json", dest="json_mode", action="store_true")
 
+    for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
+                        ("pull", "copy a run's artifacts (or all) from a remote cache directory, verified")):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("remote", metavar="REMOTE_DIR")
+        p.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
+        p.add_argument("--cache", metavar="DIR")
+        p.add_argument("--json", dest="json_mode", action="store_true")
+
     _add_product_commands(sub)
     return ap
 
@@ -212,6 +220,17 @@ def dispatch(a: argparse.Namespace) -> int:
         else:
             print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
                   f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
+        return 0
+    if a.cmd in ("push", "pull"):
+        from . import remote
+
+        store = api.open_store(a.cache)
+        rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote, a.out)
+        if a.json_mode:
+            _print_json(rep)
+        else:
+            print(f"{a.cmd}: {rep['records']} records, {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB)"
+                  + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else ""))
         return 0
     handler = getattr(a, "handler", None)
     if handler is not None:

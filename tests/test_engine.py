@@ -297,3 +297,20 @@ def test_ctrl_c_exits_130_and_leaves_a_consistent_cache(toy_input, tmp_path, job
     assert res["transform"]["executed"] + res["transform"]["cached"] == 40
     if jobs == "1":  # 2 s in, the serial run had finished some items: they are kept
         assert res["transform"]["cached"] > 0
+
+
+def test_push_pull_shares_a_run_and_refuses_tampered_objects(toy_input, tmp_path):
+    a_cache, b_cache, remote = tmp_path / "a", tmp_path / "b", tmp_path / "remote"
+    run_toy(toy_input, tmp_path / "oa", a_cache)
+    doc = cli_json("push", str(remote), "--cache", str(a_cache), "--out", str(tmp_path / "oa"))
+    assert doc["records"] > 40 and doc["refused"] == 0
+    # tamper with one object on the remote: pull must refuse it and not install its record
+    victim = next(Store(remote).iter_objects())
+    vp = Store(remote).object_path(victim)
+    os.chmod(vp, 0o644)
+    vp.write_bytes(b"tampered" + vp.read_bytes()[8:])
+    doc = cli_json("pull", str(remote), "--cache", str(b_cache))
+    assert doc["refused"] == 1
+    res = run_toy(toy_input, tmp_path / "ob", b_cache)
+    assert sum(s["executed"] for s in res.values()) <= 2  # only what the tampered object held
+    assert Store(b_cache).fsck().corrupt == []
