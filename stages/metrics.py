@@ -1,0 +1,104 @@
+"""Trajectory and depth metrics as the field reports them (pure numpy).
+
+* ATE: RMSE of camera positions after a Sim(3) Umeyama alignment of the estimate to the
+  ground truth (metres) — evo's ``evo_ape --align --correct_scale``.
+* RPE (delta = 1 frame): the alignment's scale applied to the estimate, then per pair the
+  error E = inv(inv(G_i) G_j) @ (inv(P_i) P_j); RMSE of |t(E)| (m) and of angle(E) (degrees) —
+  evo's ``evo_rpe --delta 1 --delta_unit f --align --correct_scale`` (trans_part, angle_deg).
+* Depth: per-frame median scaling, ground truth > 0 and <= ``max_depth``; AbsRel, SqRel, RMSE
+  (m), δ < 1.25.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) minimising sum |dst - (s R src + t)|^2; src, dst (N, 3)."""
+    src = np.asarray(src, np.float64)
+    dst = np.asarray(dst, np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    var_s = (xs ** 2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def _align(est: np.ndarray, gt: np.ndarray, align: str) -> tuple[np.ndarray, float]:
+    """Estimate poses aligned to the ground truth; returns (aligned (N,4,4), scale)."""
+    est = np.asarray(est, np.float64).copy()
+    if align == "none" or len(est) < 3:
+        return est, 1.0
+    s, R, t = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=(align == "sim3"))
+    out = est.copy()
+    out[:, :3, :3] = R @ est[:, :3, :3]
+    out[:, :3, 3] = (s * (R @ est[:, :3, 3].T)).T + t
+    return out, s
+
+
+def ate(est_poses: np.ndarray, gt_poses: np.ndarray, align: str = "sim3") -> dict[str, float]:
+    """Absolute trajectory error of camera positions (m) after alignment ('sim3'|'se3'|'none')."""
+    gt = np.asarray(gt_poses, np.float64)
+    al, s = _align(est_poses, gt, align)
+    err = np.linalg.norm(al[:, :3, 3] - gt[:, :3, 3], axis=1)
+    return {"ate_rmse": float(np.sqrt(np.mean(err ** 2))), "ate_mean": float(err.mean()),
+            "ate_median": float(np.median(err)), "scale": float(s)}
+
+
+def _rot_angle_deg(R: np.ndarray) -> np.ndarray:
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, delta: int = 1, align: str = "sim3") -> dict[str, float]:
+    """Relative pose error over ``delta`` frames: RMSE translation (m) and rotation (deg)."""
+    gt = np.asarray(gt_poses, np.float64)
+    est, _ = _align(est_poses, gt, align)
+    n = len(gt) - delta
+    if n <= 0:
+        return {"rpe_trans": 0.0, "rpe_rot": 0.0}
+    rel_gt = np.linalg.inv(gt[:n]) @ gt[delta:]
+    rel_est = np.linalg.inv(est[:n]) @ est[delta:]
+    E = np.linalg.inv(rel_gt) @ rel_est
+    t = np.linalg.norm(E[:, :3, 3], axis=1)
+    r = _rot_angle_deg(E[:, :3, :3])
+    return {"rpe_trans": float(np.sqrt(np.mean(t ** 2))), "rpe_rot": float(np.sqrt(np.mean(r ** 2)))}
+
+
+def path_length(poses: np.ndarray) -> float:
+    p = np.asarray(poses)[:, :3, 3]
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def depth_metrics(pred: np.ndarray, gt: np.ndarray, max_depth: float = 10.0) -> dict[str, float]:
+    """Errors of one depth map after per-frame median scaling. pred, gt (H, W) metres."""
+    pred = np.asarray(pred, np.float64)
+    gt = np.asarray(gt, np.float64)
+    valid = (gt > 0) & (gt <= max_depth) & (pred > 0) & np.isfinite(pred)
+    if valid.sum() < 10:
+        return {"abs_rel": float("nan"), "sq_rel": float("nan"), "rmse": float("nan"), "delta1": float("nan")}
+    p, g = pred[valid], gt[valid]
+    p = np.clip(p * (np.median(g) / np.median(p)), 1e-3, max_depth)
+    ratio = np.maximum(p / g, g / p)
+    return {"abs_rel": float(np.mean(np.abs(p - g) / g)), "sq_rel": float(np.mean((p - g) ** 2 / g)),
+            "rmse": float(np.sqrt(np.mean((p - g) ** 2))), "delta1": float(np.mean(ratio < 1.25))}
+
+
+def aggregate_depth_metrics(per_frame: list[dict[str, float]]) -> dict[str, Any]:
+    """Mean over frames (frames without enough valid pixels are skipped)."""
+    keys = ("abs_rel", "sq_rel", "rmse", "delta1")
+    out = {}
+    for k in keys:
+        vals = [m[k] for m in per_frame if np.isfinite(m[k])]
+        out[k] = float(np.mean(vals)) if vals else float("nan")
+    return out

@@ -1,0 +1,92 @@
+"""Trajectory and depth metrics: known cases, and agreement with the `evo` package."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from stages import metrics
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+def _traj(n: int = 50, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    from scipy.spatial.transform import Rotation
+
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    ang = np.cumsum(rng.normal(0, 0.02, (n, 3)), axis=0)
+    poses[:, :3, :3] = Rotation.from_rotvec(ang).as_matrix()
+    poses[:, :3, 3] = np.cumsum(rng.normal(0, 0.05, (n, 3)), axis=0)
+    return poses
+
+
+def _sim3(poses: np.ndarray, s: float, seed: int = 1) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.random.default_rng(seed).normal(0, 1, 3)).as_matrix()
+    t = np.array([1.0, -2.0, 0.5])
+    out = poses.copy()
+    out[:, :3, :3] = R @ poses[:, :3, :3]
+    out[:, :3, 3] = s * (R @ poses[:, :3, 3].T).T + t
+    return out
+
+
+def test_identity_and_similarity_transform_give_zero_error():
+    gt = _traj()
+    assert metrics.ate(gt, gt)["ate_rmse"] < 1e-12
+    est = _sim3(gt, 0.37)
+    res = metrics.ate(est, gt)
+    assert res["ate_rmse"] < 1e-9 and abs(res["scale"] - 1 / 0.37) < 1e-9
+    r = metrics.rpe(est, gt)
+    assert r["rpe_trans"] < 1e-9 and r["rpe_rot"] < 1e-6
+    assert metrics.ate(est, gt, align="se3")["ate_rmse"] > 0.01  # scale is not free without sim3
+
+
+def test_known_noise_level():
+    gt = _traj(400)
+    est = gt.copy()
+    est[:, :3, 3] += np.random.default_rng(3).normal(0, 0.01, (400, 3))
+    assert 0.015 < metrics.ate(est, gt)["ate_rmse"] < 0.019  # sqrt(3) * 0.01
+
+
+def test_depth_metrics_median_scaling_and_validity():
+    g = np.full((20, 20), 2.0)
+    g[0, 0] = 0  # invalid
+    g[1, 1] = 20  # beyond max depth
+    m = metrics.depth_metrics(g * 3.0, g)
+    assert m["abs_rel"] < 1e-12 and m["delta1"] == 1.0
+    p = g.copy()
+    p[5:10] *= 1.5
+    m = metrics.depth_metrics(p, g)
+    assert 0.05 < m["abs_rel"] < 0.5 and m["delta1"] < 1.0
+
+
+def test_agrees_with_evo():
+    evo_traj = pytest.importorskip("evo.core.trajectory")
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync  # noqa: F401  (import check)
+
+    gt = _traj(120, seed=5)
+    est = _sim3(gt, 0.5)
+    rng = np.random.default_rng(7)
+    est[:, :3, 3] += rng.normal(0, 0.01, (120, 3))
+    from scipy.spatial.transform import Rotation
+
+    est[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.01, (120, 3))).as_matrix() @ est[:, :3, :3]
+
+    ref = evo_traj.PosePath3D(poses_se3=list(gt))
+    e = evo_traj.PosePath3D(poses_se3=list(est))
+    e.align(ref, correct_scale=True)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, e))
+    ours = metrics.ate(est, gt)
+    assert ours["ate_rmse"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)
+
+    for rel, key in ((evo_metrics.PoseRelation.translation_part, "rpe_trans"),
+                     (evo_metrics.PoseRelation.rotation_angle_deg, "rpe_rot")):
+        rpe = evo_metrics.RPE(rel, delta=1, delta_unit=evo_metrics.Unit.frames, all_pairs=False)
+        rpe.process_data((ref, e))
+        assert metrics.rpe(est, gt)[key] == pytest.approx(rpe.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)
