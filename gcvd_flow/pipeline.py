@@ -59,6 +59,8 @@ class FlowParams(Section):
 class MasksParams(Section):
     backend: Literal["motion", "none"] = "motion"
     dilate: int = Field(5, ge=0)
+    span: int = Field(6, ge=1, description="frames spanned by the chained flow (an object moving "
+                      "along epipolar lines over 1 frame rarely does over several)")
 
 
 class PriorsParams(Section):
@@ -214,38 +216,34 @@ def _pairs(view, p):
     return [{"a": ItemRef("ingest", i), "b": ItemRef("ingest", i + 1)} for i in range(view.len("ingest") - 1)]
 
 
+def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
+    """Flows from frame i toward a reference `span` frames away: backward (i -> i-1 -> ...),
+    or forward for the first `span` frames. Existing items never read later frames once the
+    clip has 2*span frames, so extending a clip only adds items."""
+    refs: dict[str, Any] = {}
+    if i >= span or i >= n - 1 - i:
+        refs["direction"] = Const("bwd")
+        for k in range(min(span, i)):
+            refs[f"chain{k:02d}"] = ItemRef("flow", i - 1 - k)
+    else:
+        refs["direction"] = Const("fwd")
+        for k in range(min(span, n - 1 - i)):
+            refs[f"chain{k:02d}"] = ItemRef("flow", i + k)
+    return refs
+
+
 def _mask_items(view, p):
-    # Frame i reads its flow to the previous frame (frame 0: to the next one), never to a
-    # later frame: extending a clip then adds mask items without changing existing ones.
     n = view.len("ingest")
-    out = []
-    for i in range(n):
-        it: dict[str, Any] = {"K": PartRef("ingest", ("K",), summary=True)}
-        if i > 0:
-            it["prev"] = ItemRef("flow", i - 1)
-        else:
-            it["next"] = ItemRef("flow", 0)
-        out.append(it)
-    return out
+    return [{"K": PartRef("ingest", ("K",), summary=True), **_chain_refs(i, n, p.span)} for i in range(n)]
 
 
 def _prior_items(view, p: PriorsParams):
-    # Frame i chains flows backward over `span` frames (i -> i-1 -> ... -> i-span); the first
-    # `span` frames chain forward instead. Like the masks, existing items never read later
-    # frames once the clip has 2*span frames, so extending a clip only adds items.
     n = view.len("ingest")
     out = []
     for i in range(n):
         it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
         if p.backend == "geometric":
-            if i >= p.span or i >= n - 1 - i:
-                it["direction"] = Const("bwd")
-                for k in range(min(p.span, i)):
-                    it[f"chain{k:02d}"] = ItemRef("flow", i - 1 - k)
-            else:
-                it["direction"] = Const("fwd")
-                for k in range(min(p.span, n - 1 - i)):
-                    it[f"chain{k:02d}"] = ItemRef("flow", i + k)
+            it.update(_chain_refs(i, n, p.span))
         out.append(it)
     return out
 

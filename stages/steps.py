@@ -73,18 +73,28 @@ def flow_pair(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 # ------------------------------------------------------------------------------- masks
 
 
-def static_mask(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
-    """Frame i -> {static: uint8 (H, W), 1 = static}, from its flows to i-1 and i+1."""
-    from stages import masks
+def _chain(inputs: dict[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (flow, valid) chain from this frame toward its reference frame, in order."""
+    fwd = inputs["direction"] == "fwd"
+    n = len([k for k in inputs if k.startswith("chain")])
+    out = []
+    for k in range(n):
+        fl = inputs[f"chain{k:02d}"]
+        out.append((fl["fwd"], fl["fwd_valid"]) if fwd else (fl["bwd"], fl["bwd_valid"]))
+    return out
 
-    neighbours = []
-    if "next" in inputs:
-        neighbours.append((inputs["next"]["fwd"], inputs["next"]["fwd_valid"]))
-    if "prev" in inputs:
-        neighbours.append((inputs["prev"]["bwd"], inputs["prev"]["bwd_valid"]))
+
+def static_mask(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows."""
+    from stages import flow, masks
+
+    chain = _chain(inputs)
+    h, w = chain[0][0].shape[:2]
     if p.backend == "none":
-        h, w = neighbours[0][0].shape[:2]
         return {"static": np.ones((h, w), np.uint8)}
+    neighbours = [chain[0]]
+    if len(chain) > 1:
+        neighbours.append(flow.chain_flows(chain))
     return {"static": masks.motion_static_mask(np.asarray(inputs["K"]), neighbours, dilate=p.dilate)}
 
 
@@ -101,12 +111,7 @@ def depth_prior(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
         inv = midas_prior(_cached_model("midas", p.weights), image)
         return {"inv_depth": inv.astype(np.float32), "confidence": np.ones_like(inv, np.float32)}
-    direction = inputs["direction"]
-    chain = []
-    for k in range(len([n for n in inputs if n.startswith("chain")])):
-        fl = inputs[f"chain{k:02d}"]
-        chain.append((fl["fwd"], fl["fwd_valid"]) if direction == "fwd" else (fl["bwd"], fl["bwd_valid"]))
-    out = priors.geometric_prior(image, np.asarray(inputs["K"]), chain)
+    out = priors.geometric_prior(image, np.asarray(inputs["K"]), _chain(inputs))
     return {"inv_depth": out["inv_depth"].astype(np.float32),
             "confidence": out["confidence"].astype(np.float32)}
 

@@ -1,0 +1,118 @@
+"""Weight-free motion masks: pixels whose flow disagrees with the static scene's geometry.
+
+For each neighbour flow of a frame, the static scene's two-view geometry is fitted robustly
+(essential matrix by RANSAC on a grid of forward-backward-consistent correspondences, with
+the known K); a pixel's Sampson distance to that geometry, compared with the inlier residual
+scale, says whether its motion is explained by the camera alone. Under (near) pure rotation
+or tiny motion the essential matrix is degenerate, and a homography is the right model
+instead: we fit both and keep the one explaining more correspondences. Flags of several
+neighbours are OR-ed, cleaned (opening, small components removed) and dilated (the paper's
+5x5), and returned as 1 = static.
+
+Limitations (documented, as in every epipolar test): an object moving along its epipolar
+line is not detected; the Mask R-CNN semantic backend of the paper needs weights and is not
+part of this release.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+GRID_STEP = 4  # px between sampled correspondences for the robust fit
+MIN_POINTS = 30
+
+
+def _correspondences(flow: np.ndarray, valid: np.ndarray, step: int = GRID_STEP) -> tuple[np.ndarray, np.ndarray]:
+    h, w = flow.shape[:2]
+    v, u = np.mgrid[step // 2:h:step, step // 2:w:step]
+    keep = valid[v, u]
+    pa = np.stack([u[keep], v[keep]], -1).astype(np.float64)
+    pb = pa + flow[v[keep], u[keep]].astype(np.float64)
+    return pa, pb
+
+
+def _sampson(F: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    """Sampson distance (px^2 scale) of correspondences pa -> pb to the fundamental matrix F."""
+    xa = np.concatenate([pa, np.ones((len(pa), 1))], 1)
+    xb = np.concatenate([pb, np.ones((len(pb), 1))], 1)
+    Fxa = xa @ F.T
+    Ftxb = xb @ F
+    num = np.sum(xb * Fxa, axis=1) ** 2
+    den = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
+    return num / np.maximum(den, 1e-12)
+
+
+def motion_residual(K: np.ndarray, flow: np.ndarray, valid: np.ndarray, seed: int = 0) -> np.ndarray | None:
+    """Per-pixel residual (px) of the flow against the fitted static-scene model, or None.
+
+    K (3, 3); flow (H, W, 2) px from this frame to a neighbour; valid bool (H, W).
+    The residual is sqrt(Sampson distance) for the essential model, or the transfer error for
+    the homography model; both are in pixels.
+    """
+    pa, pb = _correspondences(flow, valid)
+    if len(pa) < MIN_POINTS:
+        return None
+    cv2.setRNGSeed(seed)
+    E, inl_e = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
+    Hm, inl_h = cv2.findHomography(pa, pb, cv2.RANSAC, 1.5)
+    n_e = int(inl_e.sum()) if inl_e is not None and E is not None and E.shape == (3, 3) else -1
+    n_h = int(inl_h.sum()) if inl_h is not None and Hm is not None else -1
+    h, w = flow.shape[:2]
+    v, u = np.mgrid[0:h, 0:w]
+    p = np.stack([u, v], -1).reshape(-1, 2).astype(np.float64)
+    q = p + flow.reshape(-1, 2).astype(np.float64)
+    if n_h >= 0.9 * max(n_e, 0) and n_h > 0:
+        # pure rotation / planar scene / tiny baseline: the homography explains the static scene
+        ph = np.concatenate([p, np.ones((len(p), 1))], 1) @ Hm.T
+        pred = ph[:, :2] / np.maximum(np.abs(ph[:, 2:3]), 1e-9) * np.sign(ph[:, 2:3])
+        res = np.linalg.norm(pred - q, axis=1)
+    elif n_e > 0:
+        Kinv = np.linalg.inv(K)
+        F = Kinv.T @ E @ Kinv
+        res = np.sqrt(_sampson(F, p, q))
+    else:
+        return None
+    return res.reshape(h, w).astype(np.float32)
+
+
+def motion_static_mask(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], dilate: int = 5,
+                       min_threshold: float = 1.0, sigma_mult: float = 4.0, min_area: float = 0.002,
+                       seed: int = 0) -> np.ndarray:
+    """Static mask of one frame from its flows to neighbours: uint8 (H, W), 1 = static.
+
+    flows: [(flow (H, W, 2) px from this frame to a neighbour, valid bool (H, W)), ...].
+    A pixel is dynamic when its residual exceeds max(min_threshold, sigma_mult * robust sigma
+    of the residuals of valid pixels) in any neighbour flow; components smaller than
+    ``min_area`` of the image are dropped (flow noise), the rest dilated by ``dilate`` px.
+    """
+    if not flows:
+        raise ValueError("motion_static_mask needs at least one neighbour flow")
+    h, w = flows[0][0].shape[:2]
+    dynamic = np.zeros((h, w), bool)
+    for flow, valid in flows:
+        valid = np.asarray(valid, bool)
+        res = motion_residual(K, flow, valid, seed)
+        if res is None:
+            continue
+        r = res[valid]
+        if r.size == 0:
+            continue
+        sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+        thr = max(min_threshold, float(np.median(r) + sigma_mult * sigma))
+        # invalid (occluded / inconsistent) pixels carry no evidence either way
+        dynamic |= valid & (res > thr)
+    m = dynamic.astype(np.uint8)
+    m = cv2.morphologyEx(m, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    keep = np.zeros(n, bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= max(4, min_area * h * w)
+    m = keep[lab].astype(np.uint8)
+    if dilate > 0:
+        m = cv2.dilate(m, np.ones((dilate, dilate), np.uint8))
+    return (1 - m).astype(np.uint8)
