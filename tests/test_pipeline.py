@@ -31,17 +31,27 @@ def test_synth_writes_the_generic_layout(clip):
 
 def test_caching_contract(clip, tmp_path):
     out, cache = tmp_path / "run", tmp_path / "cache"
-    base = ["run", str(clip), "--out", str(out), "--cache", str(cache), "--until", "association"]
-    first = by_stage(cli_json(*base, "--set", "ingest.end=24"))
+
+    def run(*sets: str) -> dict:
+        """Run up to association, then priors (not needed by association): merged per stage."""
+        args = [a for s in sets for a in ("--set", s)]
+        res = {}
+        for until in ("association", "priors"):
+            res.update(by_stage(cli_json("run", str(clip), "--out", str(out), "--cache", str(cache),
+                                         "--until", until, *args)))
+        return res
+
+    first = run("ingest.end=24")
     assert first["ingest"]["executed"] == 24 and first["flow"]["executed"] == 23
-    again = by_stage(cli_json(*base, "--set", "ingest.end=24"))
+    assert first["priors"]["executed"] == 24
+    again = run("ingest.end=24")
     assert all(s["executed"] == 0 for s in again.values()), again
     # a keyframe threshold change re-runs keyframes and what follows only
-    kf = by_stage(cli_json(*base, "--set", "ingest.end=24", "--set", "keyframes.delta=0.15"))
+    kf = run("ingest.end=24", "keyframes.delta=0.15")
     assert all(kf[s]["executed"] == 0 for s in PRE), kf
     assert kf["keyframes"]["executed"] == 1
     # extending the clip by 8 frames computes only the new frames' items
-    ext = by_stage(cli_json(*base, "--set", "ingest.end=32"))
+    ext = run("ingest.end=32")
     assert ext["ingest"]["executed"] == 8 and ext["ingest"]["cached"] == 24
     assert ext["flow"]["executed"] == 8
     assert ext["masks"]["executed"] == 8
