@@ -139,7 +139,8 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
         if spec.export is not None and target is None:
             result["outputs"] = spec.export(out, runner, config)
         doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
-               "stages": stage_records, "env": keys.numeric_env(), "gcvd_flow": _version()}
+               "stages": stage_records, "stage_order": list(stage_records),
+               "env": keys.numeric_env(), "gcvd_flow": _version()}
         tmp = out / (RUN_FILE + ".tmp")
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
         os.replace(tmp, out / RUN_FILE)
