@@ -1,0 +1,166 @@
+"""Geometry (SE(3), projection, rigid flow, point sampling) and the depth / pose networks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stages import geometry as G
+from stages.geometry_np import rigid_flow as rigid_flow_np
+from stages.nn.depth_net import DepthNet, mesh_shape, upsample_mesh
+from stages.nn.pose_net import DirectPoses, PoseNet, positional_encoding
+
+
+def _rand_twists(n: int, seed: int = 0, rot: float = 0.6) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    xi = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    xi[:, 3:] *= rot
+    return xi
+
+
+def test_se3_exp_log_roundtrip() -> None:
+    xi = _rand_twists(64)
+    xi = torch.cat([xi, torch.zeros(1, 6, dtype=torch.float64), 1e-9 * torch.ones(1, 6, dtype=torch.float64)])
+    T = G.se3_exp(xi)
+    R = T[:, :3, :3]
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand_as(R), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(len(xi), dtype=torch.float64))
+    assert torch.allclose(G.se3_log(T), xi, atol=1e-9)
+
+
+def test_pose_from_rt_roundtrip_and_so3_matches_cv2() -> None:
+    import cv2
+
+    rt = _rand_twists(16, 1)[:, [3, 4, 5, 0, 1, 2]]
+    T = G.pose_from_rt(rt)
+    assert torch.allclose(G.rt_from_pose(T), rt, atol=1e-9)
+    for i in range(4):
+        Rcv = cv2.Rodrigues(rt[i, :3].numpy())[0]
+        assert np.allclose(T[i, :3, :3].numpy(), Rcv, atol=1e-10)
+    assert torch.allclose(T[:, :3, 3], rt[:, 3:])
+
+
+def test_so3_gradient_finite_at_zero() -> None:
+    w = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    G.so3_exp(w).sum().backward()
+    assert torch.isfinite(w.grad).all()
+
+
+def test_relative_pose_matches_inverse() -> None:
+    Pa, Pb = G.se3_exp(_rand_twists(5, 2)), G.se3_exp(_rand_twists(5, 3))
+    assert torch.allclose(G.relative_pose(Pa, Pb), torch.linalg.inv(Pb) @ Pa, atol=1e-12)
+
+
+def test_rigid_flow_matches_numpy_reference() -> None:
+    h, w = 24, 32
+    K = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1.0, 3.0, (h, w))
+    Pa = G.se3_exp(0.1 * _rand_twists(1, 4))[0].numpy()
+    Pb = G.se3_exp(0.1 * _rand_twists(1, 5))[0].numpy()
+    ref = rigid_flow_np(depth, K, Pa, Pb)
+    T = torch.as_tensor(np.linalg.inv(Pb) @ Pa)[None]
+    ours = G.rigid_flow(torch.as_tensor(depth)[None], torch.as_tensor(K), T)[0].numpy()
+    assert np.abs(ours - ref).max() < 1e-5  # the reference returns float32
+    assert np.abs(ref).max() > 1.0  # a non-trivial motion
+
+
+def test_backproject_project_identity() -> None:
+    K = torch.tensor([[50.0, 0, 20.0], [0, 50.0, 15.0], [0, 0, 1]], dtype=torch.float64)
+    d = torch.rand(2, 30, 40, dtype=torch.float64) + 0.5
+    uv, z = G.project(G.backproject(d, K), K)
+    v, u = torch.meshgrid(torch.arange(30.0, dtype=torch.float64), torch.arange(40.0, dtype=torch.float64), indexing="ij")
+    assert torch.allclose(uv[0], torch.stack([u, v], -1).reshape(-1, 2), atol=1e-10)
+    assert torch.allclose(z, d.reshape(2, -1))
+
+
+def test_sample_bilinear_and_gather() -> None:
+    h, w = 10, 14
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    img = torch.stack([2 * u + 3 * v, u - v])[None]  # linear: bilinear sampling is exact
+    pts = torch.tensor([[[0.0, 0.0], [3.25, 4.5], [12.9, 8.1], [20.0, 1.0]]])
+    val, inside = G.sample_bilinear(img, pts)
+    assert torch.allclose(val[0, :3, 0], 2 * pts[0, :3, 0] + 3 * pts[0, :3, 1], atol=1e-4)
+    assert inside.tolist() == [[True, True, True, False]]
+    idx = torch.tensor([[0, 15, w * h - 1]])
+    g = G.gather_pixels(img, idx)
+    assert g[0, 1, 0] == 2 * 1 + 3 * 1 and g[0, 2, 1] == (w - 1) - (h - 1)
+
+
+def _img_prior(b: int = 2, h: int = 24, w: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    imgs = torch.rand(b, 3, h, w, generator=g)
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    prior = (0.5 + u / w + 0.3 * v / h)[None].repeat(b, 1, 1)
+    return imgs, prior / prior.flatten(1).median(1).values[:, None, None]
+
+
+def test_depth_net_reproduces_prior_before_training() -> None:
+    imgs, prior = _img_prior()
+    for ln in (True, False):
+        d = DepthNet(layer_norm=ln, seed=0)(imgs, prior)
+        ratio = d * prior
+        # depth = 1 / prior up to one scale per frame
+        assert torch.allclose(ratio, ratio.flatten(1).mean(1)[:, None, None].expand_as(ratio), rtol=1e-4)
+
+
+def test_layer_norm_switch_removes_network_scale() -> None:
+    imgs, prior = _img_prior()
+    on, off = DepthNet(layer_norm=True), DepthNet(layer_norm=False)
+    with torch.no_grad():
+        for net in (on, off):
+            net.head[2].bias.fill_(0.7)  # a network that changes the overall scale
+            net.head[2].weight.normal_(0, 0.05)
+    enc = on.encode(imgs, prior)
+    d_on, d_off = on.decode(enc), off.decode(off.encode(imgs, prior))
+    # LayerNorm: the mean log inverse depth of each frame is pinned at 0 whatever the head does
+    assert torch.allclose(torch.log(d_on).flatten(1).mean(1), torch.zeros(2), atol=1e-5)
+    assert (torch.log(d_off).flatten(1).mean(1) < -0.5).all()
+
+
+def test_mesh_identity_at_zero_and_scales_when_set() -> None:
+    imgs, prior = _img_prior()
+    net = DepthNet(mesh=True)
+    gh, gw = mesh_shape(24, 32, 17)
+    assert (gh, gw) == (13, 17)
+    base = net(imgs, prior, None)
+    assert torch.equal(net(imgs, prior, torch.zeros(2, gh, gw)), base)
+    m = torch.full((2, gh, gw), 0.3)
+    assert torch.allclose(net(imgs, prior, m), base * np.exp(0.3), rtol=1e-6)
+    assert torch.equal(DepthNet(mesh=False)(imgs, prior, m), base)
+    up = upsample_mesh(torch.arange(gh * gw, dtype=torch.float32).reshape(1, gh, gw), 25, 33)
+    assert up[0, 0, 0] == 0 and up[0, -1, -1] == gh * gw - 1  # vertices on the image corners
+
+
+def test_depth_net_external_backbone_hook() -> None:
+    imgs, prior = _img_prior()
+
+    class Fake(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return 1.0 + x.mean(1, keepdim=True)
+
+    net = DepthNet(backbone=Fake())
+    d = net(imgs, None)
+    disp = 1.0 + imgs.mean(1)
+    r = d * disp
+    assert torch.allclose(r, r.flatten(1).mean(1)[:, None, None].expand_as(r), rtol=1e-3)
+    assert [n for n, p in net.named_parameters() if p.requires_grad] == ["head.0.weight", "head.0.bias", "head.2.weight", "head.2.bias"]
+
+
+def test_pose_net_zero_initial_correction_and_trainable_decoder() -> None:
+    imgs, _ = _img_prior(3)
+    net = PoseNet(seed=0)
+    out = net(imgs, torch.arange(3))
+    assert out.shape == (3, 6) and torch.equal(out, torch.zeros(3, 6))
+    trainable = {n for n, p in net.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith("decoder.") for n in trainable)
+    pe = positional_encoding(torch.arange(4), 8)
+    assert pe.shape == (4, 16) and not torch.allclose(pe[0], pe[1])
+    assert DirectPoses(5)().shape == (5, 6)
+
+
+def test_backbones_are_seeded() -> None:
+    a, b, c = DepthNet(seed=3), DepthNet(seed=3), DepthNet(seed=4)
+    assert torch.equal(a.unet.e1.weight, b.unet.e1.weight)
+    assert not torch.equal(a.unet.e1.weight, c.unet.e1.weight)

@@ -1,0 +1,190 @@
+"""Test-time training: determinism, bit-exact checkpoint resume, edge optimisation, accuracy."""
+
+from __future__ import annotations
+
+import copy
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from stages import optimize as O
+from stages.flow import compute_pair_flow
+from stages.synth import render_clip
+
+
+class MemCheckpointer:
+    """In-memory stand-in for the engine's checkpointer; can simulate a Ctrl-C after n saves."""
+
+    def __init__(self, interrupt_after: int | None = None) -> None:
+        self.last: tuple[dict[str, torch.Tensor], dict] | None = None
+        self.saves = 0
+        self.interrupt_after = interrupt_after
+
+    def load(self):
+        if self.last is None:
+            return None
+        t, m = self.last
+        return {k: v.clone() for k, v in t.items()}, copy.deepcopy(m)
+
+    def save(self, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+        assert all(isinstance(v, torch.Tensor) for v in tensors.values())
+        assert tensors["rng"].dtype == torch.uint8
+        self.last = ({k: v.clone() for k, v in tensors.items()}, copy.deepcopy(meta))
+        self.saves += 1
+        if self.interrupt_after is not None and self.saves == self.interrupt_after:
+            raise KeyboardInterrupt
+
+
+def _prior_from_depth(depth: np.ndarray) -> np.ndarray:
+    """A deliberately imperfect 'MiDaS-shaped' prior: blurred, affine-shifted inverse depth."""
+    out = []
+    for d in depth:
+        inv = cv2.GaussianBlur(1.0 / np.maximum(d, 1e-3), (0, 0), 2.0)
+        inv = inv + 0.3 * inv.mean()
+        out.append(inv / np.median(inv))
+    return np.stack(out).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def tiny() -> dict:
+    c = render_clip(24, "orbit", size=(96, 72), seed=0)
+    kf = list(range(0, 24, 3))
+    imgs = c.frames
+    adj = [compute_pair_flow(imgs[i], imgs[i + 1], preset="fast") for i in range(23)]
+    kfl = {(j, j + 1): compute_pair_flow(imgs[kf[j]], imgs[kf[j + 1]], preset="fast") for j in range(len(kf) - 1)}
+    return dict(clip=c, kf=kf, adj=adj, kfl=kfl, prior=_prior_from_depth(c.depth), masks=np.ones((24, 72, 96), np.uint8))
+
+
+SMALL = dict(window=5, overlap=2, taus=(1, 2), steps=6, checkpoint_every=2, points=32, seg_steps=4, seg_window=8)
+
+
+def _kf_run(t: dict, ck=None, seed: int = 0, **over) -> dict:
+    c, kf = t["clip"], t["kf"]
+    return O.optimize_keyframes(
+        c.frames[kf], t["prior"][kf], t["masks"][kf], c.K, t["kfl"], {**SMALL, **over}, seed=seed, checkpointer=ck
+    )
+
+
+def _assert_same(a: dict, b: dict) -> None:
+    assert a["poses"].tobytes() == b["poses"].tobytes()
+    assert a["depths"].tobytes() == b["depths"].tobytes()
+
+
+def test_keyframes_outputs_and_determinism(tiny: dict) -> None:
+    r1, r2 = _kf_run(tiny), _kf_run(tiny)
+    _assert_same(r1, r2)
+    for k in r1["state"]:
+        assert r1["state"][k].tobytes() == r2["state"][k].tobytes()
+    nk = len(tiny["kf"])
+    assert r1["poses"].shape == (nk, 4, 4) and r1["poses"].dtype == np.float64
+    assert r1["depths"].shape == (nk, 72, 96) and r1["depths"].dtype == np.float32
+    assert np.isfinite(r1["depths"]).all() and (r1["depths"] > 0).all()
+    assert np.allclose(r1["poses"][0], np.eye(4))
+    edges = {(e["a"], e["b"], e["tau"]) for e in r1["rel_poses"]}
+    assert edges == {(a, a + t, t) for t in (1, 2) for a in range(nk - t)}
+    e = r1["rel_poses"][3]
+    assert np.allclose(e["T"], np.linalg.inv(r1["poses"][e["b"]]) @ r1["poses"][e["a"]])
+    assert {"head.0.weight", "head.2.weight", "mesh"} <= set(r1["state"])
+    r3 = _kf_run(tiny, seed=1)
+    assert r3["depths"].tobytes() != r1["depths"].tobytes()
+
+
+@pytest.mark.parametrize("interrupt_after", [2, 3])  # mid-window, and at a window boundary
+def test_keyframes_resume_is_bit_exact(tiny: dict, interrupt_after: int) -> None:
+    ref = _kf_run(tiny)
+    ck = MemCheckpointer(interrupt_after)
+    with pytest.raises(KeyboardInterrupt):
+        _kf_run(tiny, ck)
+    assert ck.saves == interrupt_after
+    ck.interrupt_after = None
+    _assert_same(_kf_run(tiny, ck), ref)
+
+
+def test_keyframes_pose_net_and_ablation_switches(tiny: dict) -> None:
+    r = _kf_run(tiny, pose_param="net", steps=3)
+    assert np.isfinite(r["poses"]).all() and any(k.startswith("posenet.") for k in r["state"])
+    r2 = _kf_run(tiny, layer_norm=False, mesh=False, grad=False, steps=3)
+    assert np.isfinite(r2["depths"]).all()
+    assert r2["depths"].tobytes() != _kf_run(tiny, steps=3)["depths"].tobytes()
+
+
+def _seg_run(t: dict, kres: dict, ck=None) -> dict:
+    c = t["clip"]
+    return O.optimize_segments(
+        c.frames, t["prior"], t["masks"], c.K, t["adj"], t["kf"], kres["poses"], kres["depths"], SMALL,
+        seed=0, checkpointer=ck, state=kres["state"],
+    )
+
+
+def test_segments_frozen_keyframes_determinism_and_resume(tiny: dict) -> None:
+    kres = _kf_run(tiny, steps=2)
+    ref = _seg_run(tiny, kres)
+    assert ref["poses"].shape == (24, 4, 4) and ref["depths"].shape == (24, 72, 96)
+    assert np.array_equal(ref["poses"][tiny["kf"]], kres["poses"])  # keyframe poses frozen
+    assert (ref["depths"] > 0).all()
+    _assert_same(ref, _seg_run(tiny, kres))
+    ck = MemCheckpointer(3)
+    with pytest.raises(KeyboardInterrupt):
+        _seg_run(tiny, kres, ck)
+    ck.interrupt_after = None
+    _assert_same(_seg_run(tiny, kres, ck), ref)
+
+
+def test_edge_recovers_perturbed_relative_pose(tiny: dict) -> None:
+    c = tiny["clip"]
+    a, b = 0, 6
+    fl = compute_pair_flow(c.frames[a], c.frames[b], preset="medium")
+    T_gt = np.linalg.inv(c.poses[b]) @ c.poses[a]
+    init = T_gt.copy()
+    init[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.03, 0.01]))[0] @ init[:3, :3]  # a drifted loop-closure init
+    r = O.optimize_edge(
+        c.frames[a], c.frames[b], tiny["prior"][a], tiny["prior"][b], tiny["masks"][a], tiny["masks"][b],
+        c.K, fl, init, dict(edge_steps=150), seed=0,
+    )
+
+    def rot_err(T: np.ndarray) -> float:
+        return float(np.linalg.norm(cv2.Rodrigues(T[:3, :3] @ T_gt[:3, :3].T)[0]))
+
+    assert r["T_ab"].shape == (4, 4) and np.isfinite(r["loss"])
+    assert rot_err(r["T_ab"]) < 0.4 * rot_err(init)  # measured 0.006 rad from 0.032
+
+
+def _ate(P: np.ndarray, Q: np.ndarray) -> float:
+    X, Y = P[:, :3, 3], Q[:, :3, 3]
+    mx, my = X.mean(0), Y.mean(0)
+    U, D, Vt = np.linalg.svd((Y - my).T @ (X - mx) / len(X))
+    E = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ E @ Vt
+    s = np.trace(np.diag(D) @ E) / ((X - mx) ** 2).sum(1).mean()
+    return float(np.sqrt((((s * (X - mx) @ R.T) - (Y - my)) ** 2).sum(1).mean()))
+
+
+def _absrel(D: np.ndarray, Gt: np.ndarray) -> float:
+    out = []
+    for d, g in zip(D, Gt):
+        m = (g > 0) & (d > 0)
+        out.append(np.mean(np.abs(d[m] * np.median(g[m]) / np.median(d[m]) - g[m]) / g[m]))
+    return float(np.mean(out))
+
+
+def test_accuracy_orbit_30() -> None:
+    c = render_clip(30, "orbit", size=(128, 96), seed=0)
+    n = len(c.frames)
+    kf = list(range(0, n, 3)) + ([n - 1] if (n - 1) % 3 else [])
+    kfl = {(j, j + 1): compute_pair_flow(c.frames[kf[j]], c.frames[kf[j + 1]]) for j in range(len(kf) - 1)}
+    adj = [compute_pair_flow(c.frames[i], c.frames[i + 1]) for i in range(n - 1)]
+    prior = _prior_from_depth(c.depth)
+    masks = np.ones((n, 96, 128), np.uint8)
+    r = O.optimize_keyframes(c.frames[kf], prior[kf], masks[kf], c.K, kfl, dict(steps=100), seed=0)
+    s = O.optimize_segments(c.frames, prior, masks, c.K, adj, kf, r["poses"], r["depths"], dict(seg_steps=30), seed=0, state=r["state"])
+    path = np.linalg.norm(np.diff(c.poses[:, :3, 3], axis=0), axis=1).sum()
+    ate_kf = _ate(r["poses"], c.poses[kf]) / path
+    ate = _ate(s["poses"], c.poses) / path
+    rel_prior = _absrel(1.0 / prior, c.depth)
+    rel = _absrel(s["depths"], c.depth)
+    print(f"orbit30: ATE kf {ate_kf:.4f} all {ate:.4f} of path, AbsRel {rel:.4f} (prior {rel_prior:.4f})")
+    # measured (2 cores): ATE 0.43% (keyframes) / 0.40% (all) of the path, AbsRel 0.131 (prior 0.118)
+    assert ate_kf < 0.008 and ate < 0.008
+    assert rel < 0.16
