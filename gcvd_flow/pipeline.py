@@ -125,6 +125,7 @@ class PoseGraphParams(Section):
     kind: Literal["se3", "sim3"] = "se3"
     max_iterations: int = 100
     loop_weight: float = 1.0
+    max_loop_rotation_deg: float = Field(30.0, gt=0, description="loop edges disagreeing more with odometry are ignored")
 
 
 class OptimizeSegmentsParams(Section):

@@ -270,12 +270,24 @@ def pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
         return {"poses": P, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
     # stages.optimize gives T = inv(P_b) @ P_a; the pose graph measures inv(P_a) @ P_b.
     edges = [{"a": r["a"], "b": r["b"], "T_ab": _inv(r["T"]), "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
-    edges += [{"a": e["a"], "b": e["b"], "T_ab": _inv(e["T_ab"]), "weight": p.loop_weight}
-              for e in inputs["optimize_edges"]["edges"]]
+    rejected = []
+    for e in inputs["optimize_edges"]["edges"]:
+        meas = _inv(e["T_ab"])
+        # Gate gross outliers: drift bends a trajectory by degrees, not tens of degrees, so a
+        # loop measurement that disagrees that much with odometry is a failed edge optimisation.
+        odo = np.linalg.inv(P[e["a"]]) @ P[e["b"]]
+        dR = odo[:3, :3].T @ meas[:3, :3]
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        if angle > p.max_loop_rotation_deg:
+            rejected.append({"i": e["i"], "j": e["j"], "rotation_disagreement_deg": angle})
+            continue
+        edges.append({"a": e["a"], "b": e["b"], "T_ab": meas, "weight": p.loop_weight})
+    if rejected:
+        ctx.log(f"ignored {len(rejected)} loop edge(s) disagreeing with odometry by > {p.max_loop_rotation_deg} deg")
     res = pg.optimize_pose_graph(P, edges, kind=p.kind, max_iterations=p.max_iterations)
     return {"poses": np.asarray(res["poses"], np.float64), "enabled": True,
             "iterations": int(res["iterations"]), "initial_error": float(res["initial_error"]),
-            "final_error": float(res["final_error"])}
+            "final_error": float(res["final_error"]), "rejected_loops": rejected}
 
 
 def optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
