@@ -3,7 +3,7 @@
 For frame i the pipeline hands over the chain of flows toward a reference frame
 (i -> i+1 -> ... or i -> i-1 -> ...). We compose the chain (stages.flow.chain_flows) up to the
 longest prefix that keeps enough consistent pixels, fit the two-view geometry (essential
-matrix by RANSAC, recoverPose), triangulate every consistent pixel, and turn the sparse,
+matrix by RANSAC, cheirality without a distance limit: stages.two_view), triangulate every consistent pixel, and turn the sparse,
 noisy inverse depths into a dense map with an edge-aware normalised guided filter (weights =
 triangulation confidence, guide = the image), coarse to fine so that large holes fill from
 their surroundings. The result is divided by its median (MiDaS output is affine-ambiguous;
@@ -22,12 +22,14 @@ import cv2
 import numpy as np
 
 from stages.flow import chain_flows
+from stages.two_view import relative_pose, triangulate_depths
 
 log = logging.getLogger(__name__)
 
 MIN_VALID_FRACTION = 0.25  # stop chaining when fewer pixels stay consistent
 MIN_PARALLAX_DEG = 0.3  # median triangulation angle below this: no usable depth
 GRID_STEP = 3
+RANSAC_THRESHOLD_PX = 0.5  # epipolar distance; 1 px let small-baseline poses drift by degrees
 
 
 def _box(x: np.ndarray, r: int) -> np.ndarray:
@@ -75,6 +77,19 @@ def _constant(h: int, w: int) -> dict[str, np.ndarray]:
     return {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
 
 
+def _is_pure_rotation(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, seed: int) -> bool:
+    """True when one homography of the form K R K^-1 (a rotation) explains the correspondences:
+    then nothing can be triangulated, and E is degenerate (any translation fits)."""
+    cv2.setRNGSeed(seed)
+    H, inl = cv2.findHomography(pa, pb, cv2.RANSAC, 1.0)
+    if H is None or inl is None or inl.mean() < 0.9:
+        return False
+    M = np.linalg.inv(K) @ H @ K
+    M = M / np.cbrt(np.linalg.det(M))
+    sv = np.linalg.svd(M, compute_uv=False)
+    return bool(np.all(np.abs(sv - 1.0) < 0.03))
+
+
 def geometric_prior(image: np.ndarray, K: np.ndarray, chain: Sequence[tuple[np.ndarray, np.ndarray]],
                     seed: int = 0) -> dict[str, np.ndarray]:
     """Relative inverse depth of ``image`` from flows toward a reference frame.
@@ -100,27 +115,20 @@ def geometric_prior(image: np.ndarray, K: np.ndarray, chain: Sequence[tuple[np.n
         return _constant(h, w)
     pa = np.stack([uu[sel], vv[sel]], -1).astype(np.float64)
     pb = pa + flow[sel].astype(np.float64)
-    cv2.setRNGSeed(seed)
-    E, inl = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
-    if E is None or E.shape != (3, 3):
+    if _is_pure_rotation(pa, pb, K, seed):
+        log.info("prior: flow is explained by a camera rotation alone; constant prior")
         return _constant(h, w)
-    _, R, t, _ = cv2.recoverPose(E, pa, pb, K, mask=inl.copy())
-    t = t.ravel()
+    rel = relative_pose(pa, pb, K, threshold=RANSAC_THRESHOLD_PX, seed=seed)
+    if rel is None:
+        return _constant(h, w)
+    R, t, _ = rel
     # triangulate every consistent pixel (midpoint method in closed form, vectorised)
     Kinv = np.linalg.inv(K)
     p_all = np.stack([uu[valid], vv[valid]], -1).astype(np.float64)
     q_all = p_all + flow[valid].astype(np.float64)
+    za, _ = triangulate_depths(p_all, q_all, K, R, t)
     ra = np.concatenate([p_all, np.ones((len(p_all), 1))], 1) @ Kinv.T  # rays in camera a
     rb = (np.concatenate([q_all, np.ones((len(q_all), 1))], 1) @ Kinv.T) @ R  # camera b rays in a
-    cb = -R.T @ t  # centre of camera b in a
-    # solve za * ra - zb * rb = cb (least squares per pixel)
-    a11 = np.sum(ra * ra, 1)
-    a12 = -np.sum(ra * rb, 1)
-    a22 = np.sum(rb * rb, 1)
-    b1 = ra @ cb
-    b2 = -(rb @ cb)
-    det = a11 * a22 - a12 * a12
-    za = (b1 * a22 - a12 * b2) / np.where(np.abs(det) < 1e-12, np.nan, det)
     cosang = np.sum(ra * rb, 1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
     parallax = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
     good = np.isfinite(za) & (za > 0) & (parallax > 0.05)

@@ -111,7 +111,21 @@ def depth_prior(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
         inv = midas_prior(_cached_model("midas", p.weights), image)
         return {"inv_depth": inv.astype(np.float32), "confidence": np.ones_like(inv, np.float32)}
-    out = priors.geometric_prior(image, np.asarray(inputs["K"]), _chain(inputs))
+    from stages import flow
+
+    K = np.asarray(inputs["K"])
+    out = None
+    for ref in ("ref", "ref_near"):  # the far reference first: more parallax
+        if ref not in inputs:
+            continue
+        fl = flow.compute_pair_flow(image, inputs[ref]["image"], preset=p.preset, fb_thresh=p.fb_thresh)
+        if fl["fwd_valid"].mean() < priors.MIN_VALID_FRACTION and ref == "ref" and "ref_near" in inputs:
+            continue  # too much motion for a reliable direct flow: use the nearer reference
+        out = priors.geometric_prior(image, K, [(fl["fwd"], fl["fwd_valid"])])
+        break
+    if out is None:
+        h, w = image.shape[:2]
+        out = {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
     return {"inv_depth": out["inv_depth"].astype(np.float32),
             "confidence": out["confidence"].astype(np.float32)}
 
