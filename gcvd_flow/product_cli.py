@@ -34,7 +34,7 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("demo", help="render a synthetic loop clip, run GCVD on it, print the metrics")
     p.add_argument("--out", default="demo-out", metavar="DIR")
-    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--frames", type=int, default=120)
     p.add_argument("--size", default="256x192", metavar="WxH")
     p.add_argument("--cache", metavar="DIR")
     p.add_argument("--profile")

@@ -164,7 +164,7 @@ def compute_pair_flow(
     elif backend == "raft":
         if model is None:
             raise ValueError("backend='raft' needs model=load_raft(path)")
-        from stages.backends.raft import raft_flow
+        from stages.backends.raft_net import raft_flow
 
         fwd = raft_flow(model, img_a, img_b)
         bwd = raft_flow(model, img_b, img_a)

@@ -26,11 +26,11 @@ from stages import ingest as ingest_mod
 def _cached_model(kind: str, path: str) -> Any:
     """Load weights once per process (items of a map stage share the model)."""
     if kind == "raft":
-        from stages.backends.raft import load_raft
+        from stages.backends.raft_net import load_raft
 
         return load_raft(path)
     if kind == "midas":
-        from stages.backends.midas import load_midas
+        from stages.backends.midas_net import load_midas
 
         return load_midas(path)
     if kind == "resnet18":
@@ -107,7 +107,7 @@ def depth_prior(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
     image = inputs["image"]["image"]
     if p.backend == "midas":
-        from stages.backends.midas import midas_prior
+        from stages.backends.midas_net import midas_prior
 
         inv = midas_prior(_cached_model("midas", p.weights), image)
         return {"inv_depth": inv.astype(np.float32), "confidence": np.ones_like(inv, np.float32)}
