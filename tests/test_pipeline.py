@@ -154,3 +154,28 @@ def test_icl_frames_ingest_through_redwood_layout(tmp_path):
             "--set", "ingest.end=6", "--json", check=True)
     assert by_stage(json.loads(p.stdout))["ingest"]["executed"] == 6
     assert "redwood input 640x480 -> working 256x192, fx=210.0 fy=210.0" in p.stderr
+
+
+def test_weights_backend_through_the_cli_keys_by_content(clip, tmp_path):
+    """flow.backend=raft with a weights file: runs, and the file's digest (not path) is keyed."""
+    import torch
+    from safetensors.torch import save_file
+
+    from stages.backends.raft_net import RAFT
+
+    torch.manual_seed(0)
+    model = RAFT()
+    w1 = tmp_path / "a" / "raft.safetensors"
+    w1.parent.mkdir()
+    save_file({k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}, str(w1))
+    w2 = tmp_path / "b" / "copy.safetensors"
+    w2.parent.mkdir()
+    w2.write_bytes(w1.read_bytes())
+    base = ["run", str(clip), "--cache", str(tmp_path / "c"), "--until", "flow",
+            "--set", "ingest.end=3", "--set", "ingest.long_side=64", "--set", "flow.backend=raft"]
+    first = by_stage(cli_json(*base, "--out", str(tmp_path / "o1"), "--set", f"flow.weights={json.dumps(str(w1))}"))
+    assert first["flow"]["executed"] == 2
+    again = by_stage(cli_json(*base, "--out", str(tmp_path / "o2"), "--set", f"flow.weights={json.dumps(str(w2))}"))
+    assert again["flow"]["executed"] == 0 and again["flow"]["cached"] == 2
+    p = cli(*base, "--out", str(tmp_path / "o3"), "--set", "flow.weights='/nonexistent/raft.pth'")
+    _one_line_exit2(p, "/nonexistent/raft.pth")
