@@ -71,6 +71,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep", type=int, default=5, metavar="N")
     p.add_argument("--json", dest="json_mode", action="store_true")
 
+    p = sub.add_parser("pin", help="keep a run's artifacts through gc (until unpinned)")
+    p.add_argument("name")
+    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--remove", action="store_true", help="remove the pin instead")
+
     for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
                         ("pull", "copy a run's artifacts (or all) from a remote cache directory, verified")):
         p = sub.add_parser(name, help=help_)
@@ -220,6 +226,16 @@ def dispatch(a: argparse.Namespace) -> int:
         else:
             print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
                   f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
+        return 0
+    if a.cmd == "pin":
+        store = api.open_store(a.cache)
+        if a.remove:
+            store.unpin(a.name)
+            print(f"unpinned {a.name}")
+        else:
+            run = api.read_run_dir(a.out)
+            store.pin(a.name, {"records": [s["key"] for s in run["stages"].values() if s.get("key")]})
+            print(f"pinned {a.out} as {a.name}")
         return 0
     if a.cmd in ("push", "pull"):
         from . import remote

@@ -293,6 +293,9 @@ class Store:
     def pin(self, name: str, run: dict[str, Any]) -> None:
         (self.root / "pins" / f"{name}.json").write_bytes(canonical_json(run))
 
+    def unpin(self, name: str) -> None:
+        (self.root / "pins" / f"{name}.json").unlink(missing_ok=True)
+
     def pinned(self) -> list[dict[str, Any]]:
         return [json.loads(p.read_bytes()) for p in sorted((self.root / "pins").glob("*.json"))]
 

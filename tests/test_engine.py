@@ -203,6 +203,16 @@ def test_gc_keeps_last_runs(toy_input, tmp_path):
     assert res["transform"]["executed"] == 40
 
 
+def test_pinned_run_survives_gc(toy_input, tmp_path):
+    cache = tmp_path / "cache"
+    run_toy(toy_input, tmp_path / "pinned", cache, "--set", "transform.scale=3")
+    cli("pin", "keepme", "--out", str(tmp_path / "pinned"), "--cache", str(cache), check=True)
+    run_toy(toy_input, tmp_path / "other", cache)
+    cli_json("gc", "--cache", str(cache), "--keep", "1")
+    res = run_toy(toy_input, tmp_path / "pinned2", cache, "--set", "transform.scale=3")
+    assert all(s["executed"] == 0 for s in res.values()), res
+
+
 def test_parallel_jobs_match_serial(toy_input, tmp_path):
     serial = run_toy(toy_input, tmp_path / "o1", tmp_path / "c1")
     par = run_toy(toy_input, tmp_path / "o2", tmp_path / "c2", "--jobs", "2")
