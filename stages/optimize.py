@@ -38,7 +38,7 @@ import contextlib
 import dataclasses
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Iterator, Mapping, Protocol, Sequence
 
 import cv2
@@ -48,7 +48,7 @@ import torch.nn.functional as F
 
 from stages import geometry as G
 from stages import losses as L
-from stages.nn.depth_net import DepthNet, Encoded, mesh_shape, upsample_mesh
+from stages.nn.depth_net import DEPTH_MAX, DEPTH_MIN, DepthNet, Encoded, mesh_shape, upsample_mesh
 from stages.nn.pose_net import PoseNet
 
 log = logging.getLogger(__name__)
@@ -137,7 +137,7 @@ class OptimizeParams:
 # Authors' settings (GPU): long side 384 is the ingest resolution, set by the pipeline.
 PAPER: dict[str, Any] = dict(
     window=40, overlap=8, taus=(1, 2, 4, 8), steps=300, lr=2e-4, edge_steps=300, edge_lr=1e-4,
-    seg_steps=100, seg_lr=1e-4, loss_scale=0.25, seg_loss_scale=1.0, points=1024,
+    seg_steps=100, seg_lr=1e-4, loss_scale=0.25, seg_loss_scale=1.0, points=1024, mesh_shape_lr_frac=1.0,
 )
 # Tuned for 2 CPU cores (the dataclass defaults).
 CPU_DEFAULT: dict[str, Any] = {f.name: getattr(OptimizeParams(), f.name) for f in dataclasses.fields(OptimizeParams)}
@@ -595,14 +595,15 @@ def _prepare(
 ) -> _Frames:
     n, H, W = images.shape[:3]
     h, w, f = _loss_size(H, W, scale)
-    imgs_full = _images_t(images)
-    pri = torch.as_tensor(_prior_np(priors))
-    encs = [net.encode(imgs_full[i : i + 8], pri[i : i + 8]).downsample(h, w) for i in range(0, n, 8)]
+    # the backbone runs at the loss resolution: only the head's loss-resolution correction is
+    # ever used (see _full_depth), and a full-resolution U-Net pass would cost ~16x more
+    imgs = F.interpolate(_images_t(images), size=(h, w), mode="area")
+    pri = _area(_prior_np(priors), h, w)
+    encs = [net.encode(imgs[i : i + 8], pri[i : i + 8]) for i in range(0, n, 8)]
     enc = Encoded(torch.cat([e.feat for e in encs]), torch.cat([e.log_prior for e in encs]))
     st = (np.asarray(masks) > 0).astype(np.float32)
     static = (_area(st, h, w) > 0.99).float()
     dyn = 1 - _area(st, gshape[0], gshape[1])
-    imgs = F.interpolate(imgs_full, size=(h, w), mode="area")
     return _Frames(imgs, enc, static, dyn, torch.as_tensor(_scaled_K(K, f)), f)
 
 
@@ -644,29 +645,27 @@ def _full_depth(
     1x1 head on full-resolution features instead would feed it feature statistics it never saw.
     Without ``enc_lr`` the network runs on full-resolution features (used for the untrained net).
     """
-    imgs = _images_t(images)
     pri = torch.as_tensor(_prior_np(priors))
+    H, W = pri.shape[-2:]
     out = []
     for i in range(len(images)):
-        enc = net.encode(imgs[i : i + 1], pri[i : i + 1])
         m = mesh[i : i + 1] if use_mesh else None
         if enc_lr is None:
+            enc = net.encode(_images_t(images[i : i + 1]), pri[i : i + 1])
             out.append(net.decode(enc, m)[0])
             continue
         e = Encoded(enc_lr.feat[i : i + 1], enc_lr.log_prior[i : i + 1])
         corr = torch.log(net.decode(e, m)) + e.log_prior[:, 0]
-        up = F.interpolate(corr[:, None], size=imgs.shape[-2:], mode="bilinear", align_corners=False)[:, 0]
-        out.append(torch.exp(up - enc.log_prior[:, 0])[0])
+        up = F.interpolate(corr[:, None], size=(H, W), mode="bilinear", align_corners=False)[:, 0]
+        out.append(torch.exp(up - net.log_prior(pri[i : i + 1])[:, 0])[0])
     return torch.stack(out).numpy().astype(np.float32)
 
 
 def _init_depth_full(net: DepthNet, images: np.ndarray, priors: np.ndarray) -> np.ndarray:
-    z = torch.zeros(len(images), 2, 2)
-    return _full_depth(net, images, priors, z, False)
-
-
-def _bake(base: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    return base @ G.pose_from_rt(delta)
+    """Depth (n, H, W) of the untrained network (zero head, zero mesh): clip(exp(-log_prior)).
+    Computed without running the backbone (the zero-initialised head ignores the features)."""
+    lp = net.log_prior(torch.as_tensor(_prior_np(priors)))[:, 0]
+    return torch.exp(-lp).clamp(DEPTH_MIN, DEPTH_MAX).numpy().astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1075,7 +1074,8 @@ def optimize_segments(
             mesh_init = _fit_mesh(_area(ratio.numpy(), h, w), gshape)
         else:
             # keyframe meshes: fit log(keyframe_depth / network depth) at loss resolution
-            kref = torch.as_tensor(_init_depth_full(net, images[kf], np.asarray(priors)[kf]))
+            # the loaded keyframe head is not zero: evaluate the network itself
+            kref = torch.as_tensor(_full_depth(net, images[kf], np.asarray(priors)[kf], torch.zeros(len(kf), 2, 2), False))
             kd = torch.as_tensor(kd_all)
             ratio = torch.log(kd.clamp(min=1e-6) / kref.clamp(min=1e-6))
             ratio = torch.where(kd > 0, ratio, torch.nan)

@@ -8,8 +8,9 @@ network reproduces the prior exactly before any training: "fitted to the prior f
 construction instead of costing a pre-fit phase on a CPU.
 
 Why 1x1 head layers: their output at a pixel depends only on that pixel's (frozen, cached)
-features, so a training step costs O(pixels x head) without re-running the backbone, and a
-model trained at loss resolution can be evaluated at full resolution on full-resolution features.
+features, so a training step costs O(pixels x head) without re-running the backbone. The
+optimiser runs the backbone once per frame at the loss resolution and upsamples the learned
+log-correction of the prior to the working resolution (stages.optimize._full_depth).
 
 Weights backend hook: pass ``backbone=<nn.Module>`` (e.g. MiDaS) mapping an image (B, 3, H, W)
 in [0, 1] to inverse depth (B, 1, H, W) or (B, H, W). Its output is used in place of the prior
@@ -142,10 +143,16 @@ class DepthNet(nn.Module):
             prior = disp.clamp(min=1e-6)
             prior = prior / prior.flatten(1).median(1).values[:, None, None]
         assert prior is not None
-        lp = torch.log(prior.clamp(min=1e-4))[:, None]
-        lp = lp - lp.flatten(1).mean(1)[:, None, None, None]
+        lp = self.log_prior(prior)
         x = torch.cat([images - 0.5, lp], 1)
         return Encoded(self.unet(x), lp)
+
+    @staticmethod
+    def log_prior(prior: torch.Tensor) -> torch.Tensor:
+        """Relative inverse depth (B, H, W) -> zero-mean log inverse depth (B, 1, H, W). The
+        untrained network's depth is exactly clip(exp(-log_prior)) (head zero, LayerNorm keeps it)."""
+        lp = torch.log(prior.clamp(min=1e-4))[:, None]
+        return lp - lp.flatten(1).mean(1)[:, None, None, None]
 
     def decode(self, enc: Encoded, mesh: torch.Tensor | None = None) -> torch.Tensor:
         """Trainable part: Encoded (B, ., h, w) + log-scale mesh (B, gh, gw) -> depth (B, h, w)."""
