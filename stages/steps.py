@@ -220,6 +220,28 @@ def _flow_dict(fl: dict[str, Any]) -> dict[str, np.ndarray]:
     return {k: np.asarray(fl[k]) for k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}
 
 
+class _LazyFlows:
+    """flows[i] -> flow dict of pair (i, i+1), loaded when indexed (not all held in memory:
+    at 256x192 one pair is ~0.9 MB, so a 1000-frame clip would hold ~0.9 GB of flows)."""
+
+    def __init__(self, items: Any, keep: int = 48):
+        self._items = items
+        self._keep = keep  # a window's worth stays decoded (windows re-read their flows)
+        self._cache: dict[int, dict[str, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        hit = self._cache.pop(i, None)
+        if hit is None:
+            hit = _flow_dict(self._items[i])
+        self._cache[i] = hit  # most recently used last
+        while len(self._cache) > self._keep:
+            self._cache.pop(next(iter(self._cache)))
+        return hit
+
+
 def optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """Keyframe windows -> {keyframes, poses (K,4,4) c2w, depths [K x (H,W)], rel_poses, state}."""
     from stages import optimize
@@ -315,7 +337,7 @@ def optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any
     res = optimize.optimize_segments(
         _stack(frames, idx, "image"), _stack(inputs["priors"], idx, "inv_depth"),
         _stack(inputs["masks"], idx, "static"), np.asarray(frames.summary["K"]),
-        [_flow_dict(flows[i]) for i in range(n - 1)], list(okf["keyframes"]),
+        _LazyFlows(flows), list(okf["keyframes"]),
         np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
         params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
     return {"poses": np.asarray(res["poses"], np.float64),
