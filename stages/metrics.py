@@ -17,9 +17,17 @@ import numpy as np
 
 
 def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R, t) minimising sum |dst - (s R src + t)|^2; src, dst (N, 3)."""
+    """(s, R, t) minimising sum |dst - (s R src + t)|^2 (Umeyama 1991, closed form).
+
+    src, dst: (N, 3) corresponding points, N >= 3 (units of dst); ``with_scale=False`` fixes
+    s = 1 (SE(3) alignment). Returns s (float), R (3, 3) proper rotation, t (3,).
+    """
     src = np.asarray(src, np.float64)
     dst = np.asarray(dst, np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ValueError(f"umeyama_alignment: src and dst must both be (N, 3), got {src.shape} and {dst.shape}")
+    if len(src) < 3:
+        raise ValueError(f"umeyama_alignment: needs at least 3 points, got {len(src)}")
     mu_s, mu_d = src.mean(0), dst.mean(0)
     xs, xd = src - mu_s, dst - mu_d
     cov = xd.T @ xs / len(src)
@@ -34,8 +42,22 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = True)
     return s, R, t
 
 
+def _check_pair(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    est = np.asarray(est, np.float64)
+    gt = np.asarray(gt, np.float64)
+    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
+        raise ValueError(f"trajectories must both be (N, 4, 4) camera-to-world, got {est.shape} and {gt.shape}")
+    return est, gt
+
+
 def _align(est: np.ndarray, gt: np.ndarray, align: str) -> tuple[np.ndarray, float]:
-    """Estimate poses aligned to the ground truth; returns (aligned (N,4,4), scale)."""
+    """Estimate poses aligned to the ground truth; returns (aligned (N,4,4), scale).
+
+    The alignment is fitted on camera positions only (as evo does) and applied to the
+    whole poses: rotations are rotated, positions similarity-transformed.
+    """
+    if align not in ("sim3", "se3", "none"):
+        raise ValueError(f"align must be 'sim3', 'se3' or 'none', got {align!r}")
     est = np.asarray(est, np.float64).copy()
     if align == "none" or len(est) < 3:
         return est, 1.0
@@ -47,8 +69,13 @@ def _align(est: np.ndarray, gt: np.ndarray, align: str) -> tuple[np.ndarray, flo
 
 
 def ate(est_poses: np.ndarray, gt_poses: np.ndarray, align: str = "sim3") -> dict[str, float]:
-    """Absolute trajectory error of camera positions (m) after alignment ('sim3'|'se3'|'none')."""
-    gt = np.asarray(gt_poses, np.float64)
+    """Absolute trajectory error of camera positions after alignment ('sim3'|'se3'|'none').
+
+    est_poses, gt_poses: (N, 4, 4) camera-to-world, frame i of one = frame i of the other.
+    Returns ate_rmse / ate_mean / ate_median in ground-truth units (m) and ``scale``, the
+    factor that maps the estimate into ground-truth units (1 unless 'sim3').
+    """
+    est_poses, gt = _check_pair(est_poses, gt_poses)
     al, s = _align(est_poses, gt, align)
     err = np.linalg.norm(al[:, :3, 3] - gt[:, :3, 3], axis=1)
     return {"ate_rmse": float(np.sqrt(np.mean(err ** 2))), "ate_mean": float(err.mean()),
@@ -61,8 +88,16 @@ def _rot_angle_deg(R: np.ndarray) -> np.ndarray:
 
 
 def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, delta: int = 1, align: str = "sim3") -> dict[str, float]:
-    """Relative pose error over ``delta`` frames: RMSE translation (m) and rotation (deg)."""
-    gt = np.asarray(gt_poses, np.float64)
+    """Relative pose error over ``delta`` frames: RMSE translation (m) and rotation (deg).
+
+    est_poses, gt_poses: (N, 4, 4) camera-to-world. The estimate is first aligned as in
+    ``ate`` (so with 'sim3' its translations are in metres); then for every i the error
+    E_i = inv(G_i^-1 G_{i+delta}) (P_i^-1 P_{i+delta}); rpe_trans = RMSE |t(E_i)|,
+    rpe_rot = RMSE angle(R(E_i)) in degrees.
+    """
+    est_poses, gt = _check_pair(est_poses, gt_poses)
+    if delta < 1:
+        raise ValueError(f"delta must be >= 1, got {delta}")
     est, _ = _align(est_poses, gt, align)
     n = len(gt) - delta
     if n <= 0:
@@ -76,12 +111,19 @@ def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, delta: int = 1, align: str 
 
 
 def path_length(poses: np.ndarray) -> float:
+    """Total distance travelled by the camera centres of (N, 4, 4) poses (pose units)."""
     p = np.asarray(poses)[:, :3, 3]
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
 def depth_metrics(pred: np.ndarray, gt: np.ndarray, max_depth: float = 10.0) -> dict[str, float]:
-    """Errors of one depth map after per-frame median scaling. pred, gt (H, W) metres."""
+    """Errors of one depth map after per-frame median scaling.
+
+    pred, gt: (H, W) depth (gt in metres; pred up to scale). Valid pixels: gt > 0,
+    gt <= max_depth, pred finite and > 0. pred is scaled by median(gt)/median(pred) over
+    the valid pixels and clipped to [1e-3, max_depth]. Returns abs_rel, sq_rel (m), rmse (m),
+    delta1 (fraction with max(p/g, g/p) < 1.25); all NaN if fewer than 10 valid pixels.
+    """
     pred = np.asarray(pred, np.float64)
     gt = np.asarray(gt, np.float64)
     valid = (gt > 0) & (gt <= max_depth) & (pred > 0) & np.isfinite(pred)

@@ -115,7 +115,7 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 def _yaw_pitch(yaw: float, pitch: float) -> np.ndarray:
     """Rotation (3, 3): yaw about world y (down), then pitch about the camera x axis.
 
-    Positive pitch tilts the view up (towards -y).
+    Positive pitch tilts the view down (towards +y, the floor).
     """
     cy, sy = np.cos(yaw), np.sin(yaw)
     cp, sp = np.cos(pitch), np.sin(pitch)
@@ -151,8 +151,8 @@ def make_trajectory(kind: str, n_frames: int) -> np.ndarray:
         c = np.array([0.0, -0.05, -1.6])
         for i, si in enumerate(s):
             ph = 2 * np.pi * si
-            eye = c + np.array([0.3 * np.sin(ph), 0.05 * np.sin(2 * ph), 0.2 * (1 - np.cos(ph))])
-            R = _yaw_pitch(0.12 * np.sin(ph), -0.12 + 0.04 * np.sin(2 * ph))
+            eye = c + np.array([0.27 * np.sin(ph), 0.04 * np.sin(2 * ph), 0.18 * (1 - np.cos(ph))])
+            R = _yaw_pitch(0.12 * np.sin(ph), 0.22 + 0.04 * np.sin(2 * ph))
             poses[i] = np.eye(4)
             poses[i, :3, :3], poses[i, :3, 3] = R, eye
         poses[-1] = poses[0]
@@ -160,13 +160,13 @@ def make_trajectory(kind: str, n_frames: int) -> np.ndarray:
         # Straight 1.2 m walk along +z with a tiny lateral / vertical bob; never revisits.
         for i, si in enumerate(s):
             eye = np.array([0.25 + 0.02 * np.sin(2 * np.pi * si), -0.05 + 0.01 * np.sin(4 * np.pi * si), -2.5 + 1.2 * si])
-            R = _yaw_pitch(-0.05 + 0.04 * np.sin(np.pi * si), -0.15)
+            R = _yaw_pitch(-0.05 + 0.04 * np.sin(np.pi * si), 0.2)
             poses[i] = np.eye(4)
             poses[i, :3, :3], poses[i, :3, 3] = R, eye
     else:  # rotation: pan 40 deg with a small tilt, camera centre fixed exactly
         eye = np.array([0.0, -0.05, -1.6])
         for i, si in enumerate(s):
-            R = _yaw_pitch(np.deg2rad(40.0) * (si - 0.5), -0.12 + 0.05 * np.sin(2 * np.pi * si))
+            R = _yaw_pitch(np.deg2rad(40.0) * (si - 0.5), 0.22 + 0.05 * np.sin(2 * np.pi * si))
             poses[i] = np.eye(4)
             poses[i, :3, :3], poses[i, :3, 3] = R, eye
     return poses
@@ -243,7 +243,7 @@ def _make_texture(seed: int, n_geoms: int) -> _Texture:
     q = np.linalg.qr(rng.standard_normal((n_oct, 3, 3)))[0]
     offs = rng.uniform(0, _TABLE_N, (n_oct, 3))
     # Base colours: moderately saturated, never dark, so every face has texture contrast.
-    palette = rng.uniform(0.25, 1.0, (n_geoms, 6, 2, 3))
+    palette = rng.uniform(0.35, 1.0, (n_geoms, 6, 2, 3))
     return _Texture(table, q.astype(np.float32), offs.astype(np.float32), palette.astype(np.float32))
 
 
@@ -292,7 +292,7 @@ def _shade(
         acc += np.float32(amp) * (0.5 + fade * (_value_noise(tex, p_tex, k, fr) - 0.5))
     lum = acc / np.float32(sum(_LUM_AMPS))
     # Sum of octaves squeezes contrast towards 0.5; stretch it back.
-    lum = np.clip(0.5 + 2.2 * (lum - 0.5), 0.08, 1.0)
+    lum = np.clip(0.6 + 2.2 * (lum - 0.5), 0.1, 1.0)
     # Colour blobs: per-channel low-frequency noise, sharpened into soft-edged patches,
     # mixing the face's two base colours.
     k0 = len(_LUM_FREQS)
@@ -301,7 +301,7 @@ def _shade(
     face = np.argmax(np.abs(n_tex), axis=1) * 2 + (np.take_along_axis(n_tex, np.argmax(np.abs(n_tex), axis=1)[:, None], 1)[:, 0] > 0)
     cols = tex.palette[geom, face]  # (M, 2, 3)
     base = cols[:, 0] + blob * (cols[:, 1] - cols[:, 0])
-    light = 0.45 + 0.55 * np.abs(n_world @ _LIGHT.astype(np.float32))
+    light = 0.6 + 0.4 * np.abs(n_world @ _LIGHT.astype(np.float32))
     return np.clip(base * (lum * light)[:, None], 0.0, 1.0)
 
 

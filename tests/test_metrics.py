@@ -90,3 +90,93 @@ def test_agrees_with_evo():
         rpe = evo_metrics.RPE(rel, delta=1, delta_unit=evo_metrics.Unit.frames, all_pairs=False)
         rpe.process_data((ref, e))
         assert metrics.rpe(est, gt)[key] == pytest.approx(rpe.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)
+
+
+def test_umeyama_recovers_known_similarity():
+    rng = np.random.default_rng(11)
+    src = rng.normal(size=(30, 3))
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec([0.3, -1.2, 2.0]).as_matrix()
+    t = np.array([0.5, 2.0, -1.0])
+    dst = 2.5 * src @ R.T + t
+    s, R2, t2 = metrics.umeyama_alignment(src, dst)
+    assert s == pytest.approx(2.5, rel=1e-12)
+    np.testing.assert_allclose(R2, R, atol=1e-12)
+    np.testing.assert_allclose(t2, t, atol=1e-12)
+    s, R3, _ = metrics.umeyama_alignment(src, dst, with_scale=False)
+    assert s == 1.0 and np.linalg.det(R3) == pytest.approx(1.0)
+    # A reflection is never returned, even when it would fit better.
+    s, R4, _ = metrics.umeyama_alignment(src, src * np.array([1, 1, -1]))
+    assert np.linalg.det(R4) == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        metrics.umeyama_alignment(src[:2], dst[:2])
+
+
+def test_rpe_known_noise_and_input_checks():
+    gt = _traj(300, seed=2)
+    est = gt.copy()
+    # A constant extra step of 2 cm along x in every relative motion -> rpe_trans = 0.02 m
+    # when compared unaligned.
+    steps = np.linalg.inv(gt[:-1]) @ gt[1:]
+    steps[:, 0, 3] += 0.02
+    for i in range(1, 300):
+        est[i] = est[i - 1] @ steps[i - 1]
+    r = metrics.rpe(est, gt, align="none")
+    assert r["rpe_trans"] == pytest.approx(0.02, rel=1e-9) and r["rpe_rot"] < 1e-5
+    with pytest.raises(ValueError):
+        metrics.ate(est[:10], gt)
+    with pytest.raises(ValueError):
+        metrics.rpe(est, gt, delta=0)
+    with pytest.raises(ValueError):
+        metrics.ate(est, gt, align="sim4")
+
+
+def test_path_length_and_aggregate():
+    P = np.tile(np.eye(4), (4, 1, 1))
+    P[:, :3, 3] = [[0, 0, 0], [1, 0, 0], [1, 2, 0], [1, 2, 2]]
+    assert metrics.path_length(P) == pytest.approx(5.0)
+    nan = float("nan")
+    agg = metrics.aggregate_depth_metrics([
+        {"abs_rel": 0.1, "sq_rel": 0.2, "rmse": 0.3, "delta1": 0.9},
+        {"abs_rel": 0.3, "sq_rel": 0.4, "rmse": 0.5, "delta1": 0.7},
+        {"abs_rel": nan, "sq_rel": nan, "rmse": nan, "delta1": nan},  # skipped
+    ])
+    assert agg == pytest.approx({"abs_rel": 0.2, "sq_rel": 0.3, "rmse": 0.4, "delta1": 0.8})
+    assert np.isnan(metrics.depth_metrics(np.ones((2, 2)), np.ones((2, 2)))["abs_rel"])  # < 10 px
+
+
+def test_agrees_with_evo_trajectories_sync_se3_and_delta():
+    evo_traj = pytest.importorskip("evo.core.trajectory")
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+    from scipy.spatial.transform import Rotation
+
+    n = 150
+    gt = _traj(n, seed=9)
+    est = _sim3(gt, 1.0)  # SE(3) only: scale stays 1
+    rng = np.random.default_rng(4)
+    est[:, :3, 3] += rng.normal(0, 0.02, (n, 3))
+    est[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.02, (n, 3))).as_matrix() @ est[:, :3, :3]
+
+    def traj(p: np.ndarray) -> "evo_traj.PoseTrajectory3D":
+        xyz = p[:, :3, 3]
+        q = Rotation.from_matrix(p[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]  # evo wants w first
+        return evo_traj.PoseTrajectory3D(positions_xyz=xyz, orientations_quat_wxyz=q, timestamps=np.arange(len(p), dtype=float))
+
+    ref, e = sync.associate_trajectories(traj(gt), traj(est))
+    e.align(ref, correct_scale=False)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, e))
+    ours = metrics.ate(est, gt, align="se3")
+    assert ours["ate_rmse"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)
+    assert ours["ate_mean"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.mean), rel=1e-6)
+    assert ours["ate_median"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.median), rel=1e-6)
+
+    for delta in (1, 5):
+        for rel, key in ((evo_metrics.PoseRelation.translation_part, "rpe_trans"),
+                         (evo_metrics.PoseRelation.rotation_angle_deg, "rpe_rot")):
+            rpe = evo_metrics.RPE(rel, delta=delta, delta_unit=evo_metrics.Unit.frames, all_pairs=True)
+            rpe.process_data((ref, e))
+            ours_r = metrics.rpe(est, gt, delta=delta, align="se3")[key]
+            assert ours_r == pytest.approx(rpe.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)

@@ -1,0 +1,153 @@
+"""Tests for gcvd_flow.datasets: roundtrips, layout, malformed input, the shared ICL log."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcvd_flow import datasets as ds
+from gcvd_flow.errors import UsageError
+from stages.synth import render_clip
+
+ICL = Path("/work/shared/data/icl_livingroom1_micro")
+
+
+def _random_poses(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    P = np.tile(np.eye(4), (n, 1, 1))
+    P[:, :3, :3] = ds.quat_to_rotmat(q)
+    P[:, :3, 3] = rng.uniform(-5, 5, (n, 3))
+    return P
+
+
+def test_quaternion_roundtrip_including_180_degrees():
+    P = _random_poses(200)
+    R = P[:, :3, :3]
+    # Near-180-degree rotations are the hard case for trace-based conversions.
+    R = np.concatenate([R, np.diag([1.0, -1, -1])[None], np.diag([-1.0, 1, -1])[None], np.diag([-1.0, -1, 1])[None]])
+    q = ds.rotmat_to_quat(R)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+    assert np.all(q[:, 3] >= 0)
+    np.testing.assert_allclose(ds.quat_to_rotmat(q), R, atol=1e-12)
+    # TUM order is (qx, qy, qz, qw): 90 deg about z.
+    Rz = ds.quat_to_rotmat(np.array([0, 0, np.sqrt(0.5), np.sqrt(0.5)]))
+    np.testing.assert_allclose(Rz, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+
+
+def test_tum_roundtrip(tmp_path):
+    P = _random_poses(50, seed=1)
+    ts = np.arange(50, dtype=np.float64) * 0.5 + 0.25
+    f = tmp_path / "sub" / "poses.txt"
+    ds.write_tum_poses(f, ts, P)
+    ts2, P2 = ds.read_tum_poses(f)
+    np.testing.assert_array_equal(ts2, ts)
+    np.testing.assert_allclose(P2, P, atol=1e-8, rtol=0)  # %.9f: 5e-10 per printed value
+    np.testing.assert_allclose(P2[:, :3, 3], P[:, :3, 3], atol=1e-9, rtol=0)
+
+
+def test_depth_png_roundtrip(tmp_path):
+    rng = np.random.default_rng(0)
+    d = rng.uniform(0.1, 9.0, (12, 16)).astype(np.float32)
+    d[0, 0] = 0.0
+    d[0, 1] = np.nan
+    d[0, 2] = 70.0  # beyond uint16 millimetres
+    ds.write_depth_png(tmp_path / "000000.png", d)
+    ds.write_depth_png(tmp_path / "000001.png", d * 0.5)
+    seq = ds.read_depth_pngs(tmp_path)
+    assert len(seq) == 2 and [p.name for p in seq.paths] == ["000000.png", "000001.png"]
+    back = seq[0]
+    assert back.dtype == np.float32 and back.shape == d.shape
+    ok = np.isfinite(d) & (d > 0) & (d < 65)
+    assert np.all(np.abs(back[ok] - d[ok]) <= 0.0005 + 1e-6)  # rounding to 1 mm
+    assert back[0, 0] == 0 and back[0, 1] == 0 and back[0, 2] == 0  # invalid -> 0
+    assert seq.load_all().shape == (2, 12, 16)
+
+
+def test_generic_layout_roundtrip_and_deterministic_bytes(tmp_path):
+    clip = render_clip(n_frames=4, trajectory="orbit", size=(48, 32), moving_object=True, seed=2)
+    a, b = tmp_path / "a", tmp_path / "b"
+    ds.write_generic_layout(a, clip)
+    ds.write_generic_layout(b, clip)
+
+    def digest(root: Path) -> dict[str, str]:
+        return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    da = digest(a)
+    assert da == digest(b)
+    assert {"frames/000000.png", "intrinsics.txt", "gt/poses.txt", "gt/depth/000003.png", "gt/dynamic/000003.png"} <= set(da)
+
+    lay = ds.read_generic_layout(a)
+    assert len(lay.frame_paths) == 4
+    np.testing.assert_array_equal(lay.load_frames(), clip.frames)  # PNG is lossless
+    np.testing.assert_allclose(lay.K, clip.K, atol=1e-9)
+    np.testing.assert_array_equal(lay.timestamps, np.arange(4.0))
+    np.testing.assert_allclose(lay.poses, clip.poses, atol=1e-8)
+    assert np.max(np.abs(lay.depth.load_all() - clip.depth)) <= 0.0005 + 1e-6
+    np.testing.assert_array_equal(lay.load_dynamic(), clip.dynamic)
+
+
+def test_intrinsics_formats(tmp_path):
+    f = tmp_path / "intrinsics.txt"
+    f.write_text("525 526 319.5 239.5\n")
+    np.testing.assert_array_equal(ds.read_intrinsics_txt(f), [[525, 0, 319.5], [0, 526, 239.5], [0, 0, 1]])
+    f.write_text("525 0 319.5\n0 526 239.5\n0 0 1\n")
+    np.testing.assert_array_equal(ds.read_intrinsics_txt(f), [[525, 0, 319.5], [0, 526, 239.5], [0, 0, 1]])
+
+
+@pytest.mark.parametrize(
+    "reader, text, fragment",
+    [
+        (ds.read_tum_poses, "0 1 2 3 0 0 0 1\n1 1 2 3 0 0 1\n", "line 2"),
+        (ds.read_tum_poses, "0 1 2 3 0 0 0 1\n1 1 2 x 0 0 0 1\n", "not numeric"),
+        (ds.read_tum_poses, "0 1 2 3 0 0 0 0.2\n", "quaternion"),
+        (ds.read_tum_poses, "# only a comment\n", "no poses"),
+        (ds.read_redwood_log, "0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n", "5 lines per pose"),
+        (ds.read_redwood_log, "0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1\n0 0 0 1\n", "line 4"),
+        (ds.read_intrinsics_txt, "525 525 319.5\n", "fx fy cx cy"),
+        (ds.read_intrinsics_txt, "-1 525 319.5 239.5\n", "positive"),
+    ],
+)
+def test_malformed_files_name_the_file(tmp_path, reader, text, fragment):
+    f = tmp_path / "bad_file.txt"
+    f.write_text(text)
+    with pytest.raises(ds.DatasetError) as ei:
+        reader(f)
+    msg = str(ei.value)
+    assert str(f) in msg and fragment in msg
+    assert isinstance(ei.value, ValueError) and isinstance(ei.value, UsageError)
+
+
+def test_missing_and_non_depth_files(tmp_path):
+    with pytest.raises(ds.DatasetError, match="missing.txt"):
+        ds.read_tum_poses(tmp_path / "missing.txt")
+    ds.write_rgb_png(tmp_path / "rgb.png", np.zeros((4, 4, 3), np.uint8))
+    with pytest.raises(ds.DatasetError, match="rgb.png"):
+        ds.read_depth_png(tmp_path / "rgb.png")
+    with pytest.raises(ds.DatasetError, match="nope"):
+        ds.read_depth_pngs(tmp_path / "nope")
+
+
+def test_layout_count_mismatch_is_reported(tmp_path):
+    clip = render_clip(n_frames=3, trajectory="rotation", size=(32, 24), seed=0)
+    ds.write_generic_layout(tmp_path, clip)
+    (tmp_path / "gt" / "depth" / "000002.png").unlink()
+    with pytest.raises(ds.DatasetError, match="2 depth maps for 3 frames"):
+        ds.read_generic_layout(tmp_path)
+
+
+def test_icl_redwood_log():
+    log = ICL / "trajectory_open3d_slac.log"
+    if not log.exists():
+        pytest.skip(f"shared ICL micro data set not present ({log})")
+    P = ds.read_redwood_log(log)
+    assert P.shape == (211, 4, 4)
+    np.testing.assert_allclose(P[:, 3], np.tile([0, 0, 0, 1.0], (211, 1)), atol=1e-6)
+    R = P[:, :3, :3]
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-4)
+    # First pose is (near) identity in this file; the camera moves a few metres overall.
+    np.testing.assert_allclose(P[0], np.eye(4), atol=1e-3)
+    assert 1.0 < np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum() < 10.0

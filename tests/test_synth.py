@@ -1,0 +1,142 @@
+"""Tests for stages.synth: shapes, determinism, trajectory properties, exact geometry."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from stages.synth import TRAJECTORIES, default_intrinsics, make_trajectory, render_clip
+
+SIZE = (128, 96)
+
+
+@pytest.fixture(scope="module")
+def orbit_clip():
+    return render_clip(n_frames=40, trajectory="orbit", size=SIZE, seed=3)
+
+
+def test_shapes_and_dtypes(orbit_clip):
+    c = orbit_clip
+    assert c.frames.shape == (40, 96, 128, 3) and c.frames.dtype == np.uint8
+    assert c.depth.shape == (40, 96, 128) and c.depth.dtype == np.float32
+    assert c.poses.shape == (40, 4, 4) and c.poses.dtype == np.float64
+    assert c.K.shape == (3, 3) and c.K.dtype == np.float64
+    assert c.dynamic is None
+    np.testing.assert_allclose(c.poses[:, 3], np.tile([0, 0, 0, 1.0], (40, 1)))
+    # Rotations are orthonormal with det +1.
+    R = c.poses[:, :3, :3]
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+
+
+def test_default_intrinsics():
+    K = default_intrinsics((256, 192))
+    assert K[0, 0] == K[1, 1] == pytest.approx(200.0)
+    assert (K[0, 2], K[1, 2]) == (127.5, 95.5)
+
+
+def test_deterministic_bytes():
+    a = render_clip(n_frames=4, trajectory="loop", size=(64, 48), moving_object=True, seed=7)
+    b = render_clip(n_frames=4, trajectory="loop", size=(64, 48), moving_object=True, seed=7)
+    assert a.frames.tobytes() == b.frames.tobytes()
+    assert a.depth.tobytes() == b.depth.tobytes()
+    assert a.poses.tobytes() == b.poses.tobytes()
+    assert a.dynamic.tobytes() == b.dynamic.tobytes()
+    c = render_clip(n_frames=4, trajectory="loop", size=(64, 48), moving_object=True, seed=8)
+    assert c.frames.tobytes() != a.frames.tobytes()  # the seed changes the texture
+    assert c.depth.tobytes() == a.depth.tobytes()  # but not the geometry
+
+
+def test_depth_positive_and_plausible(orbit_clip):
+    d = orbit_clip.depth
+    assert np.all(np.isfinite(d))
+    assert (d > 0).mean() > 0.999
+    assert 0.3 < d.min() and d.max() < 9.0  # inside a 6 x 3 x 6 m room
+
+
+def test_texture_has_contrast_everywhere(orbit_clip):
+    # Local standard deviation (5x5) of the grey image: DIS needs texture on every surface.
+    g = cv2.cvtColor(orbit_clip.frames[0], cv2.COLOR_RGB2GRAY).astype(np.float64)
+    mu = cv2.blur(g, (5, 5))
+    sd = np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mu * mu, 0))
+    assert np.mean(sd > 2.0) > 0.9
+
+
+@pytest.mark.parametrize("kind", TRAJECTORIES)
+def test_trajectory_speed(kind):
+    P = make_trajectory(kind, 60)
+    step = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1)
+    rel = np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])
+    ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert step.max() <= 0.031 and ang.max() < 1.0
+    if kind != "rotation":
+        assert step.mean() > 0.01
+    # Same total motion at twice the frame rate.
+    P2 = make_trajectory(kind, 119)
+    np.testing.assert_allclose(P2[::2], P, atol=1e-12)
+
+
+def test_loop_closes_exactly():
+    P = make_trajectory("loop", 60)
+    assert np.array_equal(P[-1], P[0])
+    assert np.linalg.norm(P[30, :3, 3] - P[0, :3, 3]) > 0.3  # it actually went somewhere
+
+
+def test_rotation_has_zero_translation():
+    P = make_trajectory("rotation", 30)
+    assert np.array_equal(P[:, :3, 3], np.broadcast_to(P[0, :3, 3], (30, 3)))
+    assert not np.allclose(P[0, :3, :3], P[-1, :3, :3])
+
+
+def test_forward_does_not_revisit():
+    P = make_trajectory("forward", 60)
+    z = P[:, 2, 3]
+    assert np.all(np.diff(z) > 0)
+
+
+def test_reprojection_consistency(orbit_clip):
+    """Back-project frame 0 with K, poses into frame 3: its z must match frame 3's depth."""
+    c = orbit_clip
+    K, h, w = c.K, *c.depth.shape[1:]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    z0 = c.depth[0].astype(np.float64)
+    X0 = np.stack([(u - K[0, 2]) / K[0, 0] * z0, (v - K[1, 2]) / K[1, 1] * z0, z0], -1).reshape(-1, 3)
+    T = np.linalg.inv(c.poses[3]) @ c.poses[0]  # camera 0 -> camera 3
+    X3 = X0 @ T[:3, :3].T + T[:3, 3]
+    pu = K[0, 0] * X3[:, 0] / X3[:, 2] + K[0, 2]
+    pv = K[1, 1] * X3[:, 1] / X3[:, 2] + K[1, 2]
+    inside = (pu > 0) & (pu < w - 1) & (pv > 0) & (pv < h - 1)
+    # Inverse depth is linear in the image on planes, so bilinear sampling of it is exact
+    # (up to edges), unlike sampling depth itself.
+    inv3 = (1.0 / c.depth[3]).astype(np.float32)
+    samp = cv2.remap(inv3, pu.astype(np.float32).reshape(h, w), pv.astype(np.float32).reshape(h, w), cv2.INTER_LINEAR)
+    rel = np.abs(1.0 / samp.ravel()[inside] - X3[inside, 2]) / X3[inside, 2]
+    assert inside.mean() > 0.8
+    assert np.median(rel) < 1e-4
+    assert np.mean(rel < 0.01) > 0.93
+    # Failures may only come from (dis)occlusions, i.e. near depth edges of frame 0.
+    lz = np.log(z0)
+    edge = np.zeros((h, w), bool)
+    edge[:, 1:] |= np.abs(np.diff(lz, axis=1)) > 0.05
+    edge[1:, :] |= np.abs(np.diff(lz, axis=0)) > 0.05
+    near_edge = cv2.dilate(edge.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool).ravel()
+    smooth = inside & ~near_edge
+    assert smooth.mean() > 0.6
+    assert np.mean(rel[smooth[inside]] < 0.01) > 0.995
+
+
+def test_moving_object_is_marked_dynamic():
+    c = render_clip(n_frames=6, trajectory="forward", size=SIZE, moving_object=True, seed=0)
+    s = render_clip(n_frames=6, trajectory="forward", size=SIZE, moving_object=False, seed=0)
+    assert c.dynamic is not None and c.dynamic.shape == c.depth.shape and c.dynamic.dtype == bool
+    frac = c.dynamic.mean(axis=(1, 2))
+    assert np.all((frac > 0.03) & (frac < 0.25))
+    # Exactly the dynamic pixels differ in depth from the static render (object in front).
+    assert np.array_equal(c.depth != s.depth, c.dynamic)
+    assert np.all(c.depth[c.dynamic] < s.depth[c.dynamic])
+    # Static pixels are identical, bytes and all.
+    assert np.array_equal(c.frames[~c.dynamic], s.frames[~c.dynamic])
+    # It moves independently: its image position changes beyond the camera's motion.
+    cols = [np.nonzero(m.any(axis=0))[0].mean() for m in c.dynamic]
+    assert cols[-1] - cols[0] > 20
