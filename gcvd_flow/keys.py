@@ -260,6 +260,37 @@ def _source_digest(obj: Any) -> str | None:
         return None
 
 
+def _local_imports(obj: Any, own_module: str) -> set[str]:
+    """Project modules imported *inside* a function or class body (``from stages import x``)."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(obj)))
+    except (OSError, TypeError, SyntaxError):
+        return set()
+    package = own_module.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if _is_project_module(a.name))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - (node.level - 1)] if node.level > 1 else parts)
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            if not _is_project_module(mod):
+                continue
+            found.add(mod)
+            for alias in node.names:
+                sub = f"{mod}.{alias.name}"
+                try:
+                    if importlib.util.find_spec(sub) is not None:
+                        found.add(sub)
+                except (ImportError, ValueError):
+                    pass
+    return found
+
+
 def code_fingerprint(fn: Callable) -> tuple[str, tuple[tuple[str, str], ...]]:
     """Fingerprint of a stage function: its own AST plus the project code it uses.
 
@@ -287,6 +318,7 @@ def _code_fingerprint_cached(fn: Callable) -> tuple[str, tuple[tuple[str, str], 
         if digest is None:
             raise EncodingError(f"cannot fingerprint {obj!r}: its source is not available")
         files[f"{own_module}:{obj.__qualname__}"] = digest
+        modules.update(_local_imports(obj, own_module))
         code_objs = [obj] if inspect.isfunction(obj) else [
             m for m in vars(obj).values() if inspect.isfunction(m)
         ]

@@ -47,6 +47,7 @@ import torch
 import torch.nn.functional as F
 
 from stages import geometry as G
+from stages.two_view import pose_from_essential
 from stages import losses as L
 from stages.nn.depth_net import DEPTH_MAX, DEPTH_MIN, DepthNet, Encoded, mesh_shape, upsample_mesh
 from stages.nn.pose_net import PoseNet
@@ -246,16 +247,22 @@ def _two_view(
     E = E[:3]
     if E.shape != (3, 3):
         return T, None
-    _, R, t, inl2 = cv2.recoverPose(E, uv_a, uv_b, K, mask=inl.copy())
-    m = inl2[:, 0] > 0
-    if m.sum() < 20:
-        m = inl[:, 0] > 0
+    # Own cheirality test: cv2.recoverPose ignores points beyond 50 baselines, so on video
+    # baselines it may return the 180-degree "twisted pair" (stages.two_view).
+    m = inl[:, 0] > 0
+    R, t_unit, _ = pose_from_essential(E, uv_a[m], uv_b[m], K)
+    t = t_unit.reshape(3, 1)
     T[:3, :3] = R
     # rotation-only test: residual flow after removing the rotation (infinite homography)
     ra = _rays(uv_a[m], K) @ R.T
     pa = ra[:, :2] / ra[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
     parallax = np.median(np.linalg.norm(pa - uv_b[m], axis=1))
     if parallax < min_parallax:
+        # (near) no translation: E is degenerate, the rotation is that of the infinite homography
+        Hm, _ = cv2.findHomography(uv_a, uv_b, cv2.RANSAC, 1.0)
+        if Hm is not None:
+            U, _, Vt = np.linalg.svd(np.linalg.inv(K) @ Hm @ K)
+            T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
         return T, None
     T[:3, 3] = t[:, 0]
     return T, (uv_a[m], uv_b[m])

@@ -130,3 +130,27 @@ def test_changed_function_body_invalidates_but_unrelated_neighbour_does_not(temp
 def test_fingerprint_independent_of_location(tmp_path, temp_package):
     fp0, files0 = _fingerprint()
     assert all(not f.startswith("/") for f, _ in files0)
+
+
+def test_imports_inside_the_function_count(tmp_path, monkeypatch):
+    pkg = tmp_path / "lpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "algo.py").write_text("def solve(x):\n    return x + 1\n")
+    (pkg / "step.py").write_text("def run(inputs, params, ctx):\n    from lpkg import algo\n\n    return algo.solve(inputs)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(keys, "PROJECT_PACKAGES", keys.PROJECT_PACKAGES | {"lpkg"})
+
+    def fp():
+        keys.clear_caches()
+        for m in [m for m in sys.modules if m == "lpkg" or m.startswith("lpkg.")]:
+            del sys.modules[m]
+        return keys.code_fingerprint(importlib.import_module("lpkg.step").run)
+
+    fp0, files = fp()
+    assert any("lpkg/algo.py" in f for f, _ in files)
+    (pkg / "algo.py").write_text("def solve(x):\n    return x + 2\n")
+    assert fp()[0] != fp0
+    for m in [m for m in sys.modules if m == "lpkg" or m.startswith("lpkg.")]:
+        del sys.modules[m]
+    keys.clear_caches()
