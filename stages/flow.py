@@ -1,7 +1,7 @@
 """Optical flow between adjacent frames, forward-backward consistency, flow chaining.
 
 Default backend: OpenCV DIS (weight-free, CPU, deterministic). Optional backend: RAFT
-(`stages/backends/raft.py`) when the user has weights.
+(`stages/backends/raft_net.py`) when the user has weights.
 
 Shapes/units: images uint8 (H, W, 3) RGB; flows float32 (H, W, 2) as (dx, dy) in pixels, the
 forward flow of pair (a, b) maps pixel p of a to p + flow[p] in b; masks bool (H, W).
@@ -153,7 +153,7 @@ def compute_pair_flow(
     """Forward and backward flow of an adjacent pair plus their consistency masks.
 
     img_a, img_b: uint8 (H, W, 3) RGB. backend: "dis" (preset in ultrafast/fast/medium) or
-    "raft" (`model` = module from stages.backends.raft.load_raft). fb_thresh in px (paper: 1).
+    "raft" (`model` = module from stages.backends.raft_net.load_raft). fb_thresh in px (paper: 1).
     Returns dict(fwd float32 (H, W, 2), bwd float32 (H, W, 2), fwd_valid bool, bwd_valid bool).
     """
     if img_a.shape != img_b.shape:

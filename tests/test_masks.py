@@ -1,0 +1,69 @@
+"""Weight-free motion masks on synthetic clips with ground-truth dynamic masks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.flow import chain_flows, compute_pair_flow
+from stages.masks import motion_static_mask
+from stages.synth import render_clip
+
+N = 20
+FRAMES = (7, 12, 18)
+SPAN = 6
+
+
+def _neighbour_flows(clip, i):
+    """What the pipeline hands the mask of frame i: the flow to i-1 and the flow chained to i-SPAN
+    (an object moving along epipolar lines for one frame rarely does so over several)."""
+    chain = []
+    for k in range(SPAN):
+        f = compute_pair_flow(clip.frames[i - 1 - k], clip.frames[i - k])
+        chain.append((f["bwd"], f["bwd_valid"]))
+    return [chain[0], chain_flows(chain)]
+
+
+@pytest.mark.parametrize("trajectory", ["orbit", "loop"])
+def test_moving_object_iou(trajectory):
+    clip = render_clip(N, trajectory, size=(256, 192), moving_object=True, seed=0)
+    ious = []
+    for i in FRAMES:
+        m = motion_static_mask(clip.K, _neighbour_flows(clip, i))
+        assert m.dtype == np.uint8 and m.shape == (192, 256) and set(np.unique(m)) <= {0, 1}
+        d, g = m == 0, clip.dynamic[i]
+        ious.append((d & g).sum() / max((d | g).sum(), 1))
+    print(f"{trajectory} moving-object IoU per frame: {np.round(ious, 3).tolist()}")
+    assert np.mean(ious) >= 0.5
+
+
+@pytest.mark.parametrize("trajectory", ["orbit", "forward", "rotation"])
+def test_static_clip_mostly_static(trajectory):
+    clip = render_clip(N, trajectory, size=(256, 192), seed=1)
+    fr = []
+    for i in FRAMES:
+        fr.append(motion_static_mask(clip.K, _neighbour_flows(clip, i)).mean())
+    print(f"{trajectory} static fraction per frame: {np.round(fr, 4).tolist()}")
+    assert np.mean(fr) >= 0.97  # the issue's bar: >= 97% of pixels static on a static clip
+
+
+def test_rotation_with_moving_object_and_tiny_motion():
+    clip = render_clip(N, "rotation", size=(128, 96), moving_object=True, seed=0)
+    m = motion_static_mask(clip.K, _neighbour_flows(clip, 8))
+    d, g = m == 0, clip.dynamic[8]
+    iou = (d & g).sum() / max((d | g).sum(), 1)
+    # Documented limitation (stages/masks.py): the lone moving object is read as parallax of a
+    # near object by E; we only require no crash and no false alarms on the static part.
+    print(f"rotation + moving object IoU {iou:.3f}, static part kept {m[~g].mean():.3f}")
+    assert m[~g].mean() >= 0.97
+    # tiny / zero motion must not crash and must call everything static
+    z = np.zeros((96, 128, 2), np.float32)
+    v = np.ones((96, 128), bool)
+    assert motion_static_mask(clip.K, [(z, v)]).mean() == 1.0
+    assert motion_static_mask(clip.K, [(z, np.zeros_like(v))]).mean() == 1.0
+
+
+def test_deterministic():
+    clip = render_clip(8, "orbit", size=(128, 96), moving_object=True, seed=0)
+    f = _neighbour_flows(clip, 4)
+    assert motion_static_mask(clip.K, f).tobytes() == motion_static_mask(clip.K, f).tobytes()
