@@ -115,6 +115,8 @@ class OptimizeKeyframesParams(Section):
     pose_param: Literal["direct", "net"] = "direct"
     init: Literal["essential", "identity"] = "essential"
     checkpoint_every: int = 50
+    threads: int = Field(2, ge=1, description="torch threads of the optimisation stages (results "
+                         "are bit-identical only for the same count)")
 
 
 class OptimizeEdgesParams(Section):

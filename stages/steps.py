@@ -212,6 +212,26 @@ def optimize_params(bundle: Any) -> dict[str, Any]:
     return out
 
 
+class _torch_threads:
+    """Run with a fixed number of torch threads: float reductions split differently across
+    threads give different bits, so the thread count is a parameter (in the key), not an
+    accident of the machine or of OMP_NUM_THREADS."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def __enter__(self) -> None:
+        import torch
+
+        self.prev = torch.get_num_threads()
+        torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc: Any) -> None:
+        import torch
+
+        torch.set_num_threads(self.prev)
+
+
 def _stack(items: Any, indices: list[int], field: str) -> np.ndarray:
     return np.stack([np.asarray(items[i][field]) for i in indices])
 
@@ -257,10 +277,11 @@ def optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     missing = [k for k in range(len(kf) - 1) if (k, k + 1) not in pair_flows]
     if missing:
         raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
-    res = optimize.optimize_keyframes(
-        _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
-        _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
-        params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer)
+    with _torch_threads(b.optimize_keyframes.threads):
+        res = optimize.optimize_keyframes(
+            _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
+            _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
+            params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer)
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
             "depths": [np.asarray(d, np.float32) for d in res["depths"]],
             "rel_poses": [{"a": int(r["a"]), "b": int(r["b"]), "tau": int(r["tau"]),
@@ -287,10 +308,11 @@ def optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     for n, e in enumerate(inputs["association"]["graph"].get("nonsequential_edges", [])):
         i, j = int(e["i"]), int(e["j"])
         a, c = pos[i], pos[j]
-        res = optimize.optimize_edge(
-            frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
-            masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(P[c]) @ P[a],
-            params=params, seed=ctx.seed + n)
+        with _torch_threads(b.optimize_keyframes.threads):
+            res = optimize.optimize_edge(
+                frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
+                masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(P[c]) @ P[a],
+                params=params, seed=ctx.seed + n)
         edges.append({"a": a, "b": c, "i": i, "j": j, "T_ab": np.asarray(res["T_ab"], np.float64),
                       "loss": float(res["loss"])})
     return {"edges": edges}
@@ -334,12 +356,13 @@ def optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any
     n = len(frames)
     idx = list(range(n))
     okf = inputs["optimize_keyframes"]
-    res = optimize.optimize_segments(
-        _stack(frames, idx, "image"), _stack(inputs["priors"], idx, "inv_depth"),
-        _stack(inputs["masks"], idx, "static"), np.asarray(frames.summary["K"]),
-        _LazyFlows(flows), list(okf["keyframes"]),
-        np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
-        params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
+    with _torch_threads(b.optimize_keyframes.threads):
+        res = optimize.optimize_segments(
+            _stack(frames, idx, "image"), _stack(inputs["priors"], idx, "inv_depth"),
+            _stack(inputs["masks"], idx, "static"), np.asarray(frames.summary["K"]),
+            _LazyFlows(flows), list(okf["keyframes"]),
+            np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
+            params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
     return {"poses": np.asarray(res["poses"], np.float64),
             "depths": [np.asarray(d, np.float32) for d in res["depths"]]}
 

@@ -13,6 +13,9 @@ from stages import optimize as O
 from stages.flow import compute_pair_flow
 from stages.synth import render_clip
 
+# one thread: on 2 cores shared with other jobs, torch's intra-op threads oversubscribe badly
+torch.set_num_threads(1)
+
 
 class MemCheckpointer:
     """In-memory stand-in for the engine's checkpointer; can simulate a Ctrl-C after n saves."""
