@@ -166,39 +166,39 @@ def _module_source(name: str) -> tuple[str, str] | None:
     return origin.read_text(encoding="utf-8"), rel
 
 
-def _imported_project_modules(name: str, source: str) -> set[str]:
-    """Project modules that module ``name`` imports (absolute and relative imports)."""
-    tree = ast.parse(source)
-    is_pkg = False
-    spec = importlib.util.find_spec(name)
-    if spec is not None and spec.origin and spec.origin.endswith("__init__.py"):
-        is_pkg = True
-    package = name if is_pkg else name.rpartition(".")[0]
+def _project_imports(tree: ast.AST, package: str) -> set[str]:
+    """Project modules named by the import statements anywhere in ``tree`` (relative imports
+    resolved against ``package``; ``from stages import flow`` also names ``stages.flow``)."""
     found: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            for alias in node.names:
-                if _is_project_module(alias.name):
-                    found.add(alias.name)
+            found.update(a.name for a in node.names if _is_project_module(a.name))
         elif isinstance(node, ast.ImportFrom):
             if node.level:
-                base_parts = package.split(".")
-                if node.level > 1:
-                    base_parts = base_parts[: len(base_parts) - (node.level - 1)]
-                base = ".".join(base_parts)
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - (node.level - 1)] if node.level > 1 else parts)
                 mod = f"{base}.{node.module}" if node.module else base
             else:
                 mod = node.module or ""
             if not _is_project_module(mod):
                 continue
             found.add(mod)
-            for alias in node.names:  # `from stages import flow` names a submodule
+            for alias in node.names:
                 sub = f"{mod}.{alias.name}"
                 try:
                     if importlib.util.find_spec(sub) is not None:
                         found.add(sub)
                 except (ImportError, ValueError):
                     pass
+    return found
+
+
+def _imported_project_modules(name: str, source: str) -> set[str]:
+    """Project modules that module ``name`` imports (absolute and relative imports)."""
+    spec = importlib.util.find_spec(name)
+    is_pkg = spec is not None and bool(spec.origin) and spec.origin.endswith("__init__.py")
+    package = name if is_pkg else name.rpartition(".")[0]
+    found = _project_imports(ast.parse(source), package)
     # a module also depends on its parent packages' __init__ (executed on import)
     parts = name.split(".")
     for i in range(1, len(parts)):
@@ -266,29 +266,7 @@ def _local_imports(obj: Any, own_module: str) -> set[str]:
         tree = ast.parse(textwrap.dedent(inspect.getsource(obj)))
     except (OSError, TypeError, SyntaxError):
         return set()
-    package = own_module.rpartition(".")[0]
-    found: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            found.update(a.name for a in node.names if _is_project_module(a.name))
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                parts = package.split(".")
-                base = ".".join(parts[: len(parts) - (node.level - 1)] if node.level > 1 else parts)
-                mod = f"{base}.{node.module}" if node.module else base
-            else:
-                mod = node.module or ""
-            if not _is_project_module(mod):
-                continue
-            found.add(mod)
-            for alias in node.names:
-                sub = f"{mod}.{alias.name}"
-                try:
-                    if importlib.util.find_spec(sub) is not None:
-                        found.add(sub)
-                except (ImportError, ValueError):
-                    pass
-    return found
+    return _project_imports(tree, own_module.rpartition(".")[0])
 
 
 def code_fingerprint(fn: Callable) -> tuple[str, tuple[tuple[str, str], ...]]:

@@ -36,6 +36,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from stages.backends.weights import load_strict, read_state_dict
+
 log = logging.getLogger(__name__)
 
 HIDDEN_DIM = 128
@@ -313,43 +315,6 @@ class RAFT(nn.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        state = load_file(str(path), device="cpu")
-    else:
-        state = torch.load(str(path), map_location="cpu", weights_only=True)
-        if isinstance(state, dict):
-            for key in ("state_dict", "model"):
-                if key in state and isinstance(state[key], dict):
-                    state = state[key]
-                    break
-    if not isinstance(state, dict):
-        raise ValueError(f"{path}: expected a state dict, got {type(state).__name__}")
-    return {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state.items()}
-
-
-def _load_strict(model: nn.Module, state: dict[str, torch.Tensor], path: Path) -> None:
-    expected = model.state_dict()
-    missing = [k for k in expected if k not in state]
-    unexpected = [k for k in state if k not in expected]
-    if missing or unexpected:
-        parts = []
-        if missing:
-            parts.append(f"missing key {missing[0]!r} ({len(missing)} missing)")
-        if unexpected:
-            parts.append(f"unexpected key {unexpected[0]!r} ({len(unexpected)} unexpected)")
-        raise ValueError(f"{path}: not a {type(model).__name__} state dict: " + "; ".join(parts))
-    for k, v in expected.items():
-        if tuple(state[k].shape) != tuple(v.shape):
-            raise ValueError(f"{path}: key {k!r} has shape {tuple(state[k].shape)}, expected {tuple(v.shape)}")
-    try:
-        model.load_state_dict(state, strict=True)
-    except RuntimeError as e:  # pragma: no cover - guarded above
-        raise ValueError(f"{path}: {e}") from e
-
-
 def load_raft(path: str | Path) -> RAFT:
     """Load RAFT weights from a local ``.safetensors`` or ``.pth``/``.pt`` file (eval mode).
 
@@ -359,7 +324,7 @@ def load_raft(path: str | Path) -> RAFT:
     """
     p = Path(path)
     model = RAFT()
-    _load_strict(model, _read_state_dict(p), p)
+    load_strict(model, read_state_dict(p), p)
     model.eval()
     return model
 
