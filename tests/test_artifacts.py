@@ -55,6 +55,7 @@ def test_object_arrays_and_nan_are_refused(store):
 def test_pickled_array_in_store_is_not_loaded(store):
     """A teammate's cache holding a pickled object array must not execute anything."""
     buf = io.BytesIO()
+    # Deliberately unsafe: this builds the malicious input whose loading must be refused.
     np.save(buf, np.array([{"a": 1}], dtype=object), allow_pickle=True)
     blob = store.put_bytes(buf.getvalue())
     doc = json.dumps({"kind": "generic", "value": {"x": {"$npy": blob, "dtype": "|O", "shape": [1]}}},

@@ -53,6 +53,24 @@ def test_env_has_no_paths_or_names():
     assert set(env) >= {"numpy", "torch", "opencv", "device", "dtype", "deterministic"}
 
 
+def _make_package(root, name: str, files: dict[str, str], monkeypatch):
+    """Write a throw-away package `name` under `root`, importable and counted as project code."""
+    pkg = root / name
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    for fname, text in files.items():
+        (pkg / fname).write_text(text)
+    monkeypatch.syspath_prepend(str(root))
+    monkeypatch.setattr(keys, "PROJECT_PACKAGES", keys.PROJECT_PACKAGES | {name})
+    return pkg
+
+
+def _forget(name: str) -> None:
+    keys.clear_caches()
+    for m in [m for m in sys.modules if m == name or m.startswith(name + ".")]:
+        del sys.modules[m]
+
+
 @pytest.fixture
 def temp_package(tmp_path, monkeypatch):
     """A throw-away project package `fpkg` (stage module + helper module) on sys.path."""
@@ -133,24 +151,17 @@ def test_fingerprint_independent_of_location(tmp_path, temp_package):
 
 
 def test_imports_inside_the_function_count(tmp_path, monkeypatch):
-    pkg = tmp_path / "lpkg"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text("")
-    (pkg / "algo.py").write_text("def solve(x):\n    return x + 1\n")
-    (pkg / "step.py").write_text("def run(inputs, params, ctx):\n    from lpkg import algo\n\n    return algo.solve(inputs)\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(keys, "PROJECT_PACKAGES", keys.PROJECT_PACKAGES | {"lpkg"})
+    pkg = _make_package(tmp_path, "lpkg", {
+        "algo.py": "def solve(x):\n    return x + 1\n",
+        "step.py": "def run(inputs, params, ctx):\n    from lpkg import algo\n\n    return algo.solve(inputs)\n",
+    }, monkeypatch)
 
     def fp():
-        keys.clear_caches()
-        for m in [m for m in sys.modules if m == "lpkg" or m.startswith("lpkg.")]:
-            del sys.modules[m]
+        _forget("lpkg")
         return keys.code_fingerprint(importlib.import_module("lpkg.step").run)
 
     fp0, files = fp()
     assert any("lpkg/algo.py" in f for f, _ in files)
     (pkg / "algo.py").write_text("def solve(x):\n    return x + 2\n")
     assert fp()[0] != fp0
-    for m in [m for m in sys.modules if m == "lpkg" or m.startswith("lpkg.")]:
-        del sys.modules[m]
-    keys.clear_caches()
+    _forget("lpkg")
