@@ -10,8 +10,8 @@ neighbours are OR-ed, cleaned (opening, small components removed) and dilated (t
 5x5), and returned as 1 = static.
 
 Limitations (documented, as in every epipolar test): an object moving along its epipolar
-line is not detected; the Mask R-CNN semantic backend of the paper needs weights and is not
-part of this release.
+line is not detected. The paper's Mask R-CNN semantic masks are the optional
+``masks.backend=maskrcnn`` (or ``motion+maskrcnn``), stages.backends.maskrcnn, with local weights.
 """
 
 from __future__ import annotations

@@ -47,7 +47,7 @@ import torch
 import torch.nn.functional as F
 
 from stages import geometry as G
-from stages.two_view import pose_from_essential
+from stages.two_view import pose_from_essential, rotation_from_homography
 from stages import losses as L
 from stages.nn.depth_net import DEPTH_MAX, DEPTH_MIN, DepthNet, Encoded, mesh_shape, upsample_mesh
 from stages.nn.pose_net import PoseNet
@@ -240,6 +240,12 @@ def _two_view(
     uv_a = np.stack([xs, ys], 1).astype(np.float64)
     uv_b = uv_a + fwd[ys, xs].astype(np.float64)
     f = float(K[0, 0])
+    # Rotation-only (or no) motion first: E is then degenerate and its decomposition arbitrary
+    # (identical frames gave a ~176-degree rotation).
+    R_h = rotation_from_homography(uv_a, uv_b, K)
+    if R_h is not None:
+        T[:3, :3] = R_h
+        return T, None
     # MAGSAC++ (USAC): ~5x smaller translation-direction error than plain RANSAC on DIS flow
     E, inl = cv2.findEssentialMat(uv_a, uv_b, K, method=cv2.USAC_MAGSAC, prob=0.999, threshold=max(0.5, f / 500))
     if E is None or E.shape[0] < 3:

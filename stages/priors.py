@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from stages.flow import chain_flows
-from stages.two_view import relative_pose, triangulate_depths
+from stages.two_view import relative_pose, rotation_from_homography, triangulate_depths
 
 log = logging.getLogger(__name__)
 
@@ -77,50 +77,24 @@ def _constant(h: int, w: int) -> dict[str, np.ndarray]:
     return {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
 
 
-def _is_pure_rotation(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, seed: int) -> bool:
-    """True when one homography of the form K R K^-1 (a rotation) explains the correspondences:
-    then nothing can be triangulated, and E is degenerate (any translation fits)."""
-    cv2.setRNGSeed(seed)
-    H, inl = cv2.findHomography(pa, pb, cv2.RANSAC, 1.0)
-    if H is None or inl is None or inl.mean() < 0.9:
-        return False
-    M = np.linalg.inv(K) @ H @ K
-    M = M / np.cbrt(np.linalg.det(M))
-    sv = np.linalg.svd(M, compute_uv=False)
-    return bool(np.all(np.abs(sv - 1.0) < 0.03))
-
-
-def geometric_prior(image: np.ndarray, K: np.ndarray, chain: Sequence[tuple[np.ndarray, np.ndarray]],
-                    seed: int = 0) -> dict[str, np.ndarray]:
-    """Relative inverse depth of ``image`` from flows toward a reference frame.
-
-    image uint8 (H, W, 3); K (3, 3); chain [(flow (H, W, 2), valid bool (H, W)), ...] successive
-    flows from this frame toward the reference. Returns {inv_depth float32 (H, W) > 0 with
-    median 1, confidence float32 (H, W) in [0, 1]}.
-    """
-    h, w = image.shape[:2]
-    if not chain:
-        return _constant(h, w)
-    # longest prefix of the chain that keeps enough consistent pixels (more baseline = better)
-    flow, valid = chain[0]
-    valid = np.asarray(valid, bool)
-    for k in range(2, len(chain) + 1):
-        f, v = chain_flows(chain[:k])
-        if v.mean() < MIN_VALID_FRACTION:
-            break
-        flow, valid = f, v
+def _triangulate_reference(flow: np.ndarray, valid: np.ndarray, K: np.ndarray,
+                           seed: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Sparse inverse depth (H, W) (unit-baseline scale, 0 where unknown) and its weight (H, W)
+    in [0, 1] from one flow (H, W, 2) px to a reference and its usable mask (H, W); None when
+    the pair cannot be triangulated (rotation only, too little parallax, RANSAC failure)."""
+    h, w = valid.shape
     vv, uu = np.mgrid[0:h, 0:w]
     sel = valid & (vv % GRID_STEP == 0) & (uu % GRID_STEP == 0)
     if sel.sum() < 30:
-        return _constant(h, w)
+        return None
     pa = np.stack([uu[sel], vv[sel]], -1).astype(np.float64)
     pb = pa + flow[sel].astype(np.float64)
-    if _is_pure_rotation(pa, pb, K, seed):
-        log.info("prior: flow is explained by a camera rotation alone; constant prior")
-        return _constant(h, w)
+    if rotation_from_homography(pa, pb, K, seed) is not None:
+        log.info("prior: flow is explained by a camera rotation alone")
+        return None
     rel = relative_pose(pa, pb, K, threshold=RANSAC_THRESHOLD_PX, seed=seed)
     if rel is None:
-        return _constant(h, w)
+        return None
     R, t, _ = rel
     # triangulate every consistent pixel (midpoint method in closed form, vectorised)
     Kinv = np.linalg.inv(K)
@@ -133,18 +107,64 @@ def geometric_prior(image: np.ndarray, K: np.ndarray, chain: Sequence[tuple[np.n
     parallax = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
     good = np.isfinite(za) & (za > 0) & (parallax > 0.05)
     if good.sum() < 30 or np.median(parallax[good]) < MIN_PARALLAX_DEG:
-        log.info("prior: too little parallax (median %.3f deg); constant prior", float(np.median(parallax)) if parallax.size else 0)
-        return _constant(h, w)
+        log.info("prior: too little parallax (median %.3f deg)", float(np.median(parallax)) if parallax.size else 0)
+        return None
     inv = np.zeros((h, w))
     wgt = np.zeros((h, w))
     idx_v, idx_u = vv[valid][good], uu[valid][good]
     inv_vals = 1.0 / za[good]
     # robust clip of outliers (flow errors at occlusion edges)
     lo, hi = np.percentile(inv_vals, [1, 99])
-    inv_vals = np.clip(inv_vals, lo, hi)
-    inv[idx_v, idx_u] = inv_vals
+    inv[idx_v, idx_u] = np.clip(inv_vals, lo, hi)
     # confidence grows with the triangulation angle (depth noise ~ 1 / parallax)
     wgt[idx_v, idx_u] = np.clip(parallax[good] / 2.0, 0.05, 1.0)
+    return inv, wgt
+
+
+def geometric_prior(image: np.ndarray, K: np.ndarray, chain: Sequence[tuple[np.ndarray, np.ndarray]],
+                    seed: int = 0, extra: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> dict[str, np.ndarray]:
+    """Relative inverse depth of ``image`` from flows toward reference frames.
+
+    image uint8 (H, W, 3); K (3, 3); chain [(flow (H, W, 2), valid bool (H, W)), ...] successive
+    flows from this frame toward the main reference; extra [(flow, valid), ...] direct flows to
+    further references. Each reference is triangulated on its own (its own two-view pose, unit
+    baseline), brought to the main reference's scale by the median ratio on pixels both see, and
+    the sparse maps are averaged with triangulation-angle weights: a second reference fills what
+    the first cannot see (occlusions, pixels that left its view) and halves noise where both do.
+    Returns {inv_depth float32 (H, W) > 0 with median 1, confidence float32 (H, W) in [0, 1]}.
+    """
+    h, w = image.shape[:2]
+    if not chain:
+        return _constant(h, w)
+    # longest prefix of the chain that keeps enough consistent pixels (more baseline = better)
+    flow, valid = chain[0]
+    valid = np.asarray(valid, bool)
+    for k in range(2, len(chain) + 1):
+        f, v = chain_flows(chain[:k])
+        if v.mean() < MIN_VALID_FRACTION:
+            break
+        flow, valid = f, v
+    maps = []
+    for fl, va in [(flow, valid), *[(f, np.asarray(v, bool)) for f, v in extra]]:
+        r = _triangulate_reference(np.asarray(fl), va, K, seed)
+        if r is not None:
+            maps.append(r)
+    if not maps:
+        log.info("prior: no reference could be triangulated; constant prior")
+        return _constant(h, w)
+    inv, wgt = maps[0]
+    num, den = inv * wgt, wgt.copy()
+    for inv_k, wgt_k in maps[1:]:
+        both = (wgt > 0) & (wgt_k > 0)
+        if both.sum() < 30:
+            continue
+        s = float(np.median(inv[both] / inv_k[both]))
+        num += s * inv_k * wgt_k
+        den += wgt_k
+    have = den > 0
+    inv = np.where(have, num / np.maximum(den, 1e-12), 0.0)
+    wgt = np.clip(den, 0.0, 1.0)
+    lo = float(np.percentile(inv[have], 1))
     gray = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0
     dense, support = densify(gray, inv, wgt)
     dense = np.maximum(dense, lo * 0.5)

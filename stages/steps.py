@@ -23,8 +23,10 @@ from stages import ingest as ingest_mod
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_model(kind: str, path: str) -> Any:
-    """Load weights once per process (items of a map stage share the model)."""
+def _cached_model(kind: str, path: str, min_size: int | None = None) -> Any:
+    """Load weights once per process (items of a map stage share the model).
+
+    ``min_size``: the Mask R-CNN input short side (part of the model's transform)."""
     if kind == "raft":
         from stages.backends.raft_net import load_raft
 
@@ -37,6 +39,10 @@ def _cached_model(kind: str, path: str) -> Any:
         from stages.backends.resnet import load_resnet18
 
         return load_resnet18(path)
+    if kind == "maskrcnn":
+        from stages.backends.maskrcnn import MIN_SIZE, load_maskrcnn
+
+        return load_maskrcnn(path, min_size=min_size or MIN_SIZE)
     raise ValueError(f"unknown model kind {kind!r}")
 
 
@@ -85,9 +91,20 @@ def _chain(inputs: dict[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def static_mask(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
-    """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows."""
+    """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows
+    (backend motion), its image's Mask R-CNN instances of moving classes (maskrcnn), or both
+    (motion+maskrcnn: static where both say static)."""
     from stages import flow, masks
 
+    semantic = None
+    if "maskrcnn" in p.backend:
+        from stages.backends.maskrcnn import semantic_static_mask
+
+        model = _cached_model("maskrcnn", p.weights, p.min_size)
+        semantic = semantic_static_mask(model, inputs["image"]["image"], score_thresh=p.score_thresh,
+                                        dilate=p.dilate)
+        if p.backend == "maskrcnn":
+            return {"static": semantic}
     chain = _chain(inputs)
     h, w = chain[0][0].shape[:2]
     if p.backend == "none":
@@ -95,7 +112,8 @@ def static_mask(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     neighbours = [chain[0]]
     if len(chain) > 1:
         neighbours.append(flow.chain_flows(chain))
-    return {"static": masks.motion_static_mask(np.asarray(inputs["K"]), neighbours, dilate=p.dilate)}
+    motion = masks.motion_static_mask(np.asarray(inputs["K"]), neighbours, dilate=p.dilate)
+    return {"static": motion if semantic is None else np.minimum(motion, semantic)}
 
 
 # ------------------------------------------------------------------------------- priors
@@ -114,15 +132,15 @@ def depth_prior(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     from stages import flow
 
     K = np.asarray(inputs["K"])
-    out = None
-    for ref in ("ref", "ref_near"):  # the far reference first: more parallax
-        if ref not in inputs:
-            continue
-        fl = flow.compute_pair_flow(image, inputs[ref]["image"], preset=p.preset, fb_thresh=p.fb_thresh)
-        if fl["fwd_valid"].mean() < priors.MIN_VALID_FRACTION and ref == "ref" and "ref_near" in inputs:
-            continue  # too much motion for a reliable direct flow: use the nearer reference
-        out = priors.geometric_prior(image, K, [(fl["fwd"], fl["fwd_valid"])])
-        break
+    # direct flows to the far reference (more parallax) and the near one (sees what the far
+    # one lost); the prior fuses both (stages.priors.geometric_prior)
+    flows = []
+    for ref in ("ref", "ref_near"):
+        if ref in inputs:
+            fl = flow.compute_pair_flow(image, inputs[ref]["image"], preset=p.preset, fb_thresh=p.fb_thresh)
+            if fl["fwd_valid"].mean() >= priors.MIN_VALID_FRACTION:
+                flows.append((fl["fwd"], fl["fwd_valid"]))
+    out = priors.geometric_prior(image, K, flows[:1], extra=flows[1:]) if flows else None
     if out is None:
         h, w = image.shape[:2]
         out = {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
@@ -370,12 +388,30 @@ def optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any
 # ------------------------------------------------------------------------------- depth filter
 
 
+def fuse_depth(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Frame i's optimised depth fused with its multi-view triangulation -> {depth float32 (H, W),
+    measured float (fraction of pixels triangulated)}."""
+    from stages import depth_fusion
+
+    depth = np.asarray(inputs["depth"], np.float32)
+    if not p.enabled:
+        return {"depth": depth, "measured": 0.0}
+    poses = np.asarray(inputs["poses"], np.float64)
+    i = int(inputs["index"])
+    refs = [(inputs[k]["image"], poses[int(inputs[f"index_{k}"])]) for k in sorted(inputs)
+            if k.startswith("ref") and not k.startswith("index")]
+    fused, measured = depth_fusion.fuse_depth(
+        inputs["image"]["image"], depth, poses[i], refs, np.asarray(inputs["K"]), preset=p.preset,
+        fb_thresh=p.fb_thresh, min_angle_deg=p.min_angle_deg, max_log_dev=p.max_log_dev)
+    return {"depth": fused, "measured": measured}
+
+
 def filter_depth(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W)}."""
     from stages import depth_filter
 
     m = len([k for k in inputs if k.startswith("d")])
-    depths = np.stack([inputs[f"d{k:02d}"] for k in range(m)])
+    depths = np.stack([np.asarray(inputs[f"d{k:02d}"]["depth"]) for k in range(m)])
     center = int(inputs["center"])
     if not p.enabled or m == 1:
         return {"depth": depths[center].astype(np.float32)}

