@@ -982,15 +982,16 @@ def _fill_small_holes(depth: np.ndarray, sigma: float = 1.0, min_density: float 
 
 
 def _transfer_depths(
-    init: np.ndarray, kf: Sequence[int], kpos: np.ndarray, kd: np.ndarray, priors: np.ndarray, K: np.ndarray
+    init: np.ndarray, kf: Sequence[int], kpos: np.ndarray, kd: np.ndarray, priors: np.ndarray, K: np.ndarray,
+    frames: Sequence[int],
 ) -> np.ndarray:
-    """Depth targets (N, H, W) for the segment stage: keyframe depth at keyframes; for the other
-    frames the z-buffered reprojection of the two bracketing keyframes (nearer one first), with the
-    frame's own prior (scaled to agree) in the remaining holes."""
-    N = len(init)
-    out = np.zeros((N,) + kd.shape[1:], np.float32)
+    """Depth targets (len(frames), H, W) for the segment stage: keyframe depth at keyframes; for
+    the other frames the z-buffered reprojection of the two bracketing keyframes (nearer one
+    first), with the frame's own prior (scaled to agree) in the remaining holes.
+    init (N, 4, 4) initial c2w poses of all frames; priors (len(frames), H, W) those frames' priors."""
+    out = np.zeros((len(frames),) + kd.shape[1:], np.float32)
     pri = _prior_np(priors)
-    for i in range(N):
+    for n, i in enumerate(frames):
         j = int(np.searchsorted(kf, i, side="right")) - 1
         if j >= 0 and kf[j] == i:
             d = kd[j].copy()
@@ -1003,11 +1004,11 @@ def _transfer_depths(
                 d = np.where(d > 0, d, sp)
         hole = ~(d > 0)
         if hole.any():
-            own = 1.0 / pri[i]
+            own = 1.0 / pri[n]
             good = ~hole
             s = float(np.median(d[good] / own[good])) if good.sum() > 20 else float(np.median(kd[max(j, 0)][kd[max(j, 0)] > 0]) / np.median(own))
             d = np.where(hole, own * s, d)
-        out[i] = d
+        out[n] = d
     return out
 
 
@@ -1037,8 +1038,8 @@ def optimize_segments(
     neighbouring keyframe meshes. Returns dict(poses (N, 4, 4) float64, depths (N, H, W) float32).
     """
     p = OptimizeParams.make(params)
-    images = np.asarray(images)
-    N, H, W = images.shape[:3]
+    N = len(images)
+    H, W = np.asarray(images[0]).shape[:2]
     K = np.asarray(K, np.float64)
     kf = [int(k) for k in keyframe_indices]
     kpos = np.asarray(keyframe_poses, np.float64)
@@ -1076,19 +1077,33 @@ def optimize_segments(
                         init[i] = P
         h, w, f = _loss_size(H, W, p.seg_loss_scale)
         kd_all = np.asarray(keyframe_depths, np.float32)
+        # Memory: images / priors / masks may be lazy sequences (the pipeline passes them so);
+        # only one window (or chunk) of them is ever materialised.
         if p.seg_prior == "transfer":
             # the depth model now starts from the keyframe stage's depth (not the raw prior), so
             # the keyframe head, trained on the raw prior's features, is not reused
-            target = _transfer_depths(init, kf, kpos, kd_all, np.asarray(priors), K)
-            priors = (1.0 / np.maximum(target, 1e-6)).astype(np.float32)
             net = DepthNet(layer_norm=p.layer_norm, mesh=p.mesh, seed=seed)
-            ref = torch.as_tensor(_init_depth_full(net, images, priors))
-            ratio = torch.log(torch.as_tensor(target).clamp(min=1e-6) / ref.clamp(min=1e-6))
-            mesh_init = _fit_mesh(_area(ratio.numpy(), h, w), gshape)
+
+            def window_priors(a: int, b: int) -> np.ndarray:
+                target = _transfer_depths(init, kf, kpos, kd_all, priors[a : b + 1], K, range(a, b + 1))
+                return (1.0 / np.maximum(target, 1e-6)).astype(np.float32)
+
+            mesh_init = torch.zeros(N, *gshape)
+            for a in range(0, N, 32):
+                b = min(a + 32, N) - 1
+                pri_w = window_priors(a, b)
+                target = torch.as_tensor(1.0 / pri_w)
+                ref = torch.as_tensor(_init_depth_full(net, None, pri_w))
+                ratio = torch.log(target.clamp(min=1e-6) / ref.clamp(min=1e-6))
+                mesh_init[a : b + 1] = _fit_mesh(_area(ratio.numpy(), h, w), gshape)
         else:
+
+            def window_priors(a: int, b: int) -> np.ndarray:
+                return np.asarray(priors[a : b + 1])
+
             # keyframe meshes: fit log(keyframe_depth / network depth) at loss resolution
             # the loaded keyframe head is not zero: evaluate the network itself
-            kref = torch.as_tensor(_full_depth(net, images[kf], np.asarray(priors)[kf], torch.zeros(len(kf), 2, 2), False))
+            kref = torch.as_tensor(_full_depth(net, images[kf], priors[kf], torch.zeros(len(kf), 2, 2), False))
             kd = torch.as_tensor(kd_all)
             ratio = torch.log(kd.clamp(min=1e-6) / kref.clamp(min=1e-6))
             ratio = torch.where(kd > 0, ratio, torch.nan)
@@ -1136,7 +1151,8 @@ def optimize_segments(
             a, b = windows[wi]
             idx = list(range(a, b + 1))
             n = len(idx)
-            fr = _prepare(net, images[a : b + 1], np.asarray(priors)[a : b + 1], np.asarray(static_masks)[a : b + 1], K, p.seg_loss_scale, gshape)
+            imgs_w, pri_w = np.asarray(images[a : b + 1]), window_priors(a, b)
+            fr = _prepare(net, imgs_w, pri_w, np.asarray(static_masks[a : b + 1]), K, p.seg_loss_scale, gshape)
             seg_flows = {
                 k: (_flow_lr(adjacent_flows[k], "fwd", h, w, fr.f), _flow_lr(adjacent_flows[k], "bwd", h, w, fr.f))
                 for k in range(a, b)
@@ -1149,7 +1165,7 @@ def optimize_segments(
                     pairs.append(_Pair(i, i + tau, tau, wt, *(f1[0] if f1 else (None, None))))
                     pairs.append(_Pair(i + tau, i, tau, wt, *(f1[1] if f1 else (None, None))))
             if not pairs:
-                out_depth[a : b + 1] = _full_depth(net, images[a : b + 1], np.asarray(priors)[a : b + 1], g_mesh[a : b + 1], p.mesh)
+                out_depth[a : b + 1] = _full_depth(net, imgs_w, pri_w, g_mesh[a : b + 1], p.mesh)
                 continue
             pose_train = torch.as_tensor((~is_kf[a : b + 1]).astype(np.float64))
             win = _Window(
@@ -1173,7 +1189,8 @@ def optimize_segments(
             with torch.no_grad():
                 g_pose[a : b + 1] = solver.poses().detach()
                 g_mesh[a : b + 1] = solver.meshes().detach().clone()
-            out_depth[a : b + 1] = _full_depth(net, images[a : b + 1], np.asarray(priors)[a : b + 1], g_mesh[a : b + 1], p.mesh, fr.enc)
+            out_depth[a : b + 1] = _full_depth(net, imgs_w, pri_w, g_mesh[a : b + 1], p.mesh, fr.enc)
+            del fr, imgs_w, pri_w, seg_flows, pairs, win, solver
             if checkpointer is not None and wi + 1 < len(windows):
                 t = {"g_pose": g_pose.clone(), "g_mesh": g_mesh.clone(), "rng": gen.get_state(), "out_depth": torch.as_tensor(out_depth)}
                 t.update(net.trainable_state())

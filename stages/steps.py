@@ -258,6 +258,25 @@ def _flow_dict(fl: dict[str, Any]) -> dict[str, np.ndarray]:
     return {k: np.asarray(fl[k]) for k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}
 
 
+class _LazyStack:
+    """field of a map stage's items as a lazily loaded (N, ...) array: ``x[a:b]`` and
+    ``x[[i, j]]`` stack just those items, ``x[i]`` loads one. Lets optimize_segments hold one
+    window of images / priors / masks instead of the whole clip."""
+
+    def __init__(self, items: Any, field: str):
+        self._items, self._field = items, field
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i: Any) -> np.ndarray:
+        if isinstance(i, slice):
+            return _stack(self._items, list(range(*i.indices(len(self._items)))), self._field)
+        if isinstance(i, (list, tuple, np.ndarray)):
+            return _stack(self._items, [int(j) for j in i], self._field)
+        return np.asarray(self._items[int(i)][self._field])
+
+
 class _LazyFlows:
     """flows[i] -> flow dict of pair (i, i+1), loaded when indexed (not all held in memory:
     at 256x192 one pair is ~0.9 MB, so a 1000-frame clip would hold ~0.9 GB of flows)."""
@@ -371,13 +390,11 @@ def optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any
     from stages import optimize
 
     frames, flows = inputs["ingest"], inputs["flow"]
-    n = len(frames)
-    idx = list(range(n))
     okf = inputs["optimize_keyframes"]
     with _torch_threads(b.optimize_keyframes.threads):
         res = optimize.optimize_segments(
-            _stack(frames, idx, "image"), _stack(inputs["priors"], idx, "inv_depth"),
-            _stack(inputs["masks"], idx, "static"), np.asarray(frames.summary["K"]),
+            _LazyStack(frames, "image"), _LazyStack(inputs["priors"], "inv_depth"),
+            _LazyStack(inputs["masks"], "static"), np.asarray(frames.summary["K"]),
             _LazyFlows(flows), list(okf["keyframes"]),
             np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
             params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
