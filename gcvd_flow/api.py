@@ -21,7 +21,7 @@ from .config import build_config
 from .dag import Pipeline
 from .errors import UsageError
 from .runner import Runner, StageReport, diff_fields
-from .store import CorruptObject, Store, default_cache_dir
+from .store import CorruptObject, Store, StoreError, default_cache_dir
 
 RUN_FILE = "run.json"
 
@@ -198,6 +198,39 @@ def status(out: str, extra: Invocation | None = None, log: Callable[[str], None]
     return runner.plan(previous)
 
 
+def recorded_output(out: str | Path, stage: str, cache: str | None = None, verify: bool = True) -> Any:
+    """The output a run directory recorded for ``stage``, decoded from the cache by its digest.
+
+    Needs neither the run's input nor the current code: ``run.json`` names the exact content
+    the run produced (its output digest), so this is what the run used even if the input or the
+    code changed since. A map stage gives a lazily loading ``MapValue`` (with ``.summary``);
+    every object its items need is checked to be present first. Raises ``UsageError`` if the
+    run directory has no output recorded for ``stage``, ``StoreError`` if the cache does not
+    hold it (any more) and ``ArtifactError`` for an unreadable manifest. Adds nothing to the
+    cache (a corrupt object is quarantined, as on every verified read).
+    """
+    from .artifacts import decode_tree, load_manifest, load_value, manifest_objects
+    from .dag import MapValue
+
+    rec = (read_run_dir(out).get("stages") or {}).get(stage) or {}
+    digest = rec.get("output")
+    if not digest:
+        raise UsageError(f"{Path(out) / RUN_FILE}: no output of stage {stage!r} recorded")
+    root = Path(cache).expanduser() if cache else default_cache_dir()
+    if not (root / "objects").is_dir():
+        raise StoreError(f"{root} is not a gcvd-flow cache directory")
+    store = Store(root, verify=verify)
+    man = load_manifest(store, digest)
+    if "items" not in man:
+        return decode_tree(store, man.get("value"))
+    items = list(man["items"])
+    for d in items:
+        missing = [o for o in manifest_objects(store, d) if not store.has(o)]
+        if missing:
+            raise StoreError(f"object {missing[0][:12]} of stage {stage!r} is missing from the cache")
+    return MapValue(lambda i: load_value(store, items[i]), len(items), decode_tree(store, man.get("summary")))
+
+
 def fsck(cache: str | None) -> dict[str, Any]:
     return open_store(cache).fsck().as_dict()
 
@@ -215,4 +248,5 @@ def _version() -> str:
         return "0+unknown"
 
 
-__all__ = ["Invocation", "PipelineSpec", "run", "plan", "why", "status", "fsck", "gc", "diff_fields"]
+__all__ = ["Invocation", "PipelineSpec", "run", "plan", "why", "status", "recorded_output", "fsck", "gc",
+           "diff_fields"]

@@ -1,4 +1,4 @@
-"""Vision commands of the CLI: `synth` (clips with exact ground truth), `eval`, `demo`."""
+"""Vision commands of the CLI: `synth` (clips with exact ground truth), `eval`, `demo`, `export`."""
 
 from __future__ import annotations
 
@@ -41,6 +41,34 @@ def add_commands(sub) -> None:
     p.add_argument("--set", dest="sets", action="append", default=[])
     p.add_argument("--json", dest="json_mode", action="store_true")
     p.set_defaults(handler=cmd_demo)
+
+    p = sub.add_parser("export", help="write a finished run as TUM, depth PNGs, COLMAP, PLY, TSDF mesh, "
+                       "nerfstudio or MCAP (see gcvd_flow/exports.py)")
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("--format", dest="formats", action="append", default=[], metavar="FMT",
+                   help="tum, depth-png, colmap, ply, tsdf, nerfstudio, mcap or all (repeatable or comma-separated)")
+    p.add_argument("--to", metavar="DIR", help="output directory (default: RUN_DIR/export)")
+    p.add_argument("--every", type=int, default=1, metavar="N",
+                   help="ply / tsdf / mcap cloud / colmap points: use every N-th frame (default 1)")
+    p.add_argument("--voxel", type=float, default=0.0, metavar="M",
+                   help="ply: voxel-grid downsampling size in scene units (default 0 = off); the MCAP "
+                   "cloud uses it too, else median depth / 100")
+    p.add_argument("--tsdf-voxel", type=float, default=None, metavar="M",
+                   help="tsdf: voxel length in scene units (default: median depth / 100)")
+    p.add_argument("--depth-scale", type=float, default=1.0, metavar="F",
+                   help="depth-png: multiply depth by F before converting to millimetres (default 1)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="mcap: frame rate for log times (default: the input's, else 30)")
+    p.add_argument("--mcap-images", default="png", metavar="png|jpeg|raw",
+                   help="mcap: RGB as foxglove.CompressedImage png (default) / jpeg, or foxglove.RawImage rgb8")
+    p.add_argument("--max-points", type=int, default=20000, metavar="N",
+                   help="colmap: about N points in points3D.txt (default 20000)")
+    p.add_argument("--cache", metavar="DIR",
+                   help="cache holding the run's frames (default: $GCVD_FLOW_CACHE or the user cache dir, as for run)")
+    p.add_argument("--no-verify", dest="verify", action="store_false",
+                   help="skip re-hashing objects read from the cache")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.set_defaults(handler=cmd_export)
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -163,6 +191,15 @@ def cmd_eval(a: argparse.Namespace) -> int:
     else:
         _print_metrics(res)
     return 0
+
+
+# ------------------------------------------------------------------------------ export
+
+
+def cmd_export(a: argparse.Namespace) -> int:
+    from .exports import cmd_export as run_export
+
+    return run_export(a)
 
 
 # ------------------------------------------------------------------------------ demo

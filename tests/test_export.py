@@ -1,0 +1,356 @@
+"""`gcvd-flow export`: every format read back with its own reader and checked against the run.
+
+One tiny synthetic clip (16 frames, 96x72) and one quick run for the whole module; the
+properties checked would fail if a convention (w2c vs c2w, OpenGL flip, COLMAP's half-pixel
+offset, millimetres, MCAP schemas) or a writer broke.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import cli, cli_json
+
+from gcvd_flow.datasets import read_tum_poses
+
+N_FRAMES, W, H = 16, 96, 72
+# Few optimisation steps: the exports are checked against the run's own outputs, not against
+# ground truth. depth_fusion off: its triangulation needs more parallax than this clip has.
+QUICK = ["--set", "optimize_keyframes.steps=2", "--set", "optimize_edges.steps=2",
+         "--set", "optimize_segments.steps=2", "--set", "depth_fusion.enabled=false"]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("export")
+    clip, run_dir, cache = base / "clip", base / "run", base / "cache"
+    cli("synth", str(clip), "--frames", str(N_FRAMES), "--trajectory", "loop", "--size", f"{W}x{H}", check=True)
+    cli_json("run", str(clip), "--out", str(run_dir), "--cache", str(cache), *QUICK)
+    return {"clip": clip, "run": run_dir, "cache": cache, "base": base}
+
+
+@pytest.fixture(scope="module")
+def exported(run) -> dict:
+    out = run["base"] / "exp"
+    doc = cli_json("export", str(run["run"]), "--format", "all", "--cache", str(run["cache"]), "--to", str(out))
+    return {"out": out, "doc": doc}
+
+
+def _run_data(run_dir: Path):
+    cams = json.loads((run_dir / "cameras.json").read_text())
+    _, poses = read_tum_poses(run_dir / "poses.txt")
+    depths = [np.load(run_dir / "depth" / f"{i:06d}.npy", allow_pickle=False) for i in cams["frame_indices"]]
+    return cams, np.asarray(cams["K"]), poses, depths
+
+
+def _backproject_all(K, poses, depths) -> np.ndarray:
+    pts = []
+    for T, d in zip(poses, depths):
+        v, u = np.nonzero(np.isfinite(d) & (d > 0))
+        z = d[v, u].astype(np.float64)
+        cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
+        pts.append(cam @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(pts)
+
+
+def test_export_all_writes_every_format(exported):
+    doc = exported["doc"]
+    assert list(doc["formats"]) == ["tum", "depth-png", "colmap", "ply", "tsdf", "nerfstudio", "mcap"]
+    assert doc["skipped"] == {} and doc["frames"] == N_FRAMES
+    out = exported["out"]
+    assert not list(out.rglob(".*.tmp-*")), "temporary files left behind"
+
+
+def test_tum_is_a_copy(run, exported):
+    assert (exported["out"] / "poses.txt").read_bytes() == (run["run"] / "poses.txt").read_bytes()
+
+
+def test_colmap_model_inverts_to_the_run_poses_and_reprojects(run, exported):
+    from stages.export_geometry import colmap_to_c2w
+
+    cams, K, poses, depths = _run_data(run["run"])
+    d = exported["out"] / "colmap"
+    cam_line = [ln for ln in (d / "cameras.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert len(cam_line) == 1
+    cid, model, w, h, fx, fy, cx, cy = cam_line[0].split()
+    assert (model, int(w), int(h)) == ("PINHOLE", W, H)
+    np.testing.assert_allclose([float(fx), float(fy), float(cx), float(cy)],
+                               [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5])
+    lines = [ln for ln in (d / "images.txt").read_text().split("\n") if not ln.startswith("#")]
+    heads, obs = lines[0::2][:N_FRAMES], lines[1::2][:N_FRAMES]
+    assert len(heads) == N_FRAMES
+    q = np.array([[float(v) for v in ln.split()[1:5]] for ln in heads])
+    t = np.array([[float(v) for v in ln.split()[5:8]] for ln in heads])
+    names = [ln.split()[9] for ln in heads]
+    assert names == [f"{i:06d}.png" for i in cams["frame_indices"]]
+    assert all((exported["out"] / "images" / n).is_file() for n in names)
+    np.testing.assert_allclose(colmap_to_c2w(q, t), poses, atol=1e-6)
+    # points3D: each point projects onto its observation (COLMAP pixel convention, +0.5)
+    pts = {}
+    for ln in (d / "points3D.txt").read_text().splitlines():
+        if ln.startswith("#"):
+            continue
+        v = ln.split()
+        pts[int(v[0])] = (np.array([float(x) for x in v[1:4]]), int(v[8]), int(v[9]))
+    assert 1000 < len(pts) <= 25000
+    checked = 0
+    for img_id in (1, N_FRAMES // 2, N_FRAMES):
+        tok = obs[img_id - 1].split()
+        for j in range(0, len(tok), 3 * 37):  # a sample of the image's observations
+            x, y, pid = float(tok[j]), float(tok[j + 1]), int(tok[j + 2])
+            X, track_img, p2d = pts[pid]
+            assert track_img == img_id and p2d == j // 3
+            w2c = np.linalg.inv(poses[img_id - 1])
+            pc = w2c[:3, :3] @ X + w2c[:3, 3]
+            uv = (K @ pc)[:2] / pc[2] + 0.5
+            np.testing.assert_allclose(uv, [x, y], atol=1e-6)
+            checked += 1
+    assert checked > 5
+
+
+def test_nerfstudio_transforms_flip_back_to_the_poses(run, exported):
+    cams, K, poses, _ = _run_data(run["run"])
+    out = exported["out"]
+    doc = json.loads((out / "transforms.json").read_text())
+    assert doc["camera_model"] == "OPENCV" and (doc["w"], doc["h"]) == (W, H)
+    np.testing.assert_allclose([doc["fl_x"], doc["fl_y"], doc["cx"], doc["cy"]],
+                               [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5])
+    assert doc["depth_unit_scale_factor"] == pytest.approx(1e-3)
+    assert doc["ply_file_path"] == "points.ply"
+    assert len(doc["frames"]) == N_FRAMES
+    for k, fr in enumerate(doc["frames"]):
+        assert (out / fr["file_path"]).is_file() and (out / fr["depth_file_path"]).is_file()
+        gl = np.array(fr["transform_matrix"])
+        np.testing.assert_allclose(gl @ np.diag([1, -1, -1, 1]), poses[k], atol=1e-12)
+        # OpenGL cameras look down their -z axis: the same world direction as OpenCV's +z
+        np.testing.assert_allclose(-gl[:3, 2], poses[k][:3, 2], atol=1e-12)
+
+
+def test_depth_pngs_are_millimetres(run, exported):
+    cams, _, _, depths = _run_data(run["run"])
+    for i, d in zip(cams["frame_indices"], depths):
+        png = cv2.imread(str(exported["out"] / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint16 and png.shape == (H, W)
+        valid = np.isfinite(d) & (d > 0)
+        assert valid.mean() > 0.5
+        assert np.all(np.abs(png[valid].astype(np.float64) - d[valid] * 1000.0) <= 0.5 + 1e-3)
+        assert np.all(png[~valid] == 0)
+
+
+def test_depth_png_scale_clipping_and_invalid():
+    from gcvd_flow.exports import depth_to_mm16
+
+    d = np.array([[0.0, np.nan, -1.0, 0.0001], [1.2345, 70.0, np.inf, 2.0]], np.float32)
+    mm, clipped = depth_to_mm16(d)
+    assert mm[0].tolist() == [0, 0, 0, 1]  # invalid -> 0; valid but < 0.5 mm -> 1, never "invalid"
+    assert mm[1].tolist() == [round(float(np.float32(1.2345)) * 1000), 65535, 0, 2000]
+    assert clipped == 1
+    mm2, _ = depth_to_mm16(d, depth_scale=0.5)
+    assert mm2[1, 1] == 35000 and mm2[1, 3] == 1000
+
+
+def test_ply_points_lie_in_the_backprojected_depth(run, exported):
+    import open3d as o3d
+
+    _, K, poses, depths = _run_data(run["run"])
+    ref = _backproject_all(K, poses, depths)
+    pcd = o3d.io.read_point_cloud(str(exported["out"] / "points.ply"))
+    pts = np.asarray(pcd.points)
+    assert len(pts) == len(ref) == exported["doc"]["formats"]["ply"]["points"]  # every=1, no voxel grid
+    assert pcd.has_colors()
+    lo, hi = ref.min(0), ref.max(0)
+    tol = 1e-5 * (1 + np.abs(ref).max())
+    assert np.all(pts >= lo - tol) and np.all(pts <= hi + tol)
+    np.testing.assert_allclose(np.sort(pts[:, 2]), np.sort(ref[:, 2]), atol=1e-5)
+
+
+def test_tsdf_mesh_lies_on_the_run_depth(run, exported):
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    _, K, poses, depths = _run_data(run["run"])
+    info = exported["doc"]["formats"]["tsdf"]
+    mesh = o3d.io.read_triangle_mesh(str(exported["out"] / "mesh.ply"))
+    tri, verts = np.asarray(mesh.triangles), np.asarray(mesh.vertices)
+    assert len(tri) > 100 and len(tri) == info["triangles"] and mesh.has_vertex_colors()
+    voxel = info["voxel_length"]
+    med = np.median(np.concatenate([d[np.isfinite(d) & (d > 0)] for d in depths]))
+    assert voxel == pytest.approx(med / 100, rel=0.2)  # default: median depth / 100
+    ref = _backproject_all(K, poses, depths)
+    dist, _ = cKDTree(ref).query(verts[:: max(1, len(verts) // 3000)])
+    assert np.median(dist) < 2 * voxel, (np.median(dist), voxel)
+
+
+def test_mcap_topics_schemas_counts_and_poses(run, exported):
+    import jsonschema
+    from mcap.reader import make_reader
+    from scipy.spatial.transform import Rotation
+
+    cams, K, poses, depths = _run_data(run["run"])
+    path = exported["out"] / "run.mcap"
+    expected = {"/camera/image": ("foxglove.CompressedImage", N_FRAMES),
+                "/camera/depth": ("foxglove.RawImage", N_FRAMES),
+                "/camera/calibration": ("foxglove.CameraCalibration", N_FRAMES),
+                "/tf": ("foxglove.FrameTransform", N_FRAMES),
+                "/trajectory": ("foxglove.PosesInFrame", 1),
+                "/points": ("foxglove.PointCloud", 1)}
+    seen: dict[str, list] = {t: [] for t in expected}
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            assert schema.name == expected[channel.topic][0]
+            msg = json.loads(message.data)
+            if len(seen[channel.topic]) < 2:
+                jsonschema.validate(msg, json.loads(schema.data))
+            seen[channel.topic].append((message.log_time, msg))
+    assert {t: len(v) for t, v in seen.items()} == {t: n for t, (_, n) in expected.items()}
+    # /tf: the camera-to-world pose at frame index / 30 fps (synthetic clips have no fps)
+    for k, (t_ns, msg) in enumerate(seen["/tf"]):
+        assert t_ns == round(cams["frame_indices"][k] / 30.0 * 1e9)
+        assert (msg["parent_frame_id"], msg["child_frame_id"]) == ("world", "camera")
+        T = np.eye(4)
+        r = msg["rotation"]
+        T[:3, :3] = Rotation.from_quat([r["x"], r["y"], r["z"], r["w"]]).as_matrix()
+        T[:3, 3] = [msg["translation"][c] for c in "xyz"]
+        np.testing.assert_allclose(T, poses[k], atol=1e-9)
+    # depth: 32FC1 bytes equal the run's depth exactly
+    _, dm = seen["/camera/depth"][3]
+    assert dm["encoding"] == "32FC1" and dm["step"] == 4 * W
+    d = np.frombuffer(base64.b64decode(dm["data"]), "<f4").reshape(H, W)
+    np.testing.assert_array_equal(d, depths[3])
+    # image: the PNG decodes to the exported frame
+    _, im = seen["/camera/image"][3]
+    assert im["format"] == "png"
+    rgb = cv2.imdecode(np.frombuffer(base64.b64decode(im["data"]), np.uint8), cv2.IMREAD_COLOR)
+    ref = cv2.imread(str(exported["out"] / "images" / f"{cams['frame_indices'][3]:06d}.png"), cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(rgb, ref)
+    _, cal = seen["/camera/calibration"][0]
+    np.testing.assert_allclose(np.reshape(cal["K"], (3, 3)), K)
+    _, traj = seen["/trajectory"][0]
+    assert len(traj["poses"]) == N_FRAMES
+    _, pc = seen["/points"][0]
+    assert pc["point_stride"] == 16 and [f["name"] for f in pc["fields"]][:3] == ["x", "y", "z"]
+    n_pts = len(base64.b64decode(pc["data"])) // 16
+    assert n_pts == exported["doc"]["formats"]["mcap"]["cloud_points"] > 100
+
+
+def test_exported_images_are_the_runs_frames(run, exported):
+    # the cached working-resolution frames; the synthetic clip is already at working resolution
+    src = cv2.imread(str(run["clip"] / "frames" / "000005.png"), cv2.IMREAD_COLOR)
+    out = cv2.imread(str(exported["out"] / "images" / "000005.png"), cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(src, out)
+
+
+def test_missing_cache_exports_what_it_can_and_fails_in_one_line(run, tmp_path):
+    empty = tmp_path / "empty-cache"
+    empty.mkdir()
+    out = tmp_path / "exp"
+    p = cli("export", str(run["run"]), "--format", "tum,colmap,ply", "--cache", str(empty), "--to", str(out))
+    assert p.returncode == 2, p.stderr
+    err = [ln for ln in p.stderr.splitlines() if ln.startswith("gcvd-flow: error")]
+    assert len(err) == 1 and "ply" in err[0] and str(empty) in err[0]
+    assert (out / "poses.txt").is_file() and (out / "colmap" / "images.txt").is_file()
+    assert not (out / "points.ply").exists() and not (out / "images").exists()
+
+
+def _main(capsys, *args: str) -> tuple[int, list[str]]:
+    from gcvd_flow.cli import main
+
+    rc = main(list(args))
+    return rc, capsys.readouterr().err.strip().splitlines()
+
+
+def test_bad_inputs_exit_2_with_one_line(run, tmp_path, capsys):
+    missing = tmp_path / "nope"
+    rc, err = _main(capsys, "export", str(missing), "--format", "tum")
+    assert rc == 2 and len(err) == 1 and str(missing) in err[0]
+
+    rc, err = _main(capsys, "export", str(run["run"]), "--format", "obj")
+    assert rc == 2 and len(err) == 1 and "'obj'" in err[0]
+    rc, err = _main(capsys, "export", str(run["run"]))
+    assert rc == 2 and len(err) == 1 and "--format" in err[0]
+
+    bad = tmp_path / "bad"
+    shutil.copytree(run["run"], bad)
+    (bad / "poses.txt").write_text("0 1 2 3 not-a-number\n")
+    rc, err = _main(capsys, "export", str(bad), "--format", "tum", "--to", str(tmp_path / "o1"))
+    assert rc == 2 and len(err) == 1 and str(bad / "poses.txt") in err[0]
+    assert not (tmp_path / "o1" / "poses.txt").exists()
+
+    shutil.copy(run["run"] / "poses.txt", bad / "poses.txt")
+    (bad / "depth" / "000007.npy").unlink()
+    rc, err = _main(capsys, "export", str(bad), "--format", "depth-png", "--to", str(tmp_path / "o2"))
+    assert rc == 2 and len(err) == 1 and str(bad / "depth" / "000007.npy") in err[0]
+    assert not (tmp_path / "o2" / "depth").exists()  # checked before anything is written
+
+    (bad / "depth" / "000007.npy").write_bytes(b"\x93NUMPY garbage")
+    rc, err = _main(capsys, "export", str(bad), "--format", "depth-png", "--to", str(tmp_path / "o3"))
+    assert rc == 2 and len(err) == 1 and "000007.npy" in err[0]
+
+
+def test_interrupted_write_leaves_no_file(tmp_path):
+    from gcvd_flow.exports import _atomic
+
+    target = tmp_path / "x" / "mesh.ply"
+    with pytest.raises(KeyboardInterrupt):
+        with _atomic(target) as tmp:
+            tmp.write_bytes(b"half a mesh")
+            raise KeyboardInterrupt
+    assert not target.exists() and list(target.parent.iterdir()) == []
+    with _atomic(target) as tmp:
+        assert tmp.suffix == ".ply" and tmp.parent == target.parent
+        tmp.write_bytes(b"whole")
+    assert target.read_bytes() == b"whole" and list(target.parent.iterdir()) == [target]
+
+
+# ------------------------------------------------------------------------------ pure geometry
+
+
+def test_colmap_and_opengl_conversions_round_trip():
+    from scipy.spatial.transform import Rotation
+
+    from stages.export_geometry import c2w_to_colmap, colmap_to_c2w, opencv_to_opengl, opengl_to_opencv
+
+    rng = np.random.default_rng(0)
+    rots = Rotation.random(50, random_state=1).as_matrix()
+    rots[0] = np.diag([1.0, -1.0, -1.0])  # 180 degrees about x
+    c2w = np.tile(np.eye(4), (50, 1, 1))
+    c2w[:, :3, :3] = rots
+    c2w[:, :3, 3] = rng.normal(size=(50, 3)) * 5
+    q, t = c2w_to_colmap(c2w)
+    assert np.all(q[:, 0] >= 0)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0)
+    np.testing.assert_allclose(colmap_to_c2w(q, t), c2w, atol=1e-12)
+    # x_cam = R(q) x_world + t  for the camera centre gives 0
+    R = Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], 1)).as_matrix()
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R, c2w[:, :3, 3]) + t, 0, atol=1e-12)
+    np.testing.assert_allclose(opengl_to_opencv(opencv_to_opengl(c2w)), c2w)
+
+
+def test_voxel_accumulator_matches_global_downsampling():
+    from stages.export_geometry import VoxelAccumulator
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-1, 1, size=(20000, 3))
+    cols = rng.integers(0, 256, size=(20000, 3)).astype(np.uint8)
+    acc = VoxelAccumulator(0.25)
+    for chunk in range(0, 20000, 700):  # > 16 chunks: exercises the periodic merge
+        acc.add(pts[chunk:chunk + 700], cols[chunk:chunk + 700])
+    got, got_c = acc.result()
+    keys = np.floor(pts / 0.25).astype(np.int64)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    ref = np.stack([np.bincount(inv, pts[:, k]) / np.bincount(inv) for k in range(3)], 1)
+    assert len(got) == len(uniq) == 512
+    order = np.lexsort(np.floor(got / 0.25).T[::-1])
+    np.testing.assert_allclose(got[order], ref, atol=1e-12)
+    ref_c = np.stack([np.bincount(inv, cols[:, k].astype(float)) / np.bincount(inv) for k in range(3)], 1)
+    np.testing.assert_array_equal(got_c[order], np.round(ref_c).astype(np.uint8))
