@@ -54,7 +54,7 @@ def run_rows(name: str, inp: Path, gt: Path, work: Path, cache: str, extra: list
         m = gcvd("eval", str(run_dir), "--gt", str(gt))
         m.update(row=label, dataset=name, seconds=secs)
         out.append(m)
-        print(f"  {name:<5} {label:<26} ATE {m['ate_rmse']:.4f} m ({m['ate_percent_of_path']:.2f}% of path)  "
+        print(f"  {name:<5} {label:<26} ATE {m['ate_rmse']:.5f} m ({m['ate_percent_of_path']:.2f}% of path)  "
               f"AbsRel {m.get('abs_rel', float('nan')):.4f}  ({secs:.0f} s)", file=sys.stderr, flush=True)
     return out
 
@@ -86,7 +86,7 @@ def main() -> None:
     print(f"\n{'dataset':<6} {'setting':<26} {'ATE[m]':>8} {'ATE%path':>9} {'RPEt[m]':>9} {'RPEr[deg]':>10} "
           f"{'AbsRel':>7} {'d<1.25':>7} {'time[s]':>8}")
     for m in results:
-        print(f"{m['dataset']:<6} {m['row']:<26} {m['ate_rmse']:8.4f} {m['ate_percent_of_path']:9.2f} "
+        print(f"{m['dataset']:<6} {m['row']:<26} {m['ate_rmse']:8.5f} {m['ate_percent_of_path']:9.3f} "
               f"{m['rpe_trans']:9.4f} {m['rpe_rot']:10.3f} {m.get('abs_rel', float('nan')):7.4f} "
               f"{m.get('delta1', float('nan')):7.3f} {m['seconds']:8.0f}")
 

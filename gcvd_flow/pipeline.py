@@ -431,7 +431,7 @@ def export(out: Path, runner, config: GCVDConfig) -> dict[str, Any]:
     doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
            "source_height": cam["source_height"], "intrinsics_guessed": cam["guessed"],
-           "intrinsics_origin": cam["origin"], "frame_indices": idx,
+           "intrinsics_origin": cam["origin"], "frame_indices": idx, "fps": cam.get("fps"),
            "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
     return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "cameras": str(out / "cameras.json")}

@@ -29,6 +29,8 @@ import numpy as np
 from stages import flow as flow_mod
 from stages.two_view import triangulate_depths
 
+MIN_MEASUREMENTS = 30  # per reference: fewer triangulated pixels say nothing about the scale
+
 
 def _angles_deg(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Angle between the ray of p in camera a and the ray of q (camera b) rotated into a."""
@@ -62,7 +64,7 @@ def fuse_depth(
     for img_j, pose_j in refs:
         fl = flow_mod.compute_pair_flow(image, img_j, preset=preset, fb_thresh=fb_thresh)
         valid = fl["fwd_valid"] & (depth > 0)
-        if valid.sum() < 30:
+        if valid.sum() < MIN_MEASUREMENTS:
             continue
         T = np.linalg.inv(np.asarray(pose_j, np.float64)) @ np.asarray(pose, np.float64)
         if np.linalg.norm(T[:3, 3]) < 1e-9:
@@ -72,8 +74,11 @@ def fuse_depth(
         z, _ = triangulate_depths(p, q, K, T[:3, :3], T[:3, 3])
         ang = _angles_deg(p, q, K, T[:3, :3])
         ok = np.isfinite(z) & (z > 0) & (ang > min_angle_deg)
-        meas.append((vv[valid][ok], uu[valid][ok], z[ok], ang[ok] ** 2))
+        if ok.sum() >= MIN_MEASUREMENTS:
+            meas.append((vv[valid][ok], uu[valid][ok], z[ok], ang[ok] ** 2))
     if not meas:
+        # nothing triangulated (no baseline, too small an angle, no consistent flow): keep the
+        # optimised depth rather than a scale estimated from nothing
         return depth.astype(np.float32), 0.0
     log_ratio = np.concatenate([np.log(z / depth[v, u]) for v, u, z, _ in meas])
     shift = float(np.median(log_ratio))  # the optimised depth's scale vs the poses' scale

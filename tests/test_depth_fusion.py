@@ -41,3 +41,14 @@ def test_fusion_without_baseline_keeps_the_depth():
     assert measured == 0.0 and np.array_equal(out, d)
     out, measured = fuse_depth(clip.frames[2], d, clip.poses[2], [], clip.K)
     assert measured == 0.0 and np.array_equal(out, d)
+
+
+def test_fusion_with_every_triangulation_rejected_keeps_the_depth():
+    """A reference with a baseline too small for any usable angle: no NaN (an empty median
+    used to turn whole frames into NaN), the optimised depth is kept."""
+    clip = render_clip(6, "orbit", size=(96, 72), seed=0)
+    d = clip.depth[2].astype(np.float32)
+    near = clip.poses[2].copy()
+    near[:3, 3] += 1e-4  # 0.1 mm: triangulation angles far below min_angle_deg
+    out, measured = fuse_depth(clip.frames[2], d, clip.poses[2], [(clip.frames[2], near)], clip.K)
+    assert measured == 0.0 and np.isfinite(out).all() and np.array_equal(out, d)
