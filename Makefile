@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime clean sysdeps
+.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer clean sysdeps peerdeps
 
 setup: $(STAMP)
 
@@ -42,6 +42,18 @@ bench-accuracy: $(STAMP)
 
 bench-runtime: $(STAMP)
 	$(BIN)/python benchmarks/bench_runtime.py
+
+# The peer of bench-peer: Debian's colmap (3.8, CPU), only when it is not on PATH.
+# Not a dependency of setup/test/demo.
+peerdeps:
+	@if ! command -v colmap >/dev/null 2>&1; then \
+	  echo "installing Debian package colmap (the peer of make bench-peer)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq colmap >/dev/null; \
+	fi
+
+# gcvd-flow vs COLMAP on the ICL-NUIM frames; e.g. make bench-peer PEER_ARGS="--frames 30 --json"
+bench-peer: $(STAMP) peerdeps
+	$(BIN)/python benchmarks/bench_peer.py $(PEER_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -417,8 +417,8 @@ def export(out: Path, runner, config: GCVDConfig) -> dict[str, Any]:
     frames = runner.value("ingest")
     cam = frames.summary
     idx = list(cam["frame_indices"])
-    seg = runner.value("optimize_segments")
-    poses = np.asarray(seg["poses"], np.float64)
+    # only the poses: decoding the whole segment solution would hold every depth map at once
+    poses = np.asarray(runner.part("optimize_segments", ("poses",)), np.float64)
     write_tum(out / "poses.txt", [float(i) for i in idx], poses)
     depth_dir = out / "depth"
     depth_dir.mkdir(exist_ok=True)

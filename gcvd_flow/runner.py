@@ -90,9 +90,13 @@ def progress_enabled(json_mode: bool) -> bool:
 class Checkpointer:
     """Lets a long whole stage save and resume its state inside the store.
 
-    ``save(tensors, meta)`` stores the tensors as one safetensors object and the meta as JSON
-    under a record keyed by the stage key (atomically: an interrupted save leaves the previous
-    checkpoint in place); ``load()`` returns ``(tensors, meta)`` or None.
+    ``save(tensors, meta, shards)`` stores the tensors as one safetensors object, each shard
+    (``{name: {key: array}}``) as its own safetensors object and the meta as JSON, under a record
+    keyed by the stage key (atomically: an interrupted save leaves the previous checkpoint in
+    place). Shards are for state that grows and no longer changes (e.g. the results of finished
+    windows): being content-addressed, a shard saved again unchanged is written once, so saving
+    every window costs O(window), not O(clip), in memory and disk. ``load()`` returns
+    ``(tensors, meta)`` or None, shard arrays among the tensors as ``"shard/key"``.
     """
 
     def __init__(self, store: Store, stage_key: str, stage: str, log: Callable[[str], None]):
@@ -102,14 +106,23 @@ class Checkpointer:
         self.log = log
         self.saves = 0
 
-    def save(self, tensors: dict[str, Any], meta: dict[str, Any]) -> None:
+    @staticmethod
+    def _arrays(tensors: dict[str, Any]) -> dict[str, Any]:
         arrays = {}
         for k, v in tensors.items():
             if hasattr(v, "detach"):
                 v = v.detach().cpu().contiguous().numpy()
             arrays[k] = v
+        return arrays
+
+    def save(self, tensors: dict[str, Any], meta: dict[str, Any],
+             shards: dict[str, dict[str, Any]] | None = None) -> None:
         enc = Encoder(self.store)
-        out = enc.manifest("checkpoint", {"tensors": Tensors(arrays), "meta": meta})
+        value: dict[str, Any] = {"tensors": Tensors(self._arrays(tensors)), "meta": meta}
+        if shards:
+            # views, encoded one at a time: never more than one shard's bytes in memory
+            value["shards"] = {name: Tensors(self._arrays(t)) for name, t in shards.items()}
+        out = enc.manifest("checkpoint", value)
         self.store.put_record(self.key, {"record_kind": "checkpoint", "stage": self.stage,
                                          "outputs": out, "objects": enc.objects})
         self.saves += 1
@@ -119,7 +132,9 @@ class Checkpointer:
         if rec is None:
             return None
         value = load_value(self.store, rec["outputs"])
-        tensors = value["tensors"]
+        tensors = dict(value["tensors"])
+        for name, arrays in (value.get("shards") or {}).items():
+            tensors.update({f"{name}/{k}": v for k, v in arrays.items()})
         try:
             import torch
 
@@ -243,6 +258,19 @@ class Runner:
             v = decode_tree(self.store, man["value"])
         self._values[stage] = v
         return v
+
+    def part(self, stage: str, path: tuple = ()) -> Any:
+        """A sub-tree of a finished whole stage's output (keys / indices in ``path``), decoding
+        only the objects under it: e.g. the poses of a stage whose other outputs are large."""
+        if stage in self._values:
+            node = self._values[stage]
+            for p in path:
+                node = node[p]
+            return node
+        node = self._manifest(stage)["value"]
+        for p in path:
+            node = node[p]
+        return decode_tree(self.store, node)
 
     def _key_fields(self, stage: Stage, inputs: dict[str, str]) -> dict[str, Any]:
         fp, files = keys.code_fingerprint(stage.fn)

@@ -149,7 +149,8 @@ class Checkpointer(Protocol):
 
     def load(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]] | None: ...
 
-    def save(self, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None: ...
+    def save(self, tensors: dict[str, torch.Tensor], meta: dict[str, Any],
+             shards: dict[str, dict[str, torch.Tensor]] | None = None) -> None: ...
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1141,11 +1142,20 @@ def optimize_segments(
             if ck is not None and ck[1].get("stage") == "segments":
                 t, meta = ck
                 g_pose, g_mesh = t["g_pose"].clone(), t["g_mesh"].clone()
-                out_depth = t["out_depth"].numpy().copy()
+                for k, v in t.items():  # finished windows' depth, one shard per window
+                    if k.startswith("depth") and k.endswith("/depth"):
+                        wa, wb = windows[int(k[len("depth") : -len("/depth")])]
+                        out_depth[wa : wb + 1] = v.numpy()
                 w_start, s_start, resume = int(meta["window"]), int(meta["step"]), t
                 gen.set_state(t["rng"].clone())
                 if "head.0.weight" in t and meta["step"] == 0:
                     net.load_trainable_state(dict(t))
+
+        def depth_shards(n_done: int) -> dict[str, dict[str, torch.Tensor]]:
+            # the depth of each finished window as its own shard: unchanged shards are stored
+            # once, so a checkpoint never copies (or rewrites) the whole clip's depth
+            return {f"depth{k:04d}": {"depth": torch.as_tensor(out_depth[wa : wb + 1])}
+                    for k, (wa, wb) in enumerate(windows[:n_done])}
 
         for wi in range(w_start, len(windows)):
             a, b = windows[wi]
@@ -1181,9 +1191,10 @@ def optimize_segments(
                 resume = None
 
             def save(step_done: int, _wi: int = wi, _solver: _Solver = solver) -> None:
-                t = {"g_pose": g_pose.clone(), "g_mesh": g_mesh.clone(), "rng": gen.get_state(), "out_depth": torch.as_tensor(out_depth)}
+                t = {"g_pose": g_pose.clone(), "g_mesh": g_mesh.clone(), "rng": gen.get_state()}
                 t.update(_solver.state())
-                checkpointer.save(t, {"stage": "segments", "window": _wi, "step": step_done})  # type: ignore[union-attr]
+                checkpointer.save(t, {"stage": "segments", "window": _wi, "step": step_done},  # type: ignore[union-attr]
+                                  depth_shards(_wi))
 
             _run_solver(solver, gen, p.seg_steps, start, save if checkpointer is not None else None)
             with torch.no_grad():
@@ -1192,8 +1203,8 @@ def optimize_segments(
             out_depth[a : b + 1] = _full_depth(net, imgs_w, pri_w, g_mesh[a : b + 1], p.mesh, fr.enc)
             del fr, imgs_w, pri_w, seg_flows, pairs, win, solver
             if checkpointer is not None and wi + 1 < len(windows):
-                t = {"g_pose": g_pose.clone(), "g_mesh": g_mesh.clone(), "rng": gen.get_state(), "out_depth": torch.as_tensor(out_depth)}
+                t = {"g_pose": g_pose.clone(), "g_mesh": g_mesh.clone(), "rng": gen.get_state()}
                 t.update(net.trainable_state())
-                checkpointer.save(t, {"stage": "segments", "window": wi + 1, "step": 0})
+                checkpointer.save(t, {"stage": "segments", "window": wi + 1, "step": 0}, depth_shards(wi + 1))
         poses = g_pose.numpy().astype(np.float64)
     return {"poses": poses, "depths": out_depth}

@@ -324,3 +324,24 @@ def test_push_pull_shares_a_run_and_refuses_tampered_objects(toy_input, tmp_path
     res = run_toy(toy_input, tmp_path / "ob", b_cache)
     assert sum(s["executed"] for s in res.values()) <= 2  # only what the tampered object held
     assert Store(b_cache).fsck().corrupt == []
+
+
+def test_checkpoint_shards_are_stored_once_and_come_back_flat(tmp_path):
+    """A shard saved again unchanged is the same object (no rewrite, no copy of finished
+    work per save); load() returns shard arrays as "shard/key" beside the tensors."""
+    import numpy as np
+
+    from gcvd_flow.runner import Checkpointer
+    from gcvd_flow.store import Store
+
+    store = Store(tmp_path / "cache")
+    ck = Checkpointer(store, "k" * 64, "demo", lambda m: None)
+    big = {"depth": np.arange(4096, dtype=np.float32).reshape(64, 64)}
+    ck.save({"step": np.array([1])}, {"window": 1}, {"w0": big})
+    n_objects = sum(1 for _ in (tmp_path / "cache" / "objects").rglob("*") if _.is_file())
+    ck.save({"step": np.array([2])}, {"window": 2}, {"w0": big, "w1": {"depth": big["depth"] + 1}})
+    added = sum(1 for _ in (tmp_path / "cache" / "objects").rglob("*") if _.is_file()) - n_objects
+    assert added == 3  # the tensors, shard w1 and the manifest: w0 is not written again
+    tensors, meta = ck.load()
+    assert meta == {"window": 2} and sorted(tensors) == ["step", "w0/depth", "w1/depth"]
+    assert np.array_equal(np.asarray(tensors["w1/depth"]), big["depth"] + 1)

@@ -31,10 +31,14 @@ class MemCheckpointer:
         t, m = self.last
         return {k: v.clone() for k, v in t.items()}, copy.deepcopy(m)
 
-    def save(self, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    def save(self, tensors: dict[str, torch.Tensor], meta: dict, shards: dict | None = None) -> None:
         assert all(isinstance(v, torch.Tensor) for v in tensors.values())
         assert tensors["rng"].dtype == torch.uint8
-        self.last = ({k: v.clone() for k, v in tensors.items()}, copy.deepcopy(meta))
+        self.shard_names = sorted(shards or {})
+        flat = {k: v.clone() for k, v in tensors.items()}
+        # as the engine's load() gives them back: shard arrays as "shard/key"
+        flat.update({f"{n}/{k}": v.clone() for n, t in (shards or {}).items() for k, v in t.items()})
+        self.last = (flat, copy.deepcopy(meta))
         self.saves += 1
         if self.interrupt_after is not None and self.saves == self.interrupt_after:
             raise KeyboardInterrupt
@@ -128,11 +132,15 @@ def test_segments_frozen_keyframes_determinism_and_resume(tiny: dict) -> None:
     assert np.array_equal(ref["poses"][tiny["kf"]], kres["poses"])  # keyframe poses frozen
     assert (ref["depths"] > 0).all()
     _assert_same(ref, _seg_run(tiny, kres))
-    ck = MemCheckpointer(3)
-    with pytest.raises(KeyboardInterrupt):
-        _seg_run(tiny, kres, ck)
-    ck.interrupt_after = None
-    _assert_same(_seg_run(tiny, kres, ck), ref)
+    # saves: per window one mid-window (step 2 of 4) and one at its end; interrupted in window 1
+    # (one finished window's depth in the checkpoint) and in window 2 (two)
+    for interrupt_after, shards in ((3, ["depth0000"]), (5, ["depth0000", "depth0001"])):
+        ck = MemCheckpointer(interrupt_after)
+        with pytest.raises(KeyboardInterrupt):
+            _seg_run(tiny, kres, ck)
+        assert ck.shard_names == shards  # finished windows' depth as shards, not the whole clip
+        ck.interrupt_after = None
+        _assert_same(_seg_run(tiny, kres, ck), ref)
 
 
 def test_edge_recovers_perturbed_relative_pose(tiny: dict) -> None:
