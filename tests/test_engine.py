@@ -295,7 +295,10 @@ def test_ctrl_c_exits_130_and_leaves_a_consistent_cache(toy_input, tmp_path, job
     cache, out = tmp_path / "cache", tmp_path / "out"
     cmd = [sys.executable, "-m", "gcvd_flow", "run", str(toy_input), "--out", str(out), "--cache", str(cache),
            "--pipeline", "toy", "--set", "transform.sleep=0.05", "--jobs", jobs]
-    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT back to its default in the child: a test run started in the background (`make test &`)
+    # inherits SIGINT ignored, as shells do for background jobs, and Ctrl-C would never arrive
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(2.0)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
