@@ -73,7 +73,8 @@ def main() -> None:
         if a.only in (None, "loop"):
             clip = work / "loop"
             subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(clip), "--frames", "120",
-                            "--trajectory", "loop", "--size", "256x192"], cwd=ROOT, check=True)
+                            "--trajectory", "loop", "--size", "256x192"], cwd=ROOT, check=True,
+                           stdout=sys.stderr)  # stdout is for the table / --json
             results += run_rows("loop", clip, clip, work, cache, [], rows)
         if a.only in (None, "icl"):
             if ICL.exists():

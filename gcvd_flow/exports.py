@@ -9,7 +9,7 @@ and the frames are exactly the ones the run used). Writes into DIR (default RUN_
     tum          DIR/poses.txt                    copy of the trajectory (TUM, camera-to-world)
     depth-png    DIR/depth/NNNNNN.png             uint16 millimetres of depth * --depth-scale, 0 = invalid
     ply          DIR/points.ply                   coloured point cloud (every N-th frame, optional voxel grid)
-    tsdf         DIR/mesh.ply                     TSDF-fused triangle mesh (open3d ScalableTSDFVolume)
+    tsdf         DIR/mesh.ply                     TSDF-fused triangle mesh (open3d VoxelBlockGrid)
     mcap         DIR/run.mcap                     foxglove JSON schemas: image, depth, calibration, /tf, trajectory, cloud
     colmap       DIR/colmap/{cameras,images,points3D}.txt (+ DIR/images/NNNNNN.png)
     nerfstudio   DIR/transforms.json (+ DIR/images/, DIR/depth/ PNGs)
