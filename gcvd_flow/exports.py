@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
+from .dag import MapValue  # a lazily loaded sequence: frames / depth are read one at a time
 from .errors import UsageError
 
 if TYPE_CHECKING:  # numpy & co. are imported where used: the CLI builds its parser without them
@@ -48,25 +49,6 @@ UINT16_MAX = 65535
 
 
 # ------------------------------------------------------------------------------ reading a run
-
-
-class _Lazy(Sequence):
-    """A read-only sequence whose items are produced on access (frames are read one at a time)."""
-
-    def __init__(self, n: int, get: Callable[[int], Any]):
-        self._n, self._get = n, get
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __getitem__(self, i):  # type: ignore[override]
-        if isinstance(i, slice):
-            return [self._get(j) for j in range(*i.indices(self._n))]
-        if i < 0:
-            i += self._n
-        if not 0 <= i < self._n:
-            raise IndexError(i)
-        return self._get(i)
 
 
 @dataclass
@@ -102,7 +84,7 @@ class RunData:
 
     @property
     def depths(self) -> Sequence[np.ndarray]:
-        return _Lazy(len(self), self.depth)
+        return MapValue(self.depth, len(self), None)
 
     def name(self, k: int) -> str:
         return f"{self.frame_indices[k]:06d}"
@@ -193,7 +175,7 @@ def attach_images(run: RunData, cache: str | None, verify: bool = True) -> None:
                              f"expected ({run.height}, {run.width}, 3)")
         return img
 
-    run.images = _Lazy(len(run), get)
+    run.images = MapValue(get, len(run), None)
 
 
 # ------------------------------------------------------------------------------ atomic writes
