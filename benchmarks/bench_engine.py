@@ -144,7 +144,7 @@ def bench_dvc(work: Path, repeats: int) -> dict[str, float] | None:
 def bench_hashing(total_mb: int = 1024) -> dict[str, float]:
     import blake3
 
-    from gcvd_flow.keys import digest_bytes
+    from gcvd_flow.engine.keys import digest_bytes
 
     data = np.random.default_rng(1).integers(0, 256, total_mb << 20, dtype=np.uint8).tobytes()
     times_mt, times_1 = [], []

@@ -41,8 +41,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gcvd_flow.datasets import quat_to_rotmat, read_redwood_log, read_tum_poses, write_tum_poses  # noqa: E402
-from gcvd_flow.sources import natural_key  # noqa: E402
+from gcvd_flow.io.formats import quat_to_rotmat, read_redwood_log, read_tum_poses, write_tum_poses  # noqa: E402
+from gcvd_flow.io.sources import natural_key  # noqa: E402
 from stages import metrics  # noqa: E402
 
 ICL = ROOT.parent / "shared" / "data" / "icl_livingroom1_micro"

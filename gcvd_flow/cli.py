@@ -1,279 +1,276 @@
-"""`gcvd-flow ...`: the command line.
-
-Exit codes: 0 success, 2 bad usage or bad input (one line on stderr, no traceback),
-1 internal error, 130 interrupted (the cache stays consistent; run again to resume).
-"""
+"""`gcvd-flow`: the engine's verbs (run, plan, why, status, ...) plus the product's own:
+`synth` (clips with exact ground truth), `eval`, `demo`, `export`, and `--intrinsics`."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
-import traceback
-from typing import Any, Sequence
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
 
-from .errors import UsageError
-
-
-def _add_run_args(p: argparse.ArgumentParser, input_required: bool = True) -> None:
-    if input_required:
-        p.add_argument("input", metavar="INPUT", help="video file, image folder or dataset folder")
-    p.add_argument("--out", required=input_required, metavar="RUN_DIR", help="run directory for the results")
-    _add_config_args(p)
-    p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes")
+from gcvd_flow.engine import cli as engine_cli
+from gcvd_flow.engine.errors import UsageError
 
 
-def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", dest="config_file", metavar="FILE", help="TOML file of parameters")
-    p.add_argument("--profile", metavar="NAME", help="named parameter profile (e.g. paper, fast)")
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                   help="override one parameter (repeatable)")
+def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
                    help="camera intrinsics at the source resolution (same as --set ingest.intrinsics=...)")
-    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
-    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
+
+
+def run_sets(a: argparse.Namespace) -> list[str]:
+    return [f"ingest.intrinsics={json.dumps(a.intrinsics)}"] if getattr(a, "intrinsics", None) else []
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("synth", help="render a synthetic clip with exact ground truth (generic layout)")
+    p.add_argument("out", metavar="OUT")
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation"], default="orbit")
+    p.add_argument("--moving-object", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", default="256x192", metavar="WxH")
+    p.set_defaults(handler=cmd_synth)
+
+    p = sub.add_parser("eval", help="metrics of a run against ground truth (ATE, RPE, depth errors)")
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("--gt", required=True, metavar="GT_DIR",
+                   help="generic layout (poses.txt, depth/), a synth OUT folder, or a Redwood/ICL folder")
+    p.add_argument("--max-depth", type=float, default=10.0)
+    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.set_defaults(handler=cmd_eval)
+
+    p = sub.add_parser("demo", help="render a synthetic loop clip, run GCVD on it, print the metrics")
+    p.add_argument("--out", default="demo-out", metavar="DIR")
+    p.add_argument("--frames", type=int, default=120)
+    p.add_argument("--size", default="256x192", metavar="WxH")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--profile")
+    p.add_argument("--set", dest="sets", action="append", default=[])
+    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.set_defaults(handler=cmd_demo)
+
+    p = sub.add_parser("export", help="write a finished run as TUM, depth PNGs, COLMAP, PLY, TSDF mesh, "
+                       "nerfstudio or MCAP (see gcvd_flow/exports.py)")
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("--format", dest="formats", action="append", default=[], metavar="FMT",
+                   help="tum, depth-png, colmap, ply, tsdf, nerfstudio, mcap or all (repeatable or comma-separated)")
+    p.add_argument("--to", metavar="DIR", help="output directory (default: RUN_DIR/export)")
+    p.add_argument("--every", type=int, default=1, metavar="N",
+                   help="ply / tsdf / mcap cloud / colmap points: use every N-th frame (default 1)")
+    p.add_argument("--voxel", type=float, default=0.0, metavar="M",
+                   help="ply: voxel-grid downsampling size in scene units (default 0 = off); the MCAP "
+                   "cloud uses it too, else median depth / 100")
+    p.add_argument("--tsdf-voxel", type=float, default=None, metavar="M",
+                   help="tsdf: voxel length in scene units (default: median depth / 100)")
+    p.add_argument("--depth-scale", type=float, default=1.0, metavar="F",
+                   help="depth-png: multiply depth by F before converting to millimetres (default 1)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="mcap: frame rate for log times (default: the input's, else 30)")
+    p.add_argument("--mcap-images", default="png", metavar="png|jpeg|raw",
+                   help="mcap: RGB as foxglove.CompressedImage png (default) / jpeg, or foxglove.RawImage rgb8")
+    p.add_argument("--max-points", type=int, default=20000, metavar="N",
+                   help="colmap: about N points in points3D.txt (default 20000)")
+    p.add_argument("--cache", metavar="DIR",
+                   help="cache holding the run's frames (default: $GCVD_FLOW_CACHE or the user cache dir, as for run)")
     p.add_argument("--no-verify", dest="verify", action="store_false",
-                   help="skip re-hashing objects read from the cache (faster, less safe)")
-    p.add_argument("--pipeline", default="gcvd", help=argparse.SUPPRESS)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="gcvd-flow", description=(
-        "Globally consistent video depth and camera poses (GCVD), as a stage-cached pipeline."))
-    sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
-
-    p = sub.add_parser("run", help="run the pipeline on a video / folder; results in RUN_DIR")
-    _add_run_args(p)
-    p.add_argument("--until", metavar="STAGE", help="stop after STAGE (and what it needs)")
-    p = sub.add_parser("plan", help="dry run: which stages would run, and why")
-    _add_run_args(p)
-    p.set_defaults(out_required=False)
-
-    p = sub.add_parser("why", help="why STAGE would re-run: field-by-field key difference")
-    p.add_argument("stage")
-    p.add_argument("--out", required=True, metavar="RUN_DIR")
-    _add_config_args(p)
-
-    p = sub.add_parser("status", help="which stages of a run are up to date")
-    p.add_argument("--out", required=True, metavar="RUN_DIR")
-    _add_config_args(p)
-
-    p = sub.add_parser("dag", help="print the stage graph")
+                   help="skip re-hashing objects read from the cache")
     p.add_argument("--json", dest="json_mode", action="store_true")
-    p.add_argument("--pipeline", default="gcvd", help=argparse.SUPPRESS)
-
-    p = sub.add_parser("fsck", help="re-hash every cached object; quarantine corrupt ones")
-    p.add_argument("--cache", metavar="DIR")
-    p.add_argument("--json", dest="json_mode", action="store_true")
-
-    p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
-    p.add_argument("--cache", metavar="DIR")
-    p.add_argument("--keep", type=int, default=5, metavar="N")
-    p.add_argument("--json", dest="json_mode", action="store_true")
-
-    p = sub.add_parser("pin", help="keep a run's artifacts through gc (until unpinned)")
-    p.add_argument("name")
-    p.add_argument("--out", required=True, metavar="RUN_DIR")
-    p.add_argument("--cache", metavar="DIR")
-    p.add_argument("--remove", action="store_true", help="remove the pin instead")
-
-    for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
-                        ("pull", "copy a run's artifacts (or all) from a remote cache directory, verified")):
-        p = sub.add_parser(name, help=help_)
-        p.add_argument("remote", metavar="REMOTE_DIR")
-        p.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
-        p.add_argument("--cache", metavar="DIR")
-        p.add_argument("--json", dest="json_mode", action="store_true")
-
-    _add_product_commands(sub)
-    return ap
+    p.set_defaults(handler=cmd_export)
 
 
-def _add_product_commands(sub) -> None:
-    """Vision commands (synth, eval, demo) live in their own module."""
+def _parse_size(text: str) -> tuple[int, int]:
     try:
-        from . import product_cli
-    except ImportError:  # pragma: no cover - during early development
-        return
-    product_cli.add_commands(sub)
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size {text!r}: expected WxH, e.g. 256x192") from None
+    if w < 16 or h < 16:
+        raise UsageError(f"--size {text!r}: too small (minimum 16x16)")
+    return w, h
 
 
-def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | None = None):
-    from .api import Invocation
+def cmd_synth(a: argparse.Namespace) -> int:
+    from gcvd_flow.evaluate.synth import render_clip
 
-    sets = _all_sets(a)
-    return Invocation(input=input_ if input_ is not None else getattr(a, "input", None),
-                          out=out if out is not None else getattr(a, "out", None),
-                          config_file=getattr(a, "config_file", None), profile=getattr(a, "profile", None),
-                          sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
-                          json_mode=getattr(a, "json_mode", False),
-                          pipeline=getattr(a, "pipeline", "gcvd"), verify=getattr(a, "verify", True))
+    from gcvd_flow.io.formats import write_generic_layout
 
-
-def _print_json(doc: Any) -> None:
-    print(json.dumps(doc, indent=1, sort_keys=False))
-
-
-def _fast_noop(a: argparse.Namespace) -> dict[str, Any] | None:
-    """`run` whose inputs, code and outputs are untouched since its last run: answer at once."""
-    from . import fastpath
-    from .paths import default_cache_dir
-
-    if not a.out:
-        return None
-    cache = a.cache or str(default_cache_dir())
-    return fastpath.check(a.out, stamp_invocation(a), cache)
+    if a.frames < 2:
+        raise UsageError("--frames must be at least 2")
+    size = _parse_size(a.size)
+    t0 = time.perf_counter()
+    clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
+                       moving_object=a.moving_object, seed=a.seed)
+    write_generic_layout(a.out, clip)
+    print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
+          f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")
+    return 0
 
 
-def _all_sets(a: argparse.Namespace) -> list[str]:
-    sets = list(getattr(a, "sets", []) or [])
-    if getattr(a, "intrinsics", None):
-        sets.append(f"ingest.intrinsics={json.dumps(a.intrinsics)}")
-    return sets
+# ------------------------------------------------------------------------------ evaluation
 
 
-def stamp_invocation(a: argparse.Namespace) -> dict[str, Any]:
-    """The parts of a `run` invocation that decide its result (not --jobs, --json, ...)."""
-    import os
+def _load_gt(gt: Path) -> dict[str, Any]:
+    """Ground truth of a dataset folder: {poses (M,4,4) c2w by source frame, depth_files, scale}."""
+    import numpy as np  # noqa: F401 - heavy imports stay out of CLI start-up
+    from gcvd_flow.io.formats import read_redwood_log, read_tum_poses
 
-    return {"input": os.path.abspath(a.input), "pipeline": a.pipeline, "until": a.until,
-            "config_file": os.path.abspath(a.config_file) if a.config_file else None,
-            "profile": a.profile, "sets": _all_sets(a)}
+    if not gt.exists():
+        raise UsageError(f"{gt}: no such directory")
+    if (gt / "gt").is_dir():  # a synth OUT folder
+        gt = gt / "gt"
+    out: dict[str, Any] = {"depth_files": [], "depth_scale": 1000.0}
+    if (gt / "poses.txt").exists():
+        _, out["poses"] = read_tum_poses(gt / "poses.txt")
+    else:
+        logs = sorted(gt.glob("*.log"))
+        if not logs:
+            raise UsageError(f"{gt}: no poses.txt (TUM) or *.log (Redwood) ground truth")
+        out["poses"] = read_redwood_log(logs[0])
+    if (gt / "depth").is_dir():
+        from gcvd_flow.io.sources import natural_key
 
-
-def _print_run(res: dict[str, Any], json_mode: bool) -> None:
-    if json_mode:
-        _print_json(res)
-        return
-    for s in res["stages"]:
-        print(f"{s['name']:<20} executed {s['executed']:>5}  cached {s['cached']:>5}  {s['seconds']:8.2f} s")
-    for k, v in (res.get("outputs") or {}).items():
-        print(f"{k}: {v}")
-
-
-def dispatch(a: argparse.Namespace) -> int:
-    if a.cmd == "run":
-        res = _fast_noop(a)
-        if res is not None:
-            _print_run(res, a.json_mode)
-            return 0
-        from . import api
-
-        res = api.run(_invocation(a), target=a.until)
-        record_paths = res.pop("_record_paths")
-        if a.out:
-            from . import fastpath
-
-            fastpath.write(a.out, stamp_invocation(a), res["cache"], res, record_paths)
-        _print_run(res, a.json_mode)
-        return 0
-    from . import api
-
-    if a.cmd == "plan":
-        reps = api.plan(_invocation(a))
-        if a.json_mode:
-            _print_json({"stages": [r.as_plan_json() for r in reps]})
-        else:
-            for r in reps:
-                print(f"{r.name:<20} {r.action:<7} {'; '.join(r.reasons)}")
-        return 0
-    if a.cmd == "why":
-        res = api.why(a.stage, a.out, _invocation(a, input_=None, out=a.out))
-        if a.json_mode:
-            _print_json(res)
-        else:
-            if res["action"] == "cached":
-                print(f"{a.stage}: up to date (key {str(res['key'])[:12]})")
-            else:
-                print(f"{a.stage} would run:")
-                for r in res["reasons"]:
-                    print(f"  - {r}")
-        return 0
-    if a.cmd == "status":
-        reps = api.status(a.out, _invocation(a, input_=None, out=a.out))
-        if a.json_mode:
-            _print_json({"stages": [r.as_plan_json() for r in reps]})
-        else:
-            for r in reps:
-                state = "up to date" if r.action == "cached" else "changed: " + "; ".join(r.reasons)
-                print(f"{r.name:<20} {state}")
-        return 0
-    if a.cmd == "dag":
-        spec = api.load_spec(a.pipeline)
-        stages = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
-                  for s in spec.pipeline.stages]
-        if a.json_mode:
-            _print_json({"stages": stages})
-        else:
-            for s in stages:
-                arrow = " <- " + ", ".join(s["deps"]) if s["deps"] else ""
-                print(f"{s['name']}{' [map]' if s['map'] else ''}{arrow}")
-        return 0
-    if a.cmd == "fsck":
-        rep = api.fsck(a.cache)
-        if a.json_mode:
-            _print_json(rep)
-        else:
-            print(f"checked {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB): "
-                  f"{len(rep['corrupt'])} corrupt (quarantined), {rep['records_removed']} records dropped")
-            for d in rep["corrupt"]:
-                print(f"corrupt: {d}")
-        return 0
-    if a.cmd == "gc":
-        rep = api.gc(a.cache, a.keep)
-        if a.json_mode:
-            _print_json(rep)
-        else:
-            print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
-                  f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
-        return 0
-    if a.cmd == "pin":
-        store = api.open_store(a.cache)
-        if a.remove:
-            store.unpin(a.name)
-            print(f"unpinned {a.name}")
-        else:
-            run = api.read_run_dir(a.out)
-            store.pin(a.name, {"records": [s["key"] for s in run["stages"].values() if s.get("key")]})
-            print(f"pinned {a.out} as {a.name}")
-        return 0
-    if a.cmd in ("push", "pull"):
-        from . import remote
-
-        store = api.open_store(a.cache)
-        rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote, a.out)
-        if a.json_mode:
-            _print_json(rep)
-        else:
-            print(f"{a.cmd}: {rep['records']} records, {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB)"
-                  + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else ""))
-        return 0
-    handler = getattr(a, "handler", None)
-    if handler is not None:
-        return int(handler(a) or 0)
-    raise UsageError(f"unknown command {a.cmd!r}")
+        out["depth_files"] = sorted((p for p in (gt / "depth").iterdir() if p.suffix.lower() == ".png"),
+                                    key=lambda p: natural_key(p.name))
+    if (gt / "depth_scale").exists():
+        out["depth_scale"] = float((gt / "depth_scale").read_text().split()[0])
+    return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = build_parser()
-    a = ap.parse_args(argv)
+def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -> dict[str, Any]:
+    """ATE / RPE of poses.txt and depth errors of depth/*.npy against a ground-truth folder."""
+    import cv2
+    import numpy as np
+
+    from gcvd_flow.evaluate import metrics
+
+    from gcvd_flow.io.formats import read_tum_poses
+
+    run = Path(run_dir)
+    if not (run / "poses.txt").exists():
+        raise UsageError(f"{run / 'poses.txt'}: missing (is {run} a finished run?)")
+    cams = json.loads((run / "cameras.json").read_text())
+    stamps, est = read_tum_poses(run / "poses.txt")
+    idx = [int(round(t)) for t in stamps]
+    gt = _load_gt(Path(gt_dir))
+    if max(idx) >= len(gt["poses"]):
+        raise UsageError(f"{gt_dir}: ground truth has {len(gt['poses'])} poses, the run uses frame {max(idx)}")
+    gt_poses = np.asarray(gt["poses"])[idx]
+    res: dict[str, Any] = {"frames": len(idx)}
+    res.update(metrics.ate(est, gt_poses))
+    res.update(metrics.rpe(est, gt_poses, delta=1))
+    res["path_length"] = float(metrics.path_length(gt_poses))
+    res["ate_percent_of_path"] = 100.0 * res["ate_rmse"] / max(res["path_length"], 1e-12)
+    if gt["depth_files"]:
+        per_frame = []
+        for i in idx:
+            pred_path = run / "depth" / f"{i:06d}.npy"
+            if not pred_path.exists() or i >= len(gt["depth_files"]):
+                continue
+            pred = np.load(pred_path, allow_pickle=False)
+            g = cv2.imread(str(gt["depth_files"][i]), cv2.IMREAD_UNCHANGED)
+            if g is None:
+                raise UsageError(f"{gt['depth_files'][i]}: cannot read depth PNG")
+            g = g.astype(np.float32) / gt["depth_scale"]
+            if g.shape != pred.shape:  # compare at the run's working resolution
+                g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
+            per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))
+        if per_frame:
+            res.update(metrics.aggregate_depth_metrics(per_frame))
+            res["depth_frames"] = len(per_frame)
+    res["width"], res["height"] = cams.get("width"), cams.get("height")
+    return res
+
+
+def _print_metrics(res: dict[str, Any]) -> None:
+    rows = [("ATE RMSE", "ate_rmse", "m"), ("ATE / path", "ate_percent_of_path", "%"),
+            ("RPE trans", "rpe_trans", "m"), ("RPE rot", "rpe_rot", "deg"), ("AbsRel", "abs_rel", ""),
+            ("SqRel", "sq_rel", ""), ("RMSE", "rmse", "m"), ("delta<1.25", "delta1", "")]
+    for label, k, unit in rows:
+        if k in res:
+            print(f"{label:<12} {res[k]:10.4f} {unit}")
+    print(f"{'frames':<12} {res['frames']:10d}")
+
+
+def cmd_eval(a: argparse.Namespace) -> int:
+    res = evaluate(a.run_dir, a.gt, a.max_depth)
+    (Path(a.run_dir) / "metrics.json").write_text(json.dumps(res, indent=1, sort_keys=True))
+    if a.json_mode:
+        print(json.dumps(res, indent=1, sort_keys=True))
+    else:
+        _print_metrics(res)
+    return 0
+
+
+# ------------------------------------------------------------------------------ export
+
+
+def cmd_export(a: argparse.Namespace) -> int:
+    from gcvd_flow.exports import cmd_export as run_export
+
+    return run_export(a)
+
+
+# ------------------------------------------------------------------------------ demo
+
+
+def cmd_demo(a: argparse.Namespace) -> int:
+    from gcvd_flow import api
+    from gcvd_flow.evaluate.synth import render_clip
+
+    from gcvd_flow.io.formats import write_generic_layout
+
+    t0 = time.perf_counter()
+    out = Path(a.out)
+    clip_dir = out / "clip"
+    size = _parse_size(a.size)
+    if not (clip_dir / "frames").is_dir():
+        print(f"[demo] rendering a {a.frames}-frame synthetic loop ({size[0]}x{size[1]}) into {clip_dir}", file=sys.stderr)
+        clip = render_clip(n_frames=a.frames, trajectory="loop", size=size, seed=0)
+        write_generic_layout(clip_dir, clip)
+    cache = a.cache or os.environ.get("GCVD_FLOW_CACHE") or str(out / "cache")
+    print(f"[demo] running GCVD (cache: {cache})", file=sys.stderr)
+    inv = api.Invocation(input=str(clip_dir), out=str(out / "run"), profile=a.profile, sets=list(a.sets),
+                         cache=cache, json_mode=a.json_mode)
+    res = api.run(inv)
+    res.pop("_record_paths", None)
+    if not a.json_mode:
+        for s in res["stages"]:
+            print(f"  {s['name']:<20} executed {s['executed']:>4}  cached {s['cached']:>4}  {s['seconds']:7.2f} s")
+    metrics_ = evaluate(out / "run", clip_dir)
+    (out / "run" / "metrics.json").write_text(json.dumps(metrics_, indent=1, sort_keys=True))
+    total = time.perf_counter() - t0
+    if a.json_mode:
+        print(json.dumps({"run": res, "metrics": metrics_, "seconds": total}, indent=1))
+    else:
+        print(f"\nmetrics against the exact ground truth ({out / 'run' / 'metrics.json'}):")
+        _print_metrics(metrics_)
+        print(f"\ndemo finished in {total:.0f} s; outputs in {out / 'run'} (poses.txt, depth/, cameras.json)")
+    return 0
+
+
+# ------------------------------------------------------------------------------ entry point
+
+
+def _version() -> str:
     try:
-        return dispatch(a)
-    except UsageError as exc:
-        print(f"gcvd-flow: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("gcvd-flow: interrupted; the cache is consistent, run again to resume", file=sys.stderr)
-        return 130
-    except BrokenPipeError:
-        return 0
-    except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback
-        if getattr(exc, "user_error", False):  # bad input found inside a stage
-            print(f"gcvd-flow: error: {exc}", file=sys.stderr)
-            return 2
-        traceback.print_exc()
-        print("gcvd-flow: internal error (this is a bug; the traceback is above)", file=sys.stderr)
-        return 1
+        import importlib.metadata
+
+        return importlib.metadata.version("gcvd-flow")
+    except Exception:  # noqa: BLE001 - a source checkout that is not installed
+        return "0+unknown"
+
+
+PRODUCT = engine_cli.Product(
+    prog="gcvd-flow", pipeline="gcvd", version=_version(),
+    description="Globally consistent video depth and camera poses (GCVD), as a stage-cached pipeline.",
+    add_run_args=add_run_args, run_sets=run_sets, add_commands=add_commands)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return engine_cli.main(PRODUCT, argv)
 
 
 if __name__ == "__main__":

@@ -1,39 +1,54 @@
-"""The GCVD DAG: the one place that wires ``stages/`` into engine stages.
+"""The GCVD pipeline: its configuration and its DAG, one block per stage.
 
     ingest [map: frame] -> flow [map: pair i,i+1] -> masks [map: frame] -> priors [map: frame]
     -> keyframes -> association -> optimize_keyframes -> optimize_edges -> pose_graph
     -> optimize_segments -> depth_fusion [map: frame] -> depth_filter [map: frame]
 
-Each map item reads exactly the pieces it needs (a frame, its neighbours' flows, ...), so a
-trimmed, extended or re-strided clip re-uses every item whose inputs did not change. Config
-sections are pydantic models; ``--set section.key=value`` overrides any field.
+Each block holds everything about one stage: its parameters (a pydantic section: ``--set
+section.key=value``), for a map stage the inputs of each item (typed references: an item of
+another stage, a list of them, a part of a whole stage's output, a constant), the function the
+engine calls — ``run_<stage>(inputs, params, ctx)``, which unpacks the inputs by the names the
+items declared and calls the algorithm in ``stages/`` — and the declaration. Each map item
+reads exactly the pieces it needs (a frame, its neighbours' flows, ...), so a trimmed, extended
+or re-strided clip re-uses every item whose inputs did not change. Adding a stage is adding a
+block here plus its algorithm in ``stages/`` (docs/contributing.md).
+
+Conventions (docs/contributing.md): frames uint8 (H, W, 3) RGB; flows float32 (H, W, 2) px;
+poses T_w_c camera-to-world (4, 4) float64; depth float32 (H, W), one global scale.
 """
 
 from __future__ import annotations
 
-import json
 import sys
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from stages import ingest as ingest_mod
-from stages import steps
-
-from .api import PipelineSpec
-from .config import Section
-from .dag import Const, ItemRef, MapStage, PartRef, Pipeline, Stage
-from .errors import UsageError
-from .sources import Source, open_source as _open_source
+import artifacts_schema
+from gcvd_flow.engine.api import PipelineSpec
+from gcvd_flow.engine.config import Section
+from gcvd_flow.engine.dag import Const, ItemRef, MapStage, PartRef, Pipeline, Stage
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.io import run_dir
+from gcvd_flow.io.sources import Source, open_source as _open_source
+from stages.depth import filter as depth_filter
+from stages.depth import fusion as depth_fusion
+from stages.frontend import flow
+from stages.frontend import ingest as ingest_mod
+from stages.frontend import masks as masks_mod
+from stages.frontend import priors as priors_mod
+from stages.graph import association as association_mod
+from stages.graph import keyframes as keyframes_mod
+from stages.models import load_model
+from stages.optimize import pose_graph as pose_graph_mod
+from stages.optimize import training
+from stages.optimize.training import torch_threads
 
 WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
 
 
-# ------------------------------------------------------------------------------ config
-
-
+# ============================================================================== ingest
 class IngestParams(Section):
     start: int = Field(0, ge=0, description="first source frame")
     end: int | None = Field(None, description="one past the last source frame (None: all)")
@@ -49,6 +64,53 @@ class IngestParams(Section):
         return v
 
 
+def _camera_intrinsics(src: Source, p: IngestParams) -> tuple[tuple[float, float, float, float] | None, str]:
+    if p.intrinsics:
+        return ingest_mod.parse_intrinsics(p.intrinsics), "user (--intrinsics)"
+    if src.intrinsics is not None:
+        return src.intrinsics, src.intrinsics_origin or "dataset"
+    return None, "guess"
+
+
+def _ingest_items(view, p: IngestParams):
+    src: Source = view.source
+    sel = list(range(len(src.items)))[p.start:p.end:p.stride]
+    if len(sel) < 2:
+        raise UsageError(f"ingest selects {len(sel)} frame(s) of {len(src.items)} "
+                         f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
+    return [{"frame": src.items[i], "source_size": Const(list(src.size)),
+             "name": Const(src.names[i] if src.names else str(i))} for i in sel]
+
+
+def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
+    src: Source = view.source
+    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
+    intr, origin = _camera_intrinsics(src, p)
+    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
+    cam["frame_indices"] = list(range(len(src.items)))[p.start:p.end:p.stride]
+    cam["fps"] = src.fps
+    cam["layout"] = src.layout
+    return cam
+
+
+def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Source frame -> working resolution. Output {image: uint8 (h, w, 3) RGB (PNG)}."""
+    rgb = inputs["frame"]
+    src_w, src_h = inputs["source_size"]
+    if (rgb.shape[1], rgb.shape[0]) != (src_w, src_h):
+        raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
+                         f"the first frame's {src_w}x{src_h}")
+    size = ingest_mod.working_size(src_w, src_h, p.long_side)
+    return {"image": ingest_mod.prepare_frame(rgb, size)}
+
+
+INGEST = MapStage("ingest", run_ingest, params="ingest", kind="frames", items=_ingest_items,
+                  summary=_ingest_summary, summary_kind="camera",
+                  selection_params=("start", "end", "stride", "intrinsics"),
+                  description="frames at working resolution + camera")
+
+
+# ============================================================================== flow
 class FlowParams(Section):
     backend: Literal["dis", "raft"] = "dis"
     preset: Literal["ultrafast", "fast", "medium", "fine"] = Field(
@@ -58,6 +120,26 @@ class FlowParams(Section):
     weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="RAFT weights file")
 
 
+def _flow_items(view, p: FlowParams):
+    return [{"a": ItemRef("ingest", i), "b": ItemRef("ingest", i + 1)} for i in range(view.len("ingest") - 1)]
+
+
+def _open_raft(p: FlowParams) -> Any:
+    return load_model("raft", p.weights)
+
+
+def run_flow(inputs: dict[str, Any], p: FlowParams, ctx: Any) -> dict[str, Any]:
+    """Adjacent pair (i, i+1) -> {fwd, bwd (H, W, 2) float32 px, fwd_valid, bwd_valid bool}."""
+    model = ctx.resource("model") if p.backend == "raft" else None
+    return flow.compute_pair_flow(inputs["a"]["image"], inputs["b"]["image"], backend=p.backend,
+                                  preset=p.preset, fb_thresh=p.fb_thresh, model=model)
+
+
+FLOW = MapStage("flow", run_flow, deps=("ingest",), params="flow", kind="flow", items=_flow_items,
+                resources={"model": _open_raft}, description="forward/backward flow of adjacent pairs + consistency")
+
+
+# ============================================================================== masks
 class MasksParams(Section):
     backend: Literal["motion", "maskrcnn", "motion+maskrcnn", "none"] = Field(
         "motion", description="motion: flow vs. static geometry; maskrcnn: COCO instances of moving "
@@ -77,6 +159,67 @@ class MasksParams(Section):
         return self
 
 
+def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
+    """Flows from frame i toward a reference `span` frames away: backward (i -> i-1 -> ...),
+    or forward for the first `span` frames. Existing items never read later frames once the
+    clip has 2*span frames, so extending a clip only adds items."""
+    refs: dict[str, Any] = {}
+    if i >= span or i >= n - 1 - i:
+        refs["direction"] = Const("bwd")
+        refs["chain"] = [ItemRef("flow", i - 1 - k) for k in range(min(span, i))]
+    else:
+        refs["direction"] = Const("fwd")
+        refs["chain"] = [ItemRef("flow", i + k) for k in range(min(span, n - 1 - i))]
+    return refs
+
+
+def _mask_items(view, p: MasksParams):
+    # The semantic backend reads the frame itself; the motion backend its flows (only).
+    n = view.len("ingest")
+    out = []
+    for i in range(n):
+        it: dict[str, Any] = {}
+        if p.backend != "maskrcnn":
+            it = {"K": PartRef("ingest", ("K",), summary=True), **_chain_refs(i, n, p.span)}
+        if "maskrcnn" in p.backend:
+            it["image"] = ItemRef("ingest", i)
+        out.append(it)
+    return out
+
+
+def _open_maskrcnn(p: MasksParams) -> Any:
+    return load_model("maskrcnn", p.weights, min_size=p.min_size)
+
+
+def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows
+    (backend motion), its image's Mask R-CNN instances of moving classes (maskrcnn), or both
+    (motion+maskrcnn: static where both say static)."""
+    semantic = None
+    if "maskrcnn" in p.backend:
+        from stages.models.maskrcnn import semantic_static_mask
+
+        semantic = semantic_static_mask(ctx.resource("model"), inputs["image"]["image"],
+                                        score_thresh=p.score_thresh, dilate=p.dilate)
+        if p.backend == "maskrcnn":
+            return {"static": semantic}
+    fwd = inputs["direction"] == "fwd"
+    chain = [(fl["fwd"], fl["fwd_valid"]) if fwd else (fl["bwd"], fl["bwd_valid"]) for fl in inputs["chain"]]
+    h, w = chain[0][0].shape[:2]
+    if p.backend == "none":
+        return {"static": np.ones((h, w), np.uint8)}
+    neighbours = [chain[0]]
+    if len(chain) > 1:
+        neighbours.append(flow.chain_flows(chain))
+    motion = masks_mod.motion_static_mask(np.asarray(inputs["K"]), neighbours, dilate=p.dilate)
+    return {"static": motion if semantic is None else np.minimum(motion, semantic)}
+
+
+MASKS = MapStage("masks", run_masks, deps=("ingest", "flow"), params="masks", kind="mask",
+                 items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static")
+
+
+# ============================================================================== priors
 class PriorsParams(Section):
     backend: Literal["geometric", "midas"] = "geometric"
     span: int = Field(8, ge=1, description="frames between a frame and its reference for triangulation")
@@ -94,12 +237,86 @@ class PriorsParams(Section):
         return self
 
 
+def _prior_items(view, p: PriorsParams):
+    # Reference frames span and span/2 frames back (forward for the first frames): the prior
+    # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
+    # link, which on ICL turned 2-view poses off by degrees (AbsRel 0.25 vs 0.085 direct).
+    n = view.len("ingest")
+    out = []
+    for i in range(n):
+        it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
+        if p.backend == "geometric":
+            step = -1 if (i >= p.span or i >= n - 1 - i) else 1
+            for name, k in (("ref", p.span), ("ref_near", max(1, p.span // 2))):
+                j = min(max(i + step * k, 0), n - 1)
+                if j != i:
+                    it[name] = ItemRef("ingest", j)
+        out.append(it)
+    return out
+
+
+def _open_midas(p: PriorsParams) -> Any:
+    return load_model("midas", p.weights)
+
+
+def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {inv_depth float32 (H, W) median 1, confidence float32 (H, W)}."""
+    image = inputs["image"]["image"]
+    if p.backend == "midas":
+        from stages.models.midas import midas_prior
+
+        inv = midas_prior(ctx.resource("model"), image)
+        return {"inv_depth": inv.astype(np.float32), "confidence": np.ones_like(inv, np.float32)}
+    K = np.asarray(inputs["K"])
+    # direct flows to the far reference (more parallax) and the near one (sees what the far
+    # one lost); the prior fuses both (stages.frontend.priors.geometric_prior)
+    flows = []
+    for ref in ("ref", "ref_near"):
+        if ref in inputs:
+            fl = flow.compute_pair_flow(image, inputs[ref]["image"], preset=p.preset, fb_thresh=p.fb_thresh)
+            if fl["fwd_valid"].mean() >= priors_mod.MIN_VALID_FRACTION:
+                flows.append((fl["fwd"], fl["fwd_valid"]))
+    out = priors_mod.geometric_prior(image, K, flows[:1], extra=flows[1:]) if flows else None
+    if out is None:
+        h, w = image.shape[:2]
+        out = {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
+    return {"inv_depth": out["inv_depth"].astype(np.float32),
+            "confidence": out["confidence"].astype(np.float32)}
+
+
+PRIORS = MapStage("priors", run_priors, deps=("ingest",), params="priors", kind="prior",
+                  items=_prior_items, resources={"model": _open_midas},
+                  description="MiDaS-shaped relative inverse depth")
+
+
+# ============================================================================== keyframes
 class KeyframesParams(Section):
     enabled: bool = True
     delta: float = Field(0.1, gt=0, description="accumulated flow threshold, fraction of min(H, W)")
     max_gap: int = Field(39, ge=1)
 
 
+def run_keyframes(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """All frames -> {indices, accumulated, threshold_px, motion} (JSON)."""
+    flows, masks_ = inputs["flow"], inputs["masks"]
+    n = len(masks_)
+    motion = [keyframes_mod.pair_motion(flows[i]["fwd"], flows[i]["fwd_valid"], masks_[i]["static"])
+              for i in range(n - 1)]
+    h, w = masks_[0]["static"].shape
+    if not p.enabled:  # ablation "w/o keyframes": every frame is a keyframe
+        return {"indices": list(range(n)), "accumulated": [0.0] * n, "threshold_px": 0.0,
+                "motion": motion, "enabled": False}
+    sel = keyframes_mod.select_keyframes(np.asarray(motion), h, w, delta=p.delta, max_gap=p.max_gap)
+    return {"indices": [int(i) for i in sel["indices"]],
+            "accumulated": [float(a) for a in sel["accumulated"]],
+            "threshold_px": float(sel["threshold_px"]), "motion": [float(m) for m in motion],
+            "enabled": True}
+
+
+KEYFRAMES = Stage("keyframes", run_keyframes, deps=("flow", "masks"), params="keyframes", kind="keyframes")
+
+
+# ============================================================================== association
 class AssociationParams(Section):
     enabled: bool = True
     backend: Literal["default", "resnet18"] = "default"
@@ -118,6 +335,39 @@ class AssociationParams(Section):
         return self
 
 
+def _open_resnet(p: AssociationParams) -> Any:
+    return load_model("resnet18", p.weights)
+
+
+def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Keyframes -> {graph (JSON), edge_flows [{i, j, fwd, bwd, fwd_valid, bwd_valid}]}."""
+    kf = inputs["keyframes"]["indices"]
+    frames = inputs["ingest"]
+    K = np.asarray(frames.summary["K"])
+    images = [frames[i]["image"] for i in kf]
+    kw: dict[str, Any] = dict(nms=p.nms, min_separation=p.min_separation,
+                              min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent)
+    if p.threshold is not None:
+        kw["similarity_threshold"] = p.threshold
+    if p.backend == "resnet18":
+        from stages.models.resnet import resnet_descriptor
+
+        model = ctx.resource("model")
+        kw["descriptor_fn"] = lambda img: resnet_descriptor(model, img)
+    if not p.enabled:
+        kw["descriptors"] = np.eye(len(kf), dtype=np.float32)  # nothing similar: no loop edges
+        kw["similarity_threshold"] = 2.0
+    graph, edge_flows = association_mod.build_graph(kf, images, K, inputs["keyframes"]["threshold_px"] or 1e9, **kw)
+    flows_out = [{"i": int(a), "j": int(b), **{k: v for k, v in fl.items() if k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}}
+                 for (a, b), fl in sorted(edge_flows.items())]
+    return {"graph": graph, "edge_flows": flows_out}
+
+
+ASSOCIATION = Stage("association", run_association, deps=("ingest", "keyframes"), params="association",
+                    kind="graph", resources={"model": _open_resnet})
+
+
+# ============================================================================== optimisation: shared
 class DepthParams(Section):
     layer_norm: bool = True
     mesh: bool = True
@@ -149,11 +399,120 @@ class OptimizeKeyframesParams(Section):
                          "are bit-identical only for the same count)")
 
 
+OPT = ("depth", "losses", "optimize_keyframes")
+
+
+# Config section -> OptimizeParams field names, for fields whose names differ.
+_SECTION_FIELDS = {
+    "optimize_edges": {"steps": "edge_steps", "lr": "edge_lr"},
+    "optimize_segments": {"steps": "seg_steps", "lr": "seg_lr", "loss_scale": "seg_loss_scale",
+                          "pair_power": "seg_pair_power", "grad_mult": "seg_grad_mult",
+                          "window": "seg_window"},
+}
+
+
+def optimize_params(bundle: Any) -> dict[str, Any]:
+    """Flatten the config sections a stage reads into ``stages.optimize.training.OptimizeParams`` fields."""
+    import dataclasses
+
+    OptimizeParams = training.OptimizeParams
+
+    known = {f.name for f in dataclasses.fields(OptimizeParams)}
+    out: dict[str, Any] = {}
+    for section in ("depth", "losses", "optimize_keyframes", "optimize_edges", "optimize_segments"):
+        model = getattr(bundle, section, None)
+        if model is None:
+            continue
+        rename = _SECTION_FIELDS.get(section, {})
+        for k, v in model.model_dump().items():
+            name = rename.get(k, k)
+            if name in known:
+                out[name] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
+def _stack(items: Any, indices: list[int], field: str) -> np.ndarray:
+    return np.stack([np.asarray(items[i][field]) for i in indices])
+
+
+def _flow_dict(fl: dict[str, Any]) -> dict[str, np.ndarray]:
+    return {k: np.asarray(fl[k]) for k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(np.asarray(T, np.float64))
+
+
+# ============================================================================== optimize_keyframes
+def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """Keyframe windows -> {keyframes, poses (K,4,4) c2w, depths [K x (H,W)], rel_poses, state}."""
+    kf = list(inputs["keyframes"]["indices"])
+    frames = inputs["ingest"]
+    pos = {f: k for k, f in enumerate(kf)}
+    pair_flows = {}
+    for e in inputs["association"]["edge_flows"]:
+        a, c = pos.get(e["i"]), pos.get(e["j"])
+        if a is not None and c is not None and c == a + 1:
+            pair_flows[(a, c)] = _flow_dict(e)
+    missing = [k for k in range(len(kf) - 1) if (k, k + 1) not in pair_flows]
+    if missing:
+        raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
+    with torch_threads(b.optimize_keyframes.threads):
+        res = training.optimize_keyframes(
+            _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
+            _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
+            params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer)
+    return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
+            "depths": [np.asarray(d, np.float32) for d in res["depths"]],
+            "rel_poses": [{"a": int(r["a"]), "b": int(r["b"]), "tau": int(r["tau"]),
+                           "T": np.asarray(r["T"], np.float64)} for r in res["rel_poses"]],
+            "state": {k: np.asarray(v) for k, v in res["state"].items()}}
+
+
+OPTIMIZE_KEYFRAMES = Stage("optimize_keyframes", run_optimize_keyframes,
+                           deps=("ingest", "priors", "masks", "keyframes", "association"), params=OPT,
+                           kind="keyframe_solution", uses_seed=True)
+
+
+# ============================================================================== optimize_edges
 class OptimizeEdgesParams(Section):
     steps: int = 100
     lr: float = 1e-4
 
 
+def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """Verified non-sequential keyframe pairs -> {edges: [{a, b, i, j, T_ab, loss}]}.
+
+    T_ab follows stages.optimize.training (camera a -> camera b coordinates, inv(P_b) @ P_a).
+    """
+    okf = inputs["optimize_keyframes"]
+    kf = list(okf["keyframes"])
+    pos = {f: k for k, f in enumerate(kf)}
+    P = np.asarray(okf["poses"])
+    frames, priors_, masks_ = inputs["ingest"], inputs["priors"], inputs["masks"]
+    K = np.asarray(frames.summary["K"])
+    flows = {(e["i"], e["j"]): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
+    params = optimize_params(b)
+    edges = []
+    for n, e in enumerate(inputs["association"]["graph"].get("nonsequential_edges", [])):
+        i, j = int(e["i"]), int(e["j"])
+        a, c = pos[i], pos[j]
+        with torch_threads(b.optimize_keyframes.threads):
+            res = training.optimize_edge(
+                frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
+                masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(P[c]) @ P[a],
+                params=params, seed=ctx.seed + n)
+        edges.append({"a": a, "b": c, "i": i, "j": j, "T_ab": np.asarray(res["T_ab"], np.float64),
+                      "loss": float(res["loss"])})
+    return {"edges": edges}
+
+
+OPTIMIZE_EDGES = Stage("optimize_edges", run_optimize_edges,
+                       deps=("ingest", "priors", "masks", "association", "optimize_keyframes"),
+                       params=OPT + ("optimize_edges",), kind="edges", uses_seed=True)
+
+
+# ============================================================================== pose_graph
 class PoseGraphParams(Section):
     enabled: bool = True
     kind: Literal["se3", "sim3"] = "se3"
@@ -162,6 +521,39 @@ class PoseGraphParams(Section):
     max_loop_rotation_deg: float = Field(30.0, gt=0, description="loop edges disagreeing more with odometry are ignored")
 
 
+def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Keyframe poses + sequential and loop edges -> globally consistent keyframe poses."""
+    okf = inputs["optimize_keyframes"]
+    P = np.asarray(okf["poses"], np.float64)
+    if not p.enabled or len(P) < 2:
+        return {"poses": P, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
+    # stages.optimize.training gives T = inv(P_b) @ P_a; the pose graph measures inv(P_a) @ P_b.
+    edges = [{"a": r["a"], "b": r["b"], "T_ab": _inv(r["T"]), "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
+    rejected = []
+    for e in inputs["optimize_edges"]["edges"]:
+        meas = _inv(e["T_ab"])
+        # Gate gross outliers: drift bends a trajectory by degrees, not tens of degrees, so a
+        # loop measurement that disagrees that much with odometry is a failed edge optimisation.
+        odo = np.linalg.inv(P[e["a"]]) @ P[e["b"]]
+        dR = odo[:3, :3].T @ meas[:3, :3]
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        if angle > p.max_loop_rotation_deg:
+            rejected.append({"i": e["i"], "j": e["j"], "rotation_disagreement_deg": angle})
+            continue
+        edges.append({"a": e["a"], "b": e["b"], "T_ab": meas, "weight": p.loop_weight})
+    if rejected:
+        ctx.log(f"ignored {len(rejected)} loop edge(s) disagreeing with odometry by > {p.max_loop_rotation_deg} deg")
+    res = pose_graph_mod.optimize_pose_graph(P, edges, kind=p.kind, max_iterations=p.max_iterations)
+    return {"poses": np.asarray(res["poses"], np.float64), "enabled": True,
+            "iterations": int(res["iterations"]), "initial_error": float(res["initial_error"]),
+            "final_error": float(res["final_error"]), "rejected_loops": rejected}
+
+
+POSE_GRAPH = Stage("pose_graph", run_pose_graph, deps=("optimize_keyframes", "optimize_edges"),
+                   params="pose_graph", kind="poses")
+
+
+# ============================================================================== optimize_segments
 class OptimizeSegmentsParams(Section):
     steps: int = 60
     lr: float = 1e-4
@@ -171,6 +563,43 @@ class OptimizeSegmentsParams(Section):
     window: int = 40
 
 
+class _FlowDicts:
+    """flows[i] -> the arrays of pair (i, i+1)'s flow."""
+
+    def __init__(self, items: Any):
+        self._items = items
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        return _flow_dict(self._items[i])
+
+
+def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """All frames with keyframe poses frozen -> {poses (N,4,4) c2w, depths [N x (H,W)]}.
+
+    Images, priors and masks are read one window at a time (lazily stacked fields) and flows
+    through a window-sized cache of decoded items: memory stays flat in the clip length (at
+    256x192 one flow pair is ~0.9 MB; a 1000-frame clip would hold ~0.9 GB)."""
+    frames, flows = inputs["ingest"], inputs["flow"]
+    okf = inputs["optimize_keyframes"]
+    with torch_threads(b.optimize_keyframes.threads):
+        res = training.optimize_segments(
+            frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
+            np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
+            np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
+            params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
+    return {"poses": np.asarray(res["poses"], np.float64),
+            "depths": [np.asarray(d, np.float32) for d in res["depths"]]}
+
+
+OPTIMIZE_SEGMENTS = Stage("optimize_segments", run_optimize_segments,
+                          deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "pose_graph"),
+                          params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True)
+
+
+# ============================================================================== depth_fusion
 class DepthFusionParams(Section):
     enabled: bool = True
     offsets: tuple[int, ...] = Field((-8, 8), description="reference frames (relative "
@@ -182,12 +611,74 @@ class DepthFusionParams(Section):
                                "depth (|log ratio|) are dropped")
 
 
+def _fusion_items(view, p: DepthFusionParams):
+    n = view.len("ingest")
+    out = []
+    for i in range(n):
+        refs = [i + off for off in p.offsets if 0 <= i + off < n and off != 0] if p.enabled else []
+        out.append({"index": Const(i), "image": ItemRef("ingest", i),
+                    "K": PartRef("ingest", ("K",), summary=True),
+                    "poses": PartRef("optimize_segments", ("poses",)),
+                    "depth": PartRef("optimize_segments", ("depths", i)),
+                    "refs": [ItemRef("ingest", j) for j in refs], "ref_indices": Const(refs)})
+    return out
+
+
+def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
+    """Frame i's optimised depth fused with its multi-view triangulation -> {depth float32 (H, W),
+    measured float (fraction of pixels triangulated)}."""
+    depth = np.asarray(inputs["depth"], np.float32)
+    if not p.enabled:
+        return {"depth": depth, "measured": 0.0}
+    poses = np.asarray(inputs["poses"], np.float64)
+    i = int(inputs["index"])
+    refs = [(ref["image"], poses[int(j)]) for ref, j in zip(inputs["refs"], inputs["ref_indices"])]
+    fused, measured = depth_fusion.fuse_depth(
+        inputs["image"]["image"], depth, poses[i], refs, np.asarray(inputs["K"]), preset=p.preset,
+        fb_thresh=p.fb_thresh, min_angle_deg=p.min_angle_deg, max_log_dev=p.max_log_dev)
+    return {"depth": fused, "measured": measured}
+
+
+DEPTH_FUSION = MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "optimize_segments"),
+                        params="depth_fusion", kind="depth", items=_fusion_items,
+                        description="optimised depth fused with multi-view triangulation at the final poses")
+
+
+# ============================================================================== depth_filter
 class DepthFilterParams(Section):
     enabled: bool = True
     radius: int = Field(4, ge=0)
     border: int = 4
 
 
+def _filter_items(view, p: DepthFilterParams):
+    n = view.len("ingest")
+    r = p.radius if p.enabled else 0
+    out = []
+    for i in range(n):
+        lo, hi = max(0, i - r), min(n - 1, i + r)
+        out.append({"center": Const(i - lo), "depths": [ItemRef("depth_fusion", j) for j in range(lo, hi + 1)],
+                    "flows": [ItemRef("flow", j) for j in range(lo, hi)]})
+    return out
+
+
+def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> dict[str, Any]:
+    """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W)}."""
+    depths = np.stack([np.asarray(d["depth"]) for d in inputs["depths"]])
+    center = int(inputs["center"])
+    if not p.enabled or len(depths) == 1:
+        return {"depth": depths[center].astype(np.float32)}
+    fwd = np.stack([fl["fwd"] for fl in inputs["flows"]])
+    bwd = np.stack([fl["bwd"] for fl in inputs["flows"]])
+    out = depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border)
+    return {"depth": np.asarray(out, np.float32)}
+
+
+DEPTH_FILTER = MapStage("depth_filter", run_depth_filter, deps=("flow", "depth_fusion"), params="depth_filter",
+                        kind="depth", items=_filter_items)
+
+
+# ============================================================================== the pipeline
 class GCVDConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     seed: int = 0
@@ -227,159 +718,26 @@ PROFILES: dict[str, dict[str, Any]] = {
 }
 
 
-# ------------------------------------------------------------------------------ items
+def limit_threads() -> None:
+    """Worker processes share the cores: one torch / OpenCV thread each."""
+    import cv2
+    import torch
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
 
 
-def _camera_intrinsics(src: Source, p: IngestParams) -> tuple[tuple[float, float, float, float] | None, str]:
-    if p.intrinsics:
-        return ingest_mod.parse_intrinsics(p.intrinsics), "user (--intrinsics)"
-    if src.intrinsics is not None:
-        return src.intrinsics, src.intrinsics_origin or "dataset"
-    return None, "guess"
-
-
-def _ingest_items(view, p: IngestParams):
-    src: Source = view.source
-    sel = list(range(len(src.items)))[p.start:p.end:p.stride]
-    if len(sel) < 2:
-        raise UsageError(f"ingest selects {len(sel)} frame(s) of {len(src.items)} "
-                         f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
-    return [{"frame": src.items[i], "source_size": Const(list(src.size)),
-             "name": Const(src.names[i] if src.names else str(i))} for i in sel]
-
-
-def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
-    src: Source = view.source
-    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
-    intr, origin = _camera_intrinsics(src, p)
-    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
-    cam["frame_indices"] = list(range(len(src.items)))[p.start:p.end:p.stride]
-    cam["fps"] = src.fps
-    cam["layout"] = src.layout
-    return cam
-
-
-def _pairs(view, p):
-    return [{"a": ItemRef("ingest", i), "b": ItemRef("ingest", i + 1)} for i in range(view.len("ingest") - 1)]
-
-
-def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
-    """Flows from frame i toward a reference `span` frames away: backward (i -> i-1 -> ...),
-    or forward for the first `span` frames. Existing items never read later frames once the
-    clip has 2*span frames, so extending a clip only adds items."""
-    refs: dict[str, Any] = {}
-    if i >= span or i >= n - 1 - i:
-        refs["direction"] = Const("bwd")
-        for k in range(min(span, i)):
-            refs[f"chain{k:02d}"] = ItemRef("flow", i - 1 - k)
-    else:
-        refs["direction"] = Const("fwd")
-        for k in range(min(span, n - 1 - i)):
-            refs[f"chain{k:02d}"] = ItemRef("flow", i + k)
-    return refs
-
-
-def _mask_items(view, p: MasksParams):
-    # The semantic backend reads the frame itself; the motion backend its flows (only).
-    n = view.len("ingest")
-    out = []
-    for i in range(n):
-        it: dict[str, Any] = {}
-        if p.backend != "maskrcnn":
-            it = {"K": PartRef("ingest", ("K",), summary=True), **_chain_refs(i, n, p.span)}
-        if "maskrcnn" in p.backend:
-            it["image"] = ItemRef("ingest", i)
-        out.append(it)
-    return out
-
-
-def _prior_items(view, p: PriorsParams):
-    # Reference frames span and span/2 frames back (forward for the first frames): the prior
-    # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
-    # link, which on ICL turned 2-view poses off by degrees (AbsRel 0.25 vs 0.085 direct).
-    n = view.len("ingest")
-    out = []
-    for i in range(n):
-        it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
-        if p.backend == "geometric":
-            step = -1 if (i >= p.span or i >= n - 1 - i) else 1
-            for name, k in (("ref", p.span), ("ref_near", max(1, p.span // 2))):
-                j = min(max(i + step * k, 0), n - 1)
-                if j != i:
-                    it[name] = ItemRef("ingest", j)
-        out.append(it)
-    return out
-
-
-def _fusion_items(view, p: DepthFusionParams):
-    n = view.len("ingest")
-    out = []
-    for i in range(n):
-        it: dict[str, Any] = {"index": Const(i), "image": ItemRef("ingest", i),
-                              "K": PartRef("ingest", ("K",), summary=True),
-                              "poses": PartRef("optimize_segments", ("poses",)),
-                              "depth": PartRef("optimize_segments", ("depths", i))}
-        if p.enabled:
-            for k, off in enumerate(p.offsets):
-                j = i + off
-                if 0 <= j < n and j != i:
-                    it[f"ref{k:02d}"] = ItemRef("ingest", j)
-                    it[f"index_ref{k:02d}"] = Const(j)
-        out.append(it)
-    return out
-
-
-def _filter_items(view, p: DepthFilterParams):
-    n = view.len("ingest")
-    r = p.radius if p.enabled else 0
-    out = []
-    for i in range(n):
-        lo, hi = max(0, i - r), min(n - 1, i + r)
-        it: dict[str, Any] = {"center": Const(i - lo)}
-        for k, j in enumerate(range(lo, hi + 1)):
-            it[f"d{k:02d}"] = ItemRef("depth_fusion", j)
-        for k, j in enumerate(range(lo, hi)):
-            it[f"f{k:02d}"] = ItemRef("flow", j)
-        out.append(it)
-    return out
-
-
-OPT = ("depth", "losses", "optimize_keyframes")
-
-PIPELINE = Pipeline([
-    MapStage("ingest", steps.ingest_frame, params="ingest", kind="frames", items=_ingest_items,
-             summary=_ingest_summary, summary_kind="camera", selection_params=("start", "end", "stride", "intrinsics"),
-             description="frames at working resolution + camera"),
-    MapStage("flow", steps.flow_pair, deps=("ingest",), params="flow", kind="flow", items=_pairs,
-             description="forward/backward flow of adjacent pairs + consistency"),
-    MapStage("masks", steps.static_mask, deps=("ingest", "flow"), params="masks", kind="mask",
-             items=_mask_items, description="1 = static"),
-    MapStage("priors", steps.depth_prior, deps=("ingest",), params="priors", kind="prior",
-             items=_prior_items, description="MiDaS-shaped relative inverse depth"),
-    Stage("keyframes", steps.select_keyframes, deps=("flow", "masks"), params="keyframes", kind="keyframes"),
-    Stage("association", steps.associate, deps=("ingest", "keyframes"), params="association", kind="graph"),
-    Stage("optimize_keyframes", steps.optimize_keyframes,
-          deps=("ingest", "priors", "masks", "keyframes", "association"), params=OPT, kind="keyframe_solution",
-          uses_seed=True),
-    Stage("optimize_edges", steps.optimize_edges,
-          deps=("ingest", "priors", "masks", "association", "optimize_keyframes"),
-          params=OPT + ("optimize_edges",), kind="edges", uses_seed=True),
-    Stage("pose_graph", steps.pose_graph, deps=("optimize_keyframes", "optimize_edges"), params="pose_graph",
-          kind="poses"),
-    Stage("optimize_segments", steps.optimize_segments,
-          deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "pose_graph"),
-          params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True),
-    MapStage("depth_fusion", steps.fuse_depth, deps=("ingest", "optimize_segments"), params="depth_fusion",
-             kind="depth", items=_fusion_items, description="optimised depth fused with multi-view "
-             "triangulation at the final poses"),
-    MapStage("depth_filter", steps.filter_depth, deps=("flow", "depth_fusion"), params="depth_filter",
-             kind="depth", items=_filter_items),
-])
+PIPELINE = Pipeline(
+    [INGEST, FLOW, MASKS, PRIORS, KEYFRAMES, ASSOCIATION, OPTIMIZE_KEYFRAMES, OPTIMIZE_EDGES, POSE_GRAPH,
+     OPTIMIZE_SEGMENTS, DEPTH_FUSION, DEPTH_FILTER],
+    packages=("stages", "gcvd_flow.pipeline"),
+    numeric_libraries=(("torch", ("torch",)), ("opencv", ("opencv-python-headless", "opencv-python")),
+                       ("kornia", ("kornia",)), ("gtsam", ("gtsam",))),
+    numeric_settings=(("device", "cpu"), ("dtype", "float32"), ("deterministic", True)),
+    worker_init=limit_threads,
+)
 
 STAGE_NAMES = PIPELINE.names()
-
-
-# ------------------------------------------------------------------------------ source & export
 
 
 def open_source(path: str, config: GCVDConfig) -> Source:
@@ -399,42 +757,5 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     return src
 
 
-def write_tum(path: Path, stamps: list[float], poses: np.ndarray) -> None:
-    """TUM trajectory: `t tx ty tz qx qy qz qw`, camera-to-world."""
-    from scipy.spatial.transform import Rotation
-
-    lines = []
-    for t, T in zip(stamps, poses):
-        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
-        if q[3] < 0:
-            q = -q
-        lines.append(f"{t:.6f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)))
-    path.write_text("\n".join(lines) + "\n")
-
-
-def export(out: Path, runner, config: GCVDConfig) -> dict[str, Any]:
-    """RUN_DIR: poses.txt (TUM c2w), depth/NNNNNN.npy (float32), cameras.json."""
-    frames = runner.value("ingest")
-    cam = frames.summary
-    idx = list(cam["frame_indices"])
-    # only the poses: decoding the whole segment solution would hold every depth map at once
-    poses = np.asarray(runner.part("optimize_segments", ("poses",)), np.float64)
-    write_tum(out / "poses.txt", [float(i) for i in idx], poses)
-    depth_dir = out / "depth"
-    depth_dir.mkdir(exist_ok=True)
-    for old in depth_dir.glob("*.npy"):
-        old.unlink()
-    filt = runner.value("depth_filter")
-    for k, i in enumerate(idx):
-        np.save(depth_dir / f"{i:06d}.npy", np.asarray(filt[k]["depth"], np.float32), allow_pickle=False)
-    K = np.asarray(cam["K"])
-    doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
-           "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
-           "source_height": cam["source_height"], "intrinsics_guessed": cam["guessed"],
-           "intrinsics_origin": cam["origin"], "frame_indices": idx, "fps": cam.get("fps"),
-           "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
-    (out / "cameras.json").write_text(json.dumps(doc, indent=1))
-    return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "cameras": str(out / "cameras.json")}
-
-
-SPEC = PipelineSpec("gcvd", PIPELINE, GCVDConfig, PROFILES, open_source=open_source, export=export)
+SPEC = PipelineSpec("gcvd", PIPELINE, GCVDConfig, PROFILES, open_source=open_source,
+                    export=run_dir.write_run_dir, schema_dir=artifacts_schema.SCHEMA_DIR)

@@ -9,8 +9,12 @@ import pickle
 import numpy as np
 import pytest
 
-from gcvd_flow.artifacts import ArtifactError, Encoder, Tensors, load_manifest, load_value, validate
-from gcvd_flow.store import Store
+import artifacts_schema
+from gcvd_flow.engine.artifacts import (ArtifactError, Encoder, Tensors, load_manifest, load_value,
+                                      register_schema_dir, validate)
+
+register_schema_dir(artifacts_schema.SCHEMA_DIR)  # what a pipeline spec does when it is loaded
+from gcvd_flow.engine.store import Store
 
 
 @pytest.fixture

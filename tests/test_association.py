@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.association import (
+from stages.graph.association import (
     DEFAULT_SIMILARITY_THRESHOLD,
     build_graph,
     candidate_pairs,
@@ -18,11 +18,11 @@ from stages.association import (
     keyframe_pair_flow,
     verify_pair,
 )
-from stages.backends.resnet import ResNet18, load_resnet18, resnet_descriptor
-from stages.flow import compute_pair_flow
-from stages.geometry_np import rigid_flow
-from stages.keyframes import pair_motion, select_keyframes
-from stages.synth import render_clip
+from stages.models.resnet import ResNet18, load_resnet18, resnet_descriptor
+from stages.frontend.flow import compute_pair_flow
+from geometry_ref import rigid_flow
+from stages.graph.keyframes import pair_motion, select_keyframes
+from gcvd_flow.evaluate.synth import render_clip
 
 SIZE = (160, 120)
 

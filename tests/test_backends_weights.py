@@ -14,8 +14,8 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from stages.backends.midas_net import MidasNet, load_midas, midas_prior, network_size
-from stages.backends.raft_net import RAFT, CorrPyramid, coords_grid, load_raft, raft_flow, upsample_flow_convex
+from stages.models.midas import MidasNet, load_midas, midas_prior, network_size
+from stages.models.raft import RAFT, CorrPyramid, coords_grid, load_raft, raft_flow, upsample_flow_convex
 
 
 def _save_safetensors(model: torch.nn.Module, path: Path) -> Path:

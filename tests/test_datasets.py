@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcvd_flow import datasets as ds
-from gcvd_flow.errors import UsageError
-from stages.synth import render_clip
+from gcvd_flow.io import formats as ds
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.evaluate.synth import render_clip
 
 ICL = Path("/work/shared/data/icl_livingroom1_micro")
 

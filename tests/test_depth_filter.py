@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.depth_filter import chain_flow, filter_depth
-from stages.geometry_np import rigid_flow
+from stages.depth.filter import chain_flow, filter_depth
+from geometry_ref import rigid_flow
 
 F = 100.0
 W, H = 128, 96
@@ -64,7 +64,7 @@ def test_round_trip_is_consistent_in_both_directions() -> None:
 
 
 def test_noise_reduced_on_synthetic_clip_with_gt_flows() -> None:
-    from stages.synth import render_clip
+    from gcvd_flow.evaluate.synth import render_clip
 
     clip = render_clip(40, "orbit", size=(W, H))
     sl = slice(16, 25)  # 9 frames, ~1 deg per frame

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from gcvd_flow import api
-from gcvd_flow.store import Store
+from gcvd_flow.engine import api
+from gcvd_flow.engine.store import Store
 
 from conftest import ROOT, by_stage, cli, cli_json, make_toy_input
 
@@ -334,8 +334,8 @@ def test_checkpoint_shards_are_stored_once_and_come_back_flat(tmp_path):
     work per save); load() returns shard arrays as "shard/key" beside the tensors."""
     import numpy as np
 
-    from gcvd_flow.runner import Checkpointer
-    from gcvd_flow.store import Store
+    from gcvd_flow.engine.runner import Checkpointer
+    from gcvd_flow.engine.store import Store
 
     store = Store(tmp_path / "cache")
     ck = Checkpointer(store, "k" * 64, "demo", lambda m: None)

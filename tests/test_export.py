@@ -18,7 +18,7 @@ import pytest
 
 from conftest import cli, cli_json
 
-from gcvd_flow.datasets import read_tum_poses
+from gcvd_flow.io.formats import read_tum_poses
 
 N_FRAMES, W, H = 16, 96, 72
 # Few optimisation steps: the exports are checked against the run's own outputs, not against
@@ -73,7 +73,7 @@ def test_tum_is_a_copy(run, exported):
 
 
 def test_colmap_model_inverts_to_the_run_poses_and_reprojects(run, exported):
-    from stages.export_geometry import colmap_to_c2w
+    from gcvd_flow.exports.geometry import colmap_to_c2w
 
     cams, K, poses, depths = _run_data(run["run"])
     d = exported["out"] / "colmap"
@@ -317,7 +317,7 @@ def test_interrupted_write_leaves_no_file(tmp_path):
 def test_colmap_and_opengl_conversions_round_trip():
     from scipy.spatial.transform import Rotation
 
-    from stages.export_geometry import c2w_to_colmap, colmap_to_c2w, opencv_to_opengl, opengl_to_opencv
+    from gcvd_flow.exports.geometry import c2w_to_colmap, colmap_to_c2w, opencv_to_opengl, opengl_to_opencv
 
     rng = np.random.default_rng(0)
     rots = Rotation.random(50, random_state=1).as_matrix()
@@ -336,7 +336,7 @@ def test_colmap_and_opengl_conversions_round_trip():
 
 
 def test_voxel_accumulator_matches_global_downsampling():
-    from stages.export_geometry import VoxelAccumulator
+    from gcvd_flow.exports.geometry import VoxelAccumulator
 
     rng = np.random.default_rng(3)
     pts = rng.uniform(-1, 1, size=(20000, 3))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.flow import chain_flows, compute_pair_flow, fb_consistency, warp_sample
-from stages.geometry_np import rigid_flow
-from stages.synth import render_clip
+from stages.frontend.flow import chain_flows, compute_pair_flow, fb_consistency, warp_sample
+from geometry_ref import rigid_flow
+from gcvd_flow.evaluate.synth import render_clip
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.flow import compute_pair_flow
-from stages.keyframes import pair_motion, select_keyframes
+from stages.frontend.flow import compute_pair_flow
+from stages.graph.keyframes import pair_motion, select_keyframes
 
 
 def test_pair_motion_masks() -> None:
@@ -57,7 +57,7 @@ def test_degenerate_inputs() -> None:
 
 
 def test_pure_rotation_clip_places_keyframes_by_image_motion() -> None:
-    from stages.synth import render_clip
+    from gcvd_flow.evaluate.synth import render_clip
 
     clip = render_clip(40, "rotation", size=(128, 96))
     motion = [

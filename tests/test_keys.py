@@ -9,7 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from gcvd_flow import keys
+from gcvd_flow.engine import keys
 
 
 def test_typed_encoding_distinguishes_one_values():
@@ -44,7 +44,9 @@ def test_unencodable_values_are_rejected():
 
 
 def test_env_has_no_paths_or_names():
-    env = keys.numeric_env()
+    from gcvd_flow.pipeline import PIPELINE
+
+    env = PIPELINE.numeric_env()
     text = repr(env)
     import socket
 
@@ -61,7 +63,6 @@ def _make_package(root, name: str, files: dict[str, str], monkeypatch):
     for fname, text in files.items():
         (pkg / fname).write_text(text)
     monkeypatch.syspath_prepend(str(root))
-    monkeypatch.setattr(keys, "PROJECT_PACKAGES", keys.PROJECT_PACKAGES | {name})
     return pkg
 
 
@@ -93,7 +94,6 @@ def temp_package(tmp_path, monkeypatch):
             return 1
     '''))
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(keys, "PROJECT_PACKAGES", keys.PROJECT_PACKAGES | {"fpkg"})
     yield pkg
     for m in [m for m in sys.modules if m == "fpkg" or m.startswith("fpkg.")]:
         del sys.modules[m]
@@ -105,7 +105,7 @@ def _fingerprint(pkg_name: str = "fpkg.stage"):
     for m in [m for m in sys.modules if m == "fpkg" or m.startswith("fpkg.")]:
         del sys.modules[m]
     mod = importlib.import_module(pkg_name)
-    return keys.code_fingerprint(mod.run)
+    return keys.code_fingerprint(mod.run, ("fpkg",))
 
 
 def test_reformatting_and_comments_do_not_invalidate(temp_package):
@@ -158,7 +158,7 @@ def test_imports_inside_the_function_count(tmp_path, monkeypatch):
 
     def fp():
         _forget("lpkg")
-        return keys.code_fingerprint(importlib.import_module("lpkg.step").run)
+        return keys.code_fingerprint(importlib.import_module("lpkg.step").run, ("lpkg",))
 
     fp0, files = fp()
     assert any("lpkg/algo.py" in f for f, _ in files)

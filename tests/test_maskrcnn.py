@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import save_file
 
 from conftest import by_stage, cli, cli_json
-from stages.backends.maskrcnn import (DYNAMIC_COCO_CLASSES, MaskRCNN, batched_nms, build_maskrcnn, cell_anchors,
+from stages.models.maskrcnn import (DYNAMIC_COCO_CLASSES, MaskRCNN, batched_nms, build_maskrcnn, cell_anchors,
                                       load_maskrcnn, nms, roi_align, semantic_static_mask)
 
 TORCHVISION_PARAMS = 44_401_393  # sum(p.numel() for p in maskrcnn_resnet50_fpn().parameters())
@@ -368,8 +368,8 @@ def test_pipeline_maskrcnn_without_weights_is_a_one_line_error(tiny_clip, tmp_pa
 
 
 def _masks_of_run(out: Path, cache: Path) -> list[np.ndarray]:
-    from gcvd_flow.artifacts import load_manifest, load_value
-    from gcvd_flow.store import Store
+    from gcvd_flow.engine.artifacts import load_manifest, load_value
+    from gcvd_flow.engine.store import Store
 
     store = Store(cache)
     run = json.loads((out / "run.json").read_text())

@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from stages import metrics
+from gcvd_flow.evaluate import metrics
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from stages import geometry as G
-from stages.geometry_np import rigid_flow as rigid_flow_np
-from stages.nn.depth_net import DepthNet, mesh_shape, upsample_mesh
-from stages.nn.pose_net import DirectPoses, PoseNet, positional_encoding
+from stages.geometry import torch_ops as G
+from geometry_ref import rigid_flow as rigid_flow_np
+from stages.models.depth_net import DepthNet, mesh_shape, upsample_mesh
+from stages.models.pose_net import DirectPoses, PoseNet, positional_encoding
 
 
 def _rand_twists(n: int, seed: int = 0, rot: float = 0.6) -> torch.Tensor:

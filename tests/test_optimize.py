@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from stages import optimize as O
-from stages.flow import compute_pair_flow
-from stages.synth import render_clip
+from stages.optimize import training as O
+from stages.frontend.flow import compute_pair_flow
+from gcvd_flow.evaluate.synth import render_clip
 
 # one thread: on 2 cores shared with other jobs, torch's intra-op threads oversubscribe badly
 torch.set_num_threads(1)

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from stages import flow, masks, priors
-from stages.geometry_np import rigid_flow
-from stages.synth import render_clip
+from stages.frontend import flow
+from stages.frontend import masks
+from stages.frontend import priors
+from geometry_ref import rigid_flow
+from gcvd_flow.evaluate.synth import render_clip
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stages.synth import TRAJECTORIES, default_intrinsics, make_trajectory, render_clip
+from gcvd_flow.evaluate.synth import TRAJECTORIES, default_intrinsics, make_trajectory, render_clip
 
 SIZE = (128, 96)
 

@@ -1,0 +1,311 @@
+"""The Python API: the same verbs as the CLI (run, plan, why, status, fsck, gc).
+
+A *pipeline spec* bundles what the engine needs to know about a product pipeline: the stage
+graph, its config model and profiles, how to open an input, how to export results into a
+run directory, and where its artifact schemas are. Installed packages register their specs as
+entry points in the group ``gcvd_flow.pipelines`` (name -> ``module:attr``); the engine knows
+no pipeline by itself. A run directory records the *name* of its pipeline, and opening it
+accepts only registered names: data never chooses which code is imported.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import importlib.util
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from gcvd_flow.engine.artifacts import register_schema_dir
+from gcvd_flow.engine.config import build_config
+from gcvd_flow.engine.dag import Pipeline
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
+from gcvd_flow.engine.store import CorruptObject, Store, StoreError, default_cache_dir
+
+RUN_FILE = "run.json"
+
+
+@dataclass
+class PipelineSpec:
+    name: str
+    pipeline: Pipeline
+    config_model: type
+    profiles: dict[str, dict[str, Any]] = field(default_factory=dict)
+    open_source: Callable[[str, Any], Any] | None = None
+    export: Callable[[Path, Runner, Any], dict[str, Any]] | None = None
+    schema_dir: Path | None = None  # <kind>.json schemas of the artifacts its stages write
+
+    def __post_init__(self) -> None:
+        if self.schema_dir is not None:
+            register_schema_dir(self.schema_dir)
+
+    def watched_paths(self) -> dict[str, list[str]]:
+        """What the no-op fast path stats: source folders of the fingerprinted packages, of
+        the engine and of the schemas, and the metadata files of the numeric libraries."""
+        dirs = {str(Path(__file__).resolve().parent)}
+        for pkg in self.pipeline.packages:
+            top = pkg.split(".")[0]
+            spec = importlib.util.find_spec(top)
+            if spec is not None and spec.submodule_search_locations:
+                dirs.update(str(Path(d).resolve()) for d in spec.submodule_search_locations)
+        if self.schema_dir is not None:
+            dirs.add(str(Path(self.schema_dir).resolve()))
+        files = []
+        for _, dists in self.pipeline.numeric_libraries:
+            for d in dists:
+                try:
+                    meta = [f for f in importlib.metadata.distribution(d).files or [] if f.name == "METADATA"]
+                except importlib.metadata.PackageNotFoundError:
+                    continue
+                files.extend(str(f.locate()) for f in meta)
+        return {"dirs": sorted(dirs), "files": sorted(files)}
+
+
+ENTRY_POINT_GROUP = "gcvd_flow.pipelines"
+
+
+def registered_pipelines() -> dict[str, str]:
+    """Pipeline name -> ``module:attr`` of every installed pipeline (entry points)."""
+    return {ep.name: ep.value for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def load_spec(name: str, allow_module_ref: bool = False) -> PipelineSpec:
+    """The spec of a registered pipeline; ``module:attr`` only when the caller allows it (a
+    developer's explicit command-line choice — never a name read from a run dir or cache)."""
+    known = registered_pipelines()
+    ref = known.get(name)
+    if ref is None:
+        if not (allow_module_ref and ":" in name):
+            raise UsageError(f"unknown pipeline {name!r}; installed: {', '.join(sorted(known)) or 'none'}")
+        ref = name
+    mod, _, attr = ref.partition(":")
+    try:
+        spec = getattr(importlib.import_module(mod), attr)
+    except (ImportError, AttributeError) as exc:
+        raise UsageError(f"pipeline {name!r}: cannot load {ref} ({exc})") from None
+    if not isinstance(spec, PipelineSpec):
+        raise UsageError(f"pipeline {name!r}: {ref} is not a PipelineSpec")
+    return spec
+
+
+@dataclass
+class Invocation:
+    input: str | None
+    out: str | None
+    config_file: str | None = None
+    profile: str | None = None
+    sets: list[str] = field(default_factory=list)
+    cache: str | None = None
+    jobs: int = 1
+    json_mode: bool = False
+    pipeline: str = ""  # a registered pipeline name (the product's CLI and API set theirs)
+    verify: bool = True
+
+    def recorded(self) -> dict[str, Any]:
+        """What a run dir remembers to recompute keys later (`why`, `status`)."""
+        return {"input": os.path.abspath(self.input) if self.input else None,
+                "config_file": os.path.abspath(self.config_file) if self.config_file else None,
+                "profile": self.profile, "sets": list(self.sets), "pipeline": self.pipeline}
+
+
+def open_store(cache: str | None, verify: bool = True) -> Store:
+    root = Path(cache) if cache else default_cache_dir()
+    try:
+        return Store(root, verify=verify)
+    except OSError as exc:
+        raise UsageError(f"cannot use cache directory {root}: {exc.strerror}") from None
+
+
+def _prepare(inv: Invocation, log: Callable[[str], None], target: str | None = None,
+             allow_module_ref: bool = True) -> tuple[PipelineSpec, Any, Runner]:
+    if not inv.pipeline:
+        raise UsageError("no pipeline named")
+    spec = load_spec(inv.pipeline, allow_module_ref)
+    config = build_config(spec.config_model, spec.profiles, inv.profile, inv.config_file, inv.sets)
+    if target is not None:
+        spec.pipeline.get(target)  # unknown stage -> one clear line
+    if inv.input is None:
+        raise UsageError("no INPUT given")
+    source = spec.open_source(inv.input, config) if spec.open_source else None
+    store = open_store(inv.cache, inv.verify)
+    seed = int(getattr(config, "seed", 0))
+    runner = Runner(spec.pipeline, store, config, source=source, jobs=inv.jobs,
+                    json_mode=inv.json_mode, seed=seed, log=log)
+    return spec, config, runner
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def read_run_dir(out: str | Path) -> dict[str, Any]:
+    p = Path(out) / RUN_FILE
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{p}: no run recorded in this directory (run `gcvd-flow run` first)") from None
+    except json.JSONDecodeError:
+        raise UsageError(f"{p}: not a valid run record") from None
+
+
+def _previous_stages(out: str | None) -> dict[str, Any] | None:
+    if not out:
+        return None
+    p = Path(out) / RUN_FILE
+    if not p.exists():
+        return None
+    try:
+        return json.loads(p.read_text()).get("stages")
+    except json.JSONDecodeError:
+        return None
+
+
+def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None) -> dict[str, Any]:
+    """Run the pipeline, export results into ``inv.out``; returns the --json document."""
+    t0 = time.perf_counter()
+    spec, config, runner = _prepare(inv, log, target)
+    try:
+        reports = runner.run(target)
+    except CorruptObject as exc:
+        # The corrupt object is quarantined now, so records naming it no longer resolve:
+        # one more pass recomputes exactly what it held.
+        log(f"warning: {exc}; recomputing")
+        spec, config, runner = _prepare(inv, log)
+        reports = runner.run(target)
+    result: dict[str, Any] = {"stages": [r.as_run_json() for r in reports],
+                              "seconds": round(time.perf_counter() - t0, 3)}
+    stage_records = runner.stage_summary()
+    runner.store.add_run({"records": [r["key"] for r in stage_records.values() if r["key"]],
+                          "pipeline": spec.name})
+    if inv.out:
+        out = Path(inv.out)
+        out.mkdir(parents=True, exist_ok=True)
+        if spec.export is not None and target is None:
+            result["outputs"] = spec.export(out, runner, config)
+        doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
+               "stages": stage_records, "stage_order": list(stage_records),
+               "env": spec.pipeline.numeric_env(), "gcvd_flow": _version()}
+        tmp = out / (RUN_FILE + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
+        os.replace(tmp, out / RUN_FILE)
+        result["out"] = str(out)
+    result["cache"] = str(runner.store.root)
+    result["_watch"] = spec.watched_paths()
+    result["_record_paths"] = [str(runner.store.record_path(r["key"])) for r in stage_records.values() if r["key"]]
+    return result
+
+
+def plan(inv: Invocation, log: Callable[[str], None] = _stderr) -> list[StageReport]:
+    _, _, runner = _prepare(inv, log)
+    return runner.plan(_previous_stages(inv.out))
+
+
+def _invocation_from_run(out: str, extra: Invocation | None) -> Invocation:
+    doc = read_run_dir(out)
+    rec = doc.get("invocation") if isinstance(doc, dict) else None
+    if not isinstance(rec, dict):
+        raise UsageError(f"{Path(out) / RUN_FILE}: not a valid run record (no invocation)")
+    name = rec.get("pipeline")
+    if not isinstance(name, str) or name not in registered_pipelines():
+        # a run dir travels between people: it may name a pipeline, never code to import
+        raise UsageError(f"{Path(out) / RUN_FILE}: invocation.pipeline {name!r} is not an installed "
+                         f"pipeline ({', '.join(sorted(registered_pipelines()))})")
+    inv = Invocation(input=rec.get("input"), out=out, config_file=rec.get("config_file"),
+                     profile=rec.get("profile"), sets=[str(s) for s in rec.get("sets") or []],
+                     pipeline=name)
+    if extra is not None:
+        inv.cache = extra.cache
+        inv.json_mode = extra.json_mode
+        if extra.config_file:
+            inv.config_file = extra.config_file
+        if extra.profile:
+            inv.profile = extra.profile
+        inv.sets += list(extra.sets)
+    return inv
+
+
+def why(stage: str, out: str, extra: Invocation | None = None,
+        log: Callable[[str], None] = _stderr) -> dict[str, Any]:
+    """Field-by-field difference between the current key of ``stage`` and its last run."""
+    inv = _invocation_from_run(out, extra)
+    previous = read_run_dir(out)["stages"]
+    spec, _, runner = _prepare(inv, log, allow_module_ref=False)
+    spec.pipeline.get(stage)  # unknown stage -> clear error
+    reports = {r.name: r for r in runner.plan(previous, target=stage)}
+    rep = reports[stage]
+    prev = previous.get(stage)
+    if prev is None:
+        reasons = ["this stage has no recorded run in this directory"]
+    elif rep.action == "cached":
+        reasons = []
+    else:
+        reasons = rep.reasons
+    return {"stage": stage, "action": rep.action, "reasons": reasons,
+            "key": rep.key, "previous_key": (prev or {}).get("key")}
+
+
+def status(out: str, extra: Invocation | None = None, log: Callable[[str], None] = _stderr) -> list[StageReport]:
+    inv = _invocation_from_run(out, extra)
+    previous = read_run_dir(out)["stages"]
+    _, _, runner = _prepare(inv, log, allow_module_ref=False)
+    return runner.plan(previous)
+
+
+def recorded_output(out: str | Path, stage: str, cache: str | None = None, verify: bool = True) -> Any:
+    """The output a run directory recorded for ``stage``, decoded from the cache by its digest.
+
+    Needs neither the run's input nor the current code: ``run.json`` names the exact content
+    the run produced (its output digest), so this is what the run used even if the input or the
+    code changed since. A map stage gives a lazily loading ``MapValue`` (with ``.summary``);
+    every object its items need is checked to be present first. Raises ``UsageError`` if the
+    run directory has no output recorded for ``stage``, ``StoreError`` if the cache does not
+    hold it (any more) and ``ArtifactError`` for an unreadable manifest. Adds nothing to the
+    cache (a corrupt object is quarantined, as on every verified read).
+    """
+    from gcvd_flow.engine.artifacts import decode_tree, load_manifest, load_value, manifest_objects
+    from gcvd_flow.engine.dag import MapValue
+
+    rec = (read_run_dir(out).get("stages") or {}).get(stage) or {}
+    digest = rec.get("output")
+    if not digest:
+        raise UsageError(f"{Path(out) / RUN_FILE}: no output of stage {stage!r} recorded")
+    root = Path(cache).expanduser() if cache else default_cache_dir()
+    if not (root / "objects").is_dir():
+        raise StoreError(f"{root} is not a gcvd-flow cache directory")
+    store = Store(root, verify=verify)
+    man = load_manifest(store, digest)
+    if "items" not in man:
+        return decode_tree(store, man.get("value"))
+    items = list(man["items"])
+    for d in items:
+        missing = [o for o in manifest_objects(store, d) if not store.has(o)]
+        if missing:
+            raise StoreError(f"object {missing[0][:12]} of stage {stage!r} is missing from the cache")
+    return MapValue(lambda i: load_value(store, items[i]), len(items), decode_tree(store, man.get("summary")))
+
+
+def fsck(cache: str | None) -> dict[str, Any]:
+    return open_store(cache).fsck().as_dict()
+
+
+def gc(cache: str | None, keep: int) -> dict[str, int]:
+    return open_store(cache).gc(keep=keep)
+
+
+def _version() -> str:
+    try:
+        import importlib.metadata
+
+        return importlib.metadata.version("gcvd-flow")
+    except Exception:
+        return "0+unknown"
+
+
+__all__ = ["Invocation", "PipelineSpec", "run", "plan", "why", "status", "recorded_output", "fsck", "gc",
+           "diff_fields"]

@@ -1,0 +1,252 @@
+"""Codecs: how a stage's return value becomes content-addressed objects, and back.
+
+A stage returns a tree of dicts / lists / JSON scalars whose leaves may be numpy arrays. The
+tree is stored as a canonical-JSON *manifest* in which every array is replaced by a
+descriptor pointing at its own object:
+
+    {"$npy": digest, "dtype": "<f4", "shape": [H, W]}      numpy .npy, loaded allow_pickle=False
+    {"$png": digest, "dtype": "|u1", "shape": [H, W, 3]}   lossless PNG (uint8 images and masks)
+    {"$safetensors": digest}                               a dict of arrays (wrap in Tensors)
+
+The manifest's digest is the artifact's digest, so equal content gives equal digests (early
+cutoff), and a teammate's artifact can only ever be decoded into arrays and JSON: nothing in
+it can execute code.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcvd_flow.engine.store import Store, canonical_json
+
+# Folders of ``<kind>.json`` schemas, registered by the pipelines that define the kinds
+# (``PipelineSpec.schema_dir``); the first folder holding a kind's schema wins.
+_SCHEMA_DIRS: list[Path] = []
+
+
+def register_schema_dir(path: str | Path) -> None:
+    """Validate artifacts of the kinds described in ``path`` (one ``<kind>.json`` each, plus a
+    ``common.json`` with shared definitions)."""
+    p = Path(path).resolve()
+    if p not in _SCHEMA_DIRS:
+        _SCHEMA_DIRS.append(p)
+        _validator.cache_clear()
+
+
+class ArtifactError(ValueError):
+    """A value cannot be stored, or a stored manifest does not match its schema."""
+
+
+@dataclass(frozen=True)
+class Png:
+    """Marks a uint8 (H, W) or (H, W, 3) RGB array to be stored as PNG instead of .npy."""
+
+    array: np.ndarray
+
+
+@dataclass(frozen=True)
+class Tensors:
+    """Marks a flat dict of arrays to be stored as one safetensors object."""
+
+    arrays: dict[str, np.ndarray]
+
+
+# -------------------------------------------------------------------------------- encoding
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.ascontiguousarray(a), allow_pickle=False)
+    return buf.getvalue()
+
+
+def png_bytes(a: np.ndarray) -> bytes:
+    """Lossless PNG of a uint8 (H, W) grey or (H, W, 3) RGB array (zlib level 3: as small as
+    level 9 on video frames at a third of the time)."""
+    from PIL import Image  # lazy: only image artifacts need it
+
+    if a.dtype != np.uint8 or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
+        raise ArtifactError(f"PNG codec needs uint8 (H,W[,3]) arrays, got {a.dtype} {a.shape}")
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(a)).save(buf, format="PNG", compress_level=3)
+    return buf.getvalue()
+
+
+def png_array(data: bytes, where: str = "PNG") -> np.ndarray:
+    """Decode PNG bytes into uint8 (H, W) or (H, W, 3) RGB (RGBA / palette / 16-bit refused)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data), formats=["PNG"]) as img:
+            if img.mode not in ("L", "RGB"):
+                raise ArtifactError(f"{where}: PNG mode {img.mode} is not one this store writes")
+            return np.asarray(img).copy()
+    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise ArtifactError(f"{where} is not a readable PNG ({exc})") from None
+
+
+def _safetensors_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    from safetensors.numpy import save
+
+    return save({k: np.ascontiguousarray(v) for k, v in sorted(arrays.items())})
+
+
+def _png_friendly(a: np.ndarray) -> bool:
+    """uint8 images and masks are stored as (lossless) PNG: 3-20x smaller than .npy."""
+    return (a.dtype == np.uint8 and min(a.shape[:2], default=0) >= 8
+            and (a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)))
+
+
+class Encoder:
+    """Writes the objects of one value into a store, remembering their sizes for the record."""
+
+    def __init__(self, store: Store):
+        self.store = store
+        self.objects: dict[str, int] = {}
+
+    def _put(self, data: bytes) -> str:
+        d = self.store.put_bytes(data)
+        self.objects[d] = len(data)
+        return d
+
+    def tree(self, v: Any, path: str = "$") -> Any:
+        if isinstance(v, np.ndarray) and _png_friendly(v):
+            v = Png(v)
+        if isinstance(v, np.ndarray):
+            if v.dtype == object:
+                raise ArtifactError(f"{path}: object arrays cannot be stored safely")
+            return {"$npy": self._put(_npy_bytes(v)), "dtype": v.dtype.str, "shape": list(v.shape)}
+        if isinstance(v, Png):
+            a = np.asarray(v.array)
+            return {"$png": self._put(png_bytes(a)), "dtype": a.dtype.str, "shape": list(a.shape)}
+        if isinstance(v, Tensors):
+            return {"$safetensors": self._put(_safetensors_bytes(v.arrays)),
+                    "keys": sorted(v.arrays)}
+        if isinstance(v, dict):
+            out = {}
+            for k, x in v.items():
+                if not isinstance(k, str):
+                    raise ArtifactError(f"{path}: dict keys must be strings, got {k!r}")
+                if k.startswith("$"):
+                    raise ArtifactError(f"{path}: key {k!r} is reserved")
+                out[k] = self.tree(x, f"{path}.{k}")
+            return out
+        if isinstance(v, (list, tuple)):
+            return [self.tree(x, f"{path}[{i}]") for i, x in enumerate(v)]
+        if isinstance(v, np.generic):
+            return self.tree(v.item(), path)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ArtifactError(f"{path}: non-finite float {v} cannot be stored in JSON")
+        if v is None or isinstance(v, (bool, int, float, str)):
+            return v
+        raise ArtifactError(f"{path}: cannot store a value of type {type(v).__name__}")
+
+    def manifest(self, kind: str, value: Any, **extra: Any) -> str:
+        doc = {"kind": kind, "value": self.tree(value), **extra}
+        validate(kind, doc)
+        return self._put(canonical_json(doc))
+
+
+# -------------------------------------------------------------------------------- decoding
+
+
+def decode_leaf(store: Store, node: dict[str, Any]) -> Any:
+    if "$npy" in node:
+        data = store.get_bytes(node["$npy"])
+        return np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
+    if "$png" in node:
+        return png_array(store.get_bytes(node["$png"]), f"object {node['$png'][:12]}")
+    if "$safetensors" in node:
+        from safetensors.numpy import load
+
+        return load(store.get_bytes(node["$safetensors"]))
+    raise ArtifactError(f"unknown leaf {sorted(node)}")
+
+
+def is_leaf(node: Any) -> bool:
+    return isinstance(node, dict) and any(k.startswith("$") for k in node)
+
+
+def decode_tree(store: Store, node: Any) -> Any:
+    if is_leaf(node):
+        return decode_leaf(store, node)
+    if isinstance(node, dict):
+        return {k: decode_tree(store, v) for k, v in node.items()}
+    if isinstance(node, list):
+        return [decode_tree(store, v) for v in node]
+    return node
+
+
+def load_manifest(store: Store, digest: str) -> dict[str, Any]:
+    try:
+        doc = json.loads(store.get_bytes(digest))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ArtifactError(f"object {digest[:12]} is not a manifest") from exc
+    if not isinstance(doc, dict) or "kind" not in doc:
+        raise ArtifactError(f"object {digest[:12]} is not a manifest")
+    return doc
+
+
+def load_value(store: Store, digest: str) -> Any:
+    return decode_tree(store, load_manifest(store, digest)["value"])
+
+
+def manifest_objects(store: Store, digest: str) -> dict[str, int]:
+    """All objects an artifact consists of (the manifest and its blobs), with sizes."""
+    out = {digest: store.object_size(digest) or 0}
+
+    def walk(node: Any) -> None:
+        if is_leaf(node):
+            for k, d in node.items():
+                if k.startswith("$"):
+                    out[d] = store.object_size(d) or 0
+        elif isinstance(node, dict):
+            for v in node.values():
+                walk(v)
+        elif isinstance(node, list):
+            for v in node:
+                walk(v)
+
+    walk(load_manifest(store, digest)["value"])
+    return out
+
+
+# -------------------------------------------------------------------------------- schemas
+
+
+@lru_cache(maxsize=None)
+def _validator(kind: str):
+    import jsonschema
+
+    folder = next((d for d in _SCHEMA_DIRS if (d / f"{kind}.json").exists()), None)
+    if folder is None:
+        return None
+    from referencing import Registry, Resource
+
+    schema = json.loads((folder / f"{kind}.json").read_text())
+    base = json.loads((folder / "common.json").read_text())
+    registry = Registry().with_resources([(base["$id"], Resource.from_contents(base))])
+    return jsonschema.validators.validator_for(schema)(schema, registry=registry)
+
+
+def validate(kind: str, doc: dict[str, Any]) -> None:
+    """Validate a manifest against ``artifacts_schema/<kind>.json`` (when the schema exists).
+
+    Map stages' manifests (kind ``map:<item kind>``) validate against ``map.json``.
+    """
+    v = _validator("map" if kind.startswith("map:") else kind)
+    if v is None:
+        return
+    errors = sorted(v.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    if errors:
+        e = errors[0]
+        where = "/".join(str(p) for p in e.absolute_path) or "(root)"
+        raise ArtifactError(f"{kind} artifact does not match its schema at {where}: {e.message}")

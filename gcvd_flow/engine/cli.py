@@ -1,0 +1,303 @@
+"""The engine's command line: run, plan, why, status, dag, fsck, gc, pin, push, pull.
+
+A product builds its CLI on this one (:class:`Product`): it names its pipeline and program,
+adds its own verbs and options through hooks, and calls :func:`main`. The engine knows nothing
+of what the product computes.
+
+Exit codes: 0 success, 2 bad usage or bad input (one line on stderr, no traceback),
+1 internal error, 130 interrupted (the cache stays consistent; run again to resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+from gcvd_flow.engine.errors import UsageError
+
+
+@dataclass
+class Product:
+    """What a product adds to the engine's CLI.
+
+    ``add_run_args(parser)`` adds options to run / plan / why / status, ``run_sets(args)`` turns
+    them into ``--set`` overrides (so they enter keys like any parameter), ``add_commands(sub)``
+    adds verbs (each sets ``handler=fn(args) -> exit code``).
+    """
+
+    prog: str
+    description: str
+    pipeline: str
+    version: str = "0"
+    add_run_args: Callable[[argparse.ArgumentParser], None] = lambda p: None
+    run_sets: Callable[[argparse.Namespace], list[str]] = lambda a: []
+    add_commands: Callable[[Any], None] = lambda sub: None
+    epilog: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+_PRODUCT: Product | None = None
+
+
+def _product() -> Product:
+    if _PRODUCT is None:
+        raise UsageError("no product configured")
+    return _PRODUCT
+
+
+def _add_run_args(p: argparse.ArgumentParser, input_required: bool = True) -> None:
+    if input_required:
+        p.add_argument("input", metavar="INPUT", help="video file, image folder or dataset folder")
+    p.add_argument("--out", required=input_required, metavar="RUN_DIR", help="run directory for the results")
+    _add_config_args(p)
+    p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", dest="config_file", metavar="FILE", help="TOML file of parameters")
+    p.add_argument("--profile", metavar="NAME", help="named parameter profile (e.g. paper, fast)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one parameter (repeatable)")
+    _product().add_run_args(p)
+    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
+    p.add_argument("--no-verify", dest="verify", action="store_false",
+                   help="skip re-hashing objects read from the cache (faster, less safe)")
+    p.add_argument("--pipeline", default=_product().pipeline,
+                   help="installed pipeline to run (developers: also module:attr)")
+
+
+def build_parser(product: Product) -> argparse.ArgumentParser:
+    global _PRODUCT
+    _PRODUCT = product
+    ap = argparse.ArgumentParser(prog=product.prog, description=product.description, epilog=product.epilog)
+    ap.add_argument("--version", action="version", version=f"{product.prog} {product.version}")
+    sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run the pipeline on a video / folder; results in RUN_DIR")
+    _add_run_args(p)
+    p.add_argument("--until", metavar="STAGE", help="stop after STAGE (and what it needs)")
+    p = sub.add_parser("plan", help="dry run: which stages would run, and why")
+    _add_run_args(p)
+    p.set_defaults(out_required=False)
+
+    p = sub.add_parser("why", help="why STAGE would re-run: field-by-field key difference")
+    p.add_argument("stage")
+    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    _add_config_args(p)
+
+    p = sub.add_parser("status", help="which stages of a run are up to date")
+    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    _add_config_args(p)
+
+    p = sub.add_parser("dag", help="print the stage graph")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
+    p.add_argument("--pipeline", default=product.pipeline, help="installed pipeline (developers: also module:attr)")
+
+    p = sub.add_parser("fsck", help="re-hash every cached object; quarantine corrupt ones")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+
+    p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--keep", type=int, default=5, metavar="N")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+
+    p = sub.add_parser("pin", help="keep a run's artifacts through gc (until unpinned)")
+    p.add_argument("name")
+    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--remove", action="store_true", help="remove the pin instead")
+
+    for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
+                        ("pull", "copy a run's artifacts (or all) from a remote cache directory, verified")):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("remote", metavar="REMOTE_DIR")
+        p.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
+        p.add_argument("--cache", metavar="DIR")
+        p.add_argument("--json", dest="json_mode", action="store_true")
+
+    product.add_commands(sub)
+    return ap
+
+
+def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | None = None):
+    from gcvd_flow.engine.api import Invocation
+
+    sets = _all_sets(a)
+    return Invocation(input=input_ if input_ is not None else getattr(a, "input", None),
+                          out=out if out is not None else getattr(a, "out", None),
+                          config_file=getattr(a, "config_file", None), profile=getattr(a, "profile", None),
+                          sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
+                          json_mode=getattr(a, "json_mode", False),
+                          pipeline=getattr(a, "pipeline", None) or _product().pipeline,
+                          verify=getattr(a, "verify", True))
+
+
+def _print_json(doc: Any) -> None:
+    print(json.dumps(doc, indent=1, sort_keys=False))
+
+
+def _fast_noop(a: argparse.Namespace) -> dict[str, Any] | None:
+    """`run` whose inputs, code and outputs are untouched since its last run: answer at once."""
+    from gcvd_flow.engine import fastpath
+    from gcvd_flow.engine.paths import default_cache_dir
+
+    if not a.out:
+        return None
+    cache = a.cache or str(default_cache_dir())
+    return fastpath.check(a.out, stamp_invocation(a), cache)
+
+
+def _all_sets(a: argparse.Namespace) -> list[str]:
+    return list(getattr(a, "sets", []) or []) + list(_product().run_sets(a))
+
+
+def stamp_invocation(a: argparse.Namespace) -> dict[str, Any]:
+    """The parts of a `run` invocation that decide its result (not --jobs, --json, ...)."""
+    import os
+
+    return {"input": os.path.abspath(a.input), "pipeline": a.pipeline, "until": a.until,
+            "config_file": os.path.abspath(a.config_file) if a.config_file else None,
+            "profile": a.profile, "sets": _all_sets(a)}
+
+
+def _print_run(res: dict[str, Any], json_mode: bool) -> None:
+    if json_mode:
+        _print_json(res)
+        return
+    for s in res["stages"]:
+        print(f"{s['name']:<20} executed {s['executed']:>5}  cached {s['cached']:>5}  {s['seconds']:8.2f} s")
+    for k, v in (res.get("outputs") or {}).items():
+        print(f"{k}: {v}")
+
+
+def dispatch(a: argparse.Namespace) -> int:
+    if a.cmd == "run":
+        res = _fast_noop(a)
+        if res is not None:
+            _print_run(res, a.json_mode)
+            return 0
+        from gcvd_flow.engine import api
+
+        res = api.run(_invocation(a), target=a.until)
+        record_paths = res.pop("_record_paths")
+        watch = res.pop("_watch")
+        if a.out:
+            from gcvd_flow.engine import fastpath
+
+            fastpath.write(a.out, stamp_invocation(a), res["cache"], res, record_paths, watch)
+        _print_run(res, a.json_mode)
+        return 0
+    from gcvd_flow.engine import api
+
+    if a.cmd == "plan":
+        reps = api.plan(_invocation(a))
+        if a.json_mode:
+            _print_json({"stages": [r.as_plan_json() for r in reps]})
+        else:
+            for r in reps:
+                print(f"{r.name:<20} {r.action:<7} {'; '.join(r.reasons)}")
+        return 0
+    if a.cmd == "why":
+        res = api.why(a.stage, a.out, _invocation(a, input_=None, out=a.out))
+        if a.json_mode:
+            _print_json(res)
+        else:
+            if res["action"] == "cached":
+                print(f"{a.stage}: up to date (key {str(res['key'])[:12]})")
+            else:
+                print(f"{a.stage} would run:")
+                for r in res["reasons"]:
+                    print(f"  - {r}")
+        return 0
+    if a.cmd == "status":
+        reps = api.status(a.out, _invocation(a, input_=None, out=a.out))
+        if a.json_mode:
+            _print_json({"stages": [r.as_plan_json() for r in reps]})
+        else:
+            for r in reps:
+                state = "up to date" if r.action == "cached" else "changed: " + "; ".join(r.reasons)
+                print(f"{r.name:<20} {state}")
+        return 0
+    if a.cmd == "dag":
+        spec = api.load_spec(a.pipeline, allow_module_ref=True)
+        stages = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
+                  for s in spec.pipeline.stages]
+        if a.json_mode:
+            _print_json({"stages": stages})
+        else:
+            for s in stages:
+                arrow = " <- " + ", ".join(s["deps"]) if s["deps"] else ""
+                print(f"{s['name']}{' [map]' if s['map'] else ''}{arrow}")
+        return 0
+    if a.cmd == "fsck":
+        rep = api.fsck(a.cache)
+        if a.json_mode:
+            _print_json(rep)
+        else:
+            print(f"checked {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB): "
+                  f"{len(rep['corrupt'])} corrupt (quarantined), {rep['records_removed']} records dropped")
+            for d in rep["corrupt"]:
+                print(f"corrupt: {d}")
+        return 0
+    if a.cmd == "gc":
+        rep = api.gc(a.cache, a.keep)
+        if a.json_mode:
+            _print_json(rep)
+        else:
+            print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
+                  f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
+        return 0
+    if a.cmd == "pin":
+        store = api.open_store(a.cache)
+        if a.remove:
+            store.unpin(a.name)
+            print(f"unpinned {a.name}")
+        else:
+            run = api.read_run_dir(a.out)
+            store.pin(a.name, {"records": [s["key"] for s in run["stages"].values() if s.get("key")]})
+            print(f"pinned {a.out} as {a.name}")
+        return 0
+    if a.cmd in ("push", "pull"):
+        from gcvd_flow.engine import remote
+
+        store = api.open_store(a.cache)
+        rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote, a.out)
+        if a.json_mode:
+            _print_json(rep)
+        else:
+            print(f"{a.cmd}: {rep['records']} records, {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB)"
+                  + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else ""))
+        return 0
+    handler = getattr(a, "handler", None)
+    if handler is not None:
+        return int(handler(a) or 0)
+    raise UsageError(f"unknown command {a.cmd!r}")
+
+
+def main(product: Product, argv: Sequence[str] | None = None) -> int:
+    ap = build_parser(product)
+    a = ap.parse_args(argv)
+    try:
+        return dispatch(a)
+    except UsageError as exc:
+        print(f"{product.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{product.prog}: interrupted; the cache is consistent, run again to resume", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback
+        if getattr(exc, "user_error", False):  # bad input found inside a stage
+            print(f"{product.prog}: error: {exc}", file=sys.stderr)
+            return 2
+        traceback.print_exc()
+        print(f"{product.prog}: internal error (this is a bug; the traceback is above)", file=sys.stderr)
+        return 1
+

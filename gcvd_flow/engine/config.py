@@ -1,0 +1,109 @@
+"""Typed parameters: pydantic models per stage, TOML files, ``--set`` overrides, profiles.
+
+Precedence (later wins): model defaults < named profile < ``--config`` file < ``--set``.
+A config file may define its own profiles under ``[profiles.NAME]``. Every key is checked:
+an unknown section or key, or a value of the wrong type, is a one-line error naming it.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.keys import digest_file
+
+
+class Section(BaseModel):
+    """Base of a stage's parameter model: unknown keys are errors; paths enter keys by content.
+
+    Fields whose ``json_schema_extra`` has ``{"file": True}`` name local files (model weights):
+    their *content digest*, not their path, goes into the cache key, so that a teammate with
+    the same weights elsewhere on disk shares the cache.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    def key_dict(self) -> dict[str, Any]:
+        out = self.model_dump(mode="python")
+        for name, info in type(self).model_fields.items():
+            extra = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+            if extra.get("file") and out.get(name):
+                p = Path(out[name]).expanduser()
+                if not p.is_file():
+                    raise UsageError(f"{name}: file not found: {p}")
+                out[name] = "blake3:" + digest_file(p)
+        return out
+
+
+def _parse_value(text: str) -> Any:
+    """A --set value as TOML (numbers, booleans, strings, arrays); bare words are strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _deep_update(base: dict[str, Any], upd: dict[str, Any]) -> dict[str, Any]:
+    for k, v in upd.items():
+        if isinstance(v, dict) and isinstance(base.get(k), dict):
+            _deep_update(base[k], v)
+        else:
+            base[k] = v
+    return base
+
+
+def parse_set(items: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise UsageError(f"--set {item!r}: expected section.key=value")
+        path, _, raw = item.partition("=")
+        parts = [p.strip() for p in path.strip().split(".") if p.strip()]
+        if not parts:
+            raise UsageError(f"--set {item!r}: empty key")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise UsageError(f"--set {item!r}: {p} is not a section")
+        node[parts[-1]] = _parse_value(raw.strip())
+    return out
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UsageError(f"config file not found: {p}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise UsageError(f"config file {p} is not valid TOML: {exc}") from None
+
+
+def build_config(model: type[BaseModel], profiles: dict[str, dict[str, Any]],
+                 profile: str | None = None, config_file: str | Path | None = None,
+                 sets: list[str] | None = None) -> BaseModel:
+    """Resolve defaults, profile, file and --set overrides into a validated model."""
+    data: dict[str, Any] = {}
+    file_data: dict[str, Any] = load_toml(config_file) if config_file else {}
+    all_profiles = dict(profiles)
+    all_profiles.update(file_data.pop("profiles", {}) or {})
+    if profile:
+        if profile not in all_profiles:
+            raise UsageError(f"unknown profile {profile!r}; known: {', '.join(sorted(all_profiles)) or 'none'}")
+        _deep_update(data, copy.deepcopy(all_profiles[profile]))
+    _deep_update(data, file_data)
+    _deep_update(data, parse_set(sets or []))
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"])
+        if err["type"] == "extra_forbidden":
+            raise UsageError(f"unknown config key {loc!r}") from None
+        raise UsageError(f"config key {loc!r}: {err['msg']} (got {err.get('input')!r})") from None

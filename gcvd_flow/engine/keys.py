@@ -1,0 +1,367 @@
+"""Cache keys: canonical typed encoding, BLAKE3 digests and code fingerprints.
+
+A key is ``BLAKE3(canonical_encoding([record_kind, stage_name, code_fingerprint, params,
+input_digests, env]))`` (DESIGN §4). Keys must be equal on every machine that has the same
+code, parameters, inputs and numeric environment, so nothing here may depend on absolute
+paths, host names, user names or times.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import importlib.metadata
+import importlib.util
+import inspect
+import math
+import struct
+import sys
+import textwrap
+import types
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import blake3
+import numpy as np
+
+DIGEST_HEX_LEN = 64
+
+# Which modules' source is part of a fingerprint is the pipeline's to say
+# (``Pipeline.packages``, e.g. ("stages", "gcvd_flow.pipeline")); third-party packages are
+# represented by their versions in `env` instead.
+Packages = tuple[str, ...]
+
+
+class EncodingError(TypeError):
+    """A value cannot be encoded canonically (it would make keys ambiguous)."""
+
+
+# --------------------------------------------------------------------------------------------
+# digests
+
+
+# Below this size BLAKE3's thread pool costs more (spinning, futexes) than it saves.
+_MT_THRESHOLD = 8 << 20
+
+
+def digest_bytes(data: bytes | memoryview) -> str:
+    """Hex BLAKE3 digest of a byte string."""
+    if len(data) >= _MT_THRESHOLD:
+        return blake3.blake3(data, max_threads=blake3.blake3.AUTO).hexdigest()
+    return blake3.blake3(data).hexdigest()
+
+
+def digest_file(path: str | Path, chunk: int = 1 << 22) -> str:
+    """Hex BLAKE3 digest of a file's bytes, streamed in 4 MiB chunks."""
+    h = blake3.blake3()
+    with open(path, "rb") as f:
+        while True:
+            block = f.read(chunk)
+            if not block:
+                break
+            h.update(block)
+    return h.hexdigest()
+
+
+def is_digest(s: Any) -> bool:
+    return isinstance(s, str) and len(s) == DIGEST_HEX_LEN and all(c in "0123456789abcdef" for c in s)
+
+
+# --------------------------------------------------------------------------------------------
+# canonical encoding
+
+
+def _len_prefixed(tag: bytes, payload: bytes) -> bytes:
+    return tag + str(len(payload)).encode() + b":" + payload
+
+
+def canonical_encode(obj: Any) -> bytes:
+    """Injective, type-tagged byte encoding.
+
+    ``1``, ``1.0``, ``"1"`` and ``True`` encode differently; dict key order does not matter;
+    floats are encoded by exact value (``float.hex``) so that no rounding merges two keys.
+    """
+    # bool before int: bool is a subclass of int.
+    if obj is None:
+        return b"N"
+    if obj is True:
+        return b"T"
+    if obj is False:
+        return b"F"
+    if isinstance(obj, np.generic):
+        return canonical_encode(obj.item())
+    if isinstance(obj, int):
+        return _len_prefixed(b"i", str(obj).encode())
+    if isinstance(obj, float):
+        if math.isnan(obj):
+            return b"fnan"
+        return _len_prefixed(b"f", obj.hex().encode())
+    if isinstance(obj, str):
+        return _len_prefixed(b"s", obj.encode("utf-8"))
+    if isinstance(obj, (bytes, bytearray, memoryview)):
+        return _len_prefixed(b"b", bytes(obj))
+    if isinstance(obj, (list, tuple)):
+        body = b"".join(canonical_encode(x) for x in obj)
+        return b"l" + str(len(obj)).encode() + b":" + body
+    if isinstance(obj, dict):
+        pairs = sorted((canonical_encode(k), canonical_encode(v)) for k, v in obj.items())
+        body = b"".join(k + v for k, v in pairs)
+        return b"d" + str(len(pairs)).encode() + b":" + body
+    if isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        header = canonical_encode([a.dtype.str, list(a.shape)])
+        return _len_prefixed(b"a", header + digest_bytes(a.tobytes()).encode())
+    if hasattr(obj, "model_dump"):  # pydantic models: their fields, as a dict
+        return canonical_encode(obj.model_dump(mode="python"))
+    raise EncodingError(f"cannot encode a value of type {type(obj).__name__} canonically")
+
+
+def key_of(obj: Any) -> str:
+    """Digest of the canonical encoding of ``obj``."""
+    return digest_bytes(canonical_encode(obj))
+
+
+# --------------------------------------------------------------------------------------------
+# code fingerprints
+
+
+class _StripDocstrings(ast.NodeTransformer):
+    """Removes docstrings so that documentation edits do not invalidate caches."""
+
+    def _strip(self, node: ast.AST) -> ast.AST:
+        self.generic_visit(node)
+        body = getattr(node, "body", None)
+        if (
+            body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:] or [ast.Pass()]
+        return node
+
+    visit_Module = visit_FunctionDef = visit_AsyncFunctionDef = visit_ClassDef = _strip
+
+
+def normalized_ast_digest(source: str) -> str:
+    """Digest of a source text's AST without docstrings, comments or layout."""
+    tree = _StripDocstrings().visit(ast.parse(source))
+    return digest_bytes(ast.dump(tree, annotate_fields=True, include_attributes=False).encode())
+
+
+def _is_project_module(name: str, packages: Packages) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in packages)
+
+
+def _module_source(name: str) -> tuple[str, str] | None:
+    """(source text, path relative to the project root) of a project module, or None."""
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        return None
+    origin = Path(spec.origin)
+    rel_parts = name.split(".")
+    rel = "/".join(rel_parts) + ("/__init__.py" if origin.name == "__init__.py" else ".py")
+    return origin.read_text(encoding="utf-8"), rel
+
+
+def _project_imports(tree: ast.AST, package: str, packages: Packages) -> set[str]:
+    """Project modules named by the import statements anywhere in ``tree`` (relative imports
+    resolved against ``package``; ``from stages import flow`` also names ``stages.flow``)."""
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if _is_project_module(a.name, packages))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - (node.level - 1)] if node.level > 1 else parts)
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            if not _is_project_module(mod, packages):
+                continue
+            found.add(mod)
+            for alias in node.names:
+                sub = f"{mod}.{alias.name}"
+                try:
+                    if importlib.util.find_spec(sub) is not None:
+                        found.add(sub)
+                except (ImportError, ValueError):
+                    pass
+    return found
+
+
+def _imported_project_modules(name: str, source: str, packages: Packages) -> set[str]:
+    """Project modules that module ``name`` imports (absolute and relative imports)."""
+    spec = importlib.util.find_spec(name)
+    is_pkg = spec is not None and bool(spec.origin) and spec.origin.endswith("__init__.py")
+    package = name if is_pkg else name.rpartition(".")[0]
+    found = _project_imports(ast.parse(source), package, packages)
+    # a module also depends on its parent packages' __init__ (executed on import)
+    parts = name.split(".")
+    for i in range(1, len(parts)):
+        if _is_project_module(".".join(parts[:i]), packages):
+            found.add(".".join(parts[:i]))
+    found.discard(name)
+    return found
+
+
+@functools.lru_cache(maxsize=None)
+def _module_digest(name: str, packages: Packages) -> tuple[str, str, frozenset[str]] | None:
+    src = _module_source(name)
+    if src is None:
+        return None
+    text, rel = src
+    return normalized_ast_digest(text), rel, frozenset(_imported_project_modules(name, text, packages))
+
+
+def module_closure(roots: Iterable[str], packages: Packages) -> dict[str, str]:
+    """Project modules reachable from ``roots`` by imports: {relative path: AST digest}."""
+    out: dict[str, str] = {}
+    seen: set[str] = set()
+    todo = list(roots)
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        info = _module_digest(name, packages)
+        if info is None:
+            continue
+        digest, rel, deps = info
+        out[rel] = digest
+        todo.extend(sorted(deps))
+    return out
+
+
+def _code_names(fn: Callable) -> set[str]:
+    """Global names a function's code (including nested functions) refers to."""
+    names: set[str] = set()
+    stack = [fn.__code__]
+    while stack:
+        c = stack.pop()
+        names.update(c.co_names)
+        stack.extend(k for k in c.co_consts if isinstance(k, types.CodeType))
+    return names
+
+
+def _object_module(obj: Any) -> str | None:
+    if isinstance(obj, types.ModuleType):
+        return obj.__name__
+    mod = getattr(obj, "__module__", None)
+    return mod if isinstance(mod, str) else None
+
+
+def _source_digest(obj: Any) -> str | None:
+    try:
+        return normalized_ast_digest(textwrap.dedent(inspect.getsource(obj)))
+    except (OSError, TypeError, SyntaxError):
+        return None
+
+
+def _local_imports(obj: Any, own_module: str, packages: Packages) -> set[str]:
+    """Project modules imported *inside* a function or class body (``from stages import x``)."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(obj)))
+    except (OSError, TypeError, SyntaxError):
+        return set()
+    return _project_imports(tree, own_module.rpartition(".")[0], packages)
+
+
+def code_fingerprint(fn: Callable, packages: Packages) -> tuple[str, tuple[tuple[str, str], ...]]:
+    """Fingerprint of a stage function: its own AST plus the code it uses from ``packages``
+    (module names or prefixes, e.g. ``("stages", "gcvd_flow.pipeline")``).
+
+    Returns (digest, ((name, AST digest), ...)); the per-file digests let `why` name what
+    changed. Helpers in the function's own module are followed function by function (so an
+    unrelated edit in that module does not invalidate it); other project modules it uses are
+    included whole, with everything they import inside the project, transitively.
+    """
+    return _code_fingerprint_cached(fn, tuple(packages))
+
+
+@functools.lru_cache(maxsize=None)
+def _code_fingerprint_cached(fn: Callable, packages: Packages) -> tuple[str, tuple[tuple[str, str], ...]]:
+    own_module = fn.__module__
+    files: dict[str, str] = {}
+    modules: set[str] = set()
+    todo: list[Any] = [fn]
+    seen: set[int] = set()
+    while todo:
+        obj = todo.pop()
+        if id(obj) in seen:
+            continue
+        seen.add(id(obj))
+        digest = _source_digest(obj)
+        if digest is None:
+            raise EncodingError(f"cannot fingerprint {obj!r}: its source is not available")
+        files[f"{own_module}:{obj.__qualname__}"] = digest
+        modules.update(_local_imports(obj, own_module, packages))
+        code_objs = [obj] if inspect.isfunction(obj) else [
+            m for m in vars(obj).values() if inspect.isfunction(m)
+        ]
+        g = getattr(obj, "__globals__", None) or vars(sys.modules[own_module])
+        for f in code_objs:
+            for name in _code_names(f):
+                ref = g.get(name)
+                mod = _object_module(ref)
+                if mod is None or not _is_project_module(mod, packages):
+                    continue
+                if mod == own_module and not isinstance(ref, types.ModuleType):
+                    if inspect.isfunction(ref) or inspect.isclass(ref):
+                        todo.append(ref)
+                else:
+                    modules.add(mod)
+    files.update(module_closure(sorted(modules), packages))
+    items = tuple(sorted(files.items()))
+    return key_of([list(x) for x in items]), items
+
+
+def clear_caches() -> None:
+    """Forget memoised fingerprints (tests edit source files within one process)."""
+    _module_digest.cache_clear()
+    _code_fingerprint_cached.cache_clear()
+    importlib.invalidate_caches()
+
+
+# --------------------------------------------------------------------------------------------
+# numeric environment
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def numeric_env(libraries: tuple[tuple[str, tuple[str, ...]], ...] = (),
+                settings: tuple[tuple[str, Any], ...] = ()) -> dict[str, Any]:
+    """What changes numerics, and nothing personal: the interpreter and numpy (the engine's own
+    array library), the versions of the pipeline's numeric ``libraries`` ((label, (distribution,
+    alternatives...)), ...) and its ``settings`` (e.g. device, dtype, determinism)."""
+    return dict(_numeric_env(tuple(libraries), tuple(settings)))
+
+
+@functools.lru_cache(maxsize=None)
+def _numeric_env(libraries: tuple[tuple[str, tuple[str, ...]], ...],
+                 settings: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
+    env: dict[str, Any] = {
+        "python": f"{sys.version_info.major}.{sys.version_info.minor}",
+        "numpy": _version("numpy"),
+        "byteorder": sys.byteorder,
+        "float_size": struct.calcsize("d"),
+    }
+    for label, dists in libraries:
+        env[label] = next((v for v in map(_version, dists) if v), None)
+    env.update(dict(settings))
+    return tuple(sorted(env.items()))
+
+
+def stage_key(record_kind: str, stage_name: str, code_fp: str, params: Any,
+              input_digests: Any, env: dict[str, Any]) -> str:
+    """The cache key recipe (docs/design.md, "Cache keys")."""
+    return key_of([record_kind, stage_name, code_fp, params, input_digests, env])

@@ -1,0 +1,392 @@
+"""Synthetic indoor clips with exact ground truth (depth, poses, intrinsics, dynamic mask).
+
+Usage:
+    from gcvd_flow.evaluate.synth import render_clip
+    clip = render_clip(n_frames=60, trajectory="loop", size=(256, 192), moving_object=False, seed=0)
+    clip.frames (N,H,W,3) uint8 RGB | clip.depth (N,H,W) float32 z-depth [m] | clip.K (3,3)
+    clip.poses (N,4,4) float64 camera-to-world, OpenCV axes | clip.dynamic (N,H,W) bool or None
+    trajectories: "orbit", "loop" (last pose == first pose), "forward", "rotation" (no translation).
+
+The scene is a 6 x 3 x 6 m room (world frame: y points DOWN, i.e. gravity is +y, so a level
+OpenCV camera has an identity rotation; floor at y = +1.5, ceiling at y = -1.5) with
+furniture boxes at various depths. It is ray cast with ``open3d.t.geometry.RaycastingScene``
+and textured procedurally at the 3-D hit point (multi-octave value noise for high-frequency
+luminance + low-frequency colour blobs + a per-face base colour), shaded by a fixed
+directional light (Lambertian, view independent, so brightness constancy holds exactly for
+static surfaces). High noise octaves fade out where a lattice cell would be smaller than
+~1.5 px, like mip-mapping, so the texture does not alias at far / grazing surfaces.
+
+Pure: no file I/O. Deterministic for a given ``seed`` (byte-identical arrays on a machine).
+Geometry and trajectories do not depend on the seed; textures (and colours) do.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+log = logging.getLogger(__name__)
+
+TRAJECTORIES = ("orbit", "loop", "forward", "rotation")
+
+# Room extents in metres (world frame, y down).
+ROOM_MIN = np.array([-3.0, -1.5, -3.0])
+ROOM_MAX = np.array([3.0, 1.5, 3.0])
+
+# Static furniture: (min corner, max corner, yaw about the vertical axis in radians).
+# Kept out of the volume the camera paths sweep (|x| < 1.2, z < -0.8, y ~ 0).
+_FURNITURE: tuple[tuple[tuple[float, float, float], tuple[float, float, float], float], ...] = (
+    ((-0.6, 0.75, -0.4), (0.6, 1.5, 0.4), 0.0),  # table in the room centre
+    ((-0.2, 0.45, -0.15), (0.15, 0.75, 0.2), 0.35),  # box on the table (rotated)
+    ((-2.9, -0.5, 0.5), (-2.3, 1.5, 1.5), 0.0),  # tall cabinet, left
+    ((2.2, -0.2, -1.0), (2.9, 1.5, 0.2), 0.0),  # shelf, right
+    ((1.0, -1.5, 1.0), (1.3, 1.5, 1.3), 0.0),  # pillar
+    ((-1.8, 1.0, 1.6), (-0.6, 1.5, 2.6), 0.0),  # couch-like low box
+    ((-0.5, -0.6, 2.6), (0.8, -0.3, 3.0), 0.0),  # wall shelf, back wall
+    ((1.0, 1.0, -0.2), (1.4, 1.5, 0.2), 0.5),  # stool (rotated)
+    ((-2.0, 0.6, -2.9), (-1.2, 1.5, -2.3), 0.0),  # box behind the start poses (seen on loops)
+)
+
+# Moving object: cube edge length (m), placed relative to the current camera.
+_OBJ_SIZE = 0.5
+# Direction of the fixed light (world, y down: light comes mostly from above).
+_LIGHT = np.array([0.35, -0.8, 0.48]) / np.linalg.norm([0.35, -0.8, 0.48])
+
+_TABLE_BITS = 6
+_TABLE_N = 1 << _TABLE_BITS  # value-noise lattice period (cells)
+_TABLE_MASK = _TABLE_N - 1
+# Luminance octaves: lattice cells per metre and relative amplitudes. The high octaves give
+# DIS flow texture everywhere; they fade with distance (see _fade).
+_LUM_FREQS = (2.0, 5.0, 11.0, 23.0, 47.0)
+_LUM_AMPS = (0.7, 0.8, 1.0, 1.0, 0.9)
+_BLOB_FREQ = 1.7  # colour blobs (random coloured patches with soft edges)
+
+
+@dataclass
+class SynthClip:
+    """A rendered clip with exact ground truth.
+
+    frames:  uint8 (N, H, W, 3) RGB.
+    depth:   float32 (N, H, W) z-depth in metres (along the optical axis, not ray length).
+    poses:   float64 (N, 4, 4) camera-to-world, OpenCV camera axes (x right, y down, z fwd).
+    K:       float64 (3, 3) pinhole intrinsics.
+    dynamic: bool (N, H, W), True where the pixel sees the moving object; None without one.
+    trajectory, seed: how the clip was made (for records).
+    """
+
+    frames: np.ndarray
+    depth: np.ndarray
+    poses: np.ndarray
+    K: np.ndarray
+    dynamic: np.ndarray | None
+    trajectory: str = "orbit"
+    seed: int = 0
+
+
+def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
+    """Default pinhole K (float64 (3, 3)) for ``size = (W, H)`` pixels.
+
+    f = 300/384 * long side (the GCVD authors' guess, ~0.78 W for landscape images),
+    principal point at the image centre in pixel-centre coordinates ((W-1)/2, (H-1)/2).
+    """
+    w, h = int(size[0]), int(size[1])
+    f = 300.0 / 384.0 * max(w, h)
+    return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+# ----------------------------------------------------------------------------- trajectories
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-to-world (4, 4) at ``eye`` looking at ``target``, no roll (world y is down)."""
+    fwd = target - eye
+    fwd = fwd / np.linalg.norm(fwd)
+    right = np.cross(np.array([0.0, 1.0, 0.0]), fwd)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = right, down, fwd, eye
+    return T
+
+
+def _yaw_pitch(yaw: float, pitch: float) -> np.ndarray:
+    """Rotation (3, 3): yaw about world y (down), then pitch about the camera x axis.
+
+    Positive pitch tilts the view down (towards +y, the floor).
+    """
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    Ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cp, sp], [0.0, -sp, cp]])
+    return Ry @ Rx
+
+
+def make_trajectory(kind: str, n_frames: int) -> np.ndarray:
+    """Smooth camera-to-world poses float64 (N, 4, 4) for one of ``TRAJECTORIES``.
+
+    Total motion does not depend on ``n_frames`` (per-frame motion scales as 1/(N-1)); at 60
+    frames it is ~1-3 cm and < 1 deg per frame, like a slow hand-held camera.
+    """
+    if kind not in TRAJECTORIES:
+        raise ValueError(f"unknown trajectory {kind!r}; expected one of {TRAJECTORIES}")
+    n = int(n_frames)
+    if n < 2:
+        raise ValueError("n_frames must be >= 2")
+    s = np.arange(n, dtype=np.float64) / (n - 1)  # normalised time in [0, 1]
+    poses = np.empty((n, 4, 4))
+    if kind == "orbit":
+        # Arc of radius 1.8 m around the room centre, 38 deg in total (~1.2 m of path).
+        centre, radius, span = np.array([0.0, 0.0, 0.0]), 1.8, np.deg2rad(38.0)
+        for i, si in enumerate(s):
+            a = span * (si - 0.5)
+            eye = centre + np.array([radius * np.sin(a), -0.05 + 0.03 * np.sin(2 * np.pi * si), -radius * np.cos(a)])
+            poses[i] = _look_at(eye, np.array([0.0, 0.55, 0.6]))
+    elif kind == "loop":
+        # Closed ellipse (~1.6 m perimeter) with a gentle yaw/pitch sway; periodic in s, so
+        # the last frame revisits the first. The last pose is set to the first exactly
+        # because sin(2 pi) is not exactly 0 in floating point.
+        c = np.array([0.0, -0.05, -1.6])
+        for i, si in enumerate(s):
+            ph = 2 * np.pi * si
+            eye = c + np.array([0.27 * np.sin(ph), 0.04 * np.sin(2 * ph), 0.18 * (1 - np.cos(ph))])
+            R = _yaw_pitch(0.12 * np.sin(ph), 0.22 + 0.04 * np.sin(2 * ph))
+            poses[i] = np.eye(4)
+            poses[i, :3, :3], poses[i, :3, 3] = R, eye
+        poses[-1] = poses[0]
+    elif kind == "forward":
+        # Straight 1.2 m walk along +z with a tiny lateral / vertical bob; never revisits.
+        for i, si in enumerate(s):
+            eye = np.array([0.25 + 0.02 * np.sin(2 * np.pi * si), -0.05 + 0.01 * np.sin(4 * np.pi * si), -2.5 + 1.2 * si])
+            R = _yaw_pitch(-0.05 + 0.04 * np.sin(np.pi * si), 0.2)
+            poses[i] = np.eye(4)
+            poses[i, :3, :3], poses[i, :3, 3] = R, eye
+    else:  # rotation: pan 40 deg with a small tilt, camera centre fixed exactly
+        eye = np.array([0.0, -0.05, -1.6])
+        for i, si in enumerate(s):
+            R = _yaw_pitch(np.deg2rad(40.0) * (si - 0.5), 0.22 + 0.05 * np.sin(2 * np.pi * si))
+            poses[i] = np.eye(4)
+            poses[i, :3, :3], poses[i, :3, 3] = R, eye
+    return poses
+
+
+def _object_poses(cam_poses: np.ndarray) -> np.ndarray:
+    """Object-to-world (N, 4, 4) of the moving cube.
+
+    Defined relative to each camera so it stays in view in most frames: 1.6 m ahead, sweeping
+    from left to right across the image over the clip while spinning about its own axis.
+    Its world motion is therefore unrelated to the static scene's apparent motion.
+    """
+    n = len(cam_poses)
+    s = np.arange(n, dtype=np.float64) / max(n - 1, 1)
+    out = np.empty((n, 4, 4))
+    for i, si in enumerate(s):
+        local = np.array([-0.85 + 1.7 * si, 0.05 + 0.12 * np.sin(np.pi * si), 1.6])
+        spin = _yaw_pitch(0.4 + 2.0 * si, 0.3)
+        out[i] = np.eye(4)
+        out[i, :3, :3] = cam_poses[i, :3, :3] @ spin
+        out[i, :3, 3] = cam_poses[i, :3, :3] @ local + cam_poses[i, :3, 3]
+    return out
+
+
+# ----------------------------------------------------------------------------- scene
+
+
+def _box_mesh(lo, hi, yaw: float = 0.0, inward: bool = False) -> o3d.t.geometry.TriangleMesh:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    m = o3d.geometry.TriangleMesh.create_box(*(hi - lo))
+    v = np.asarray(m.vertices) + lo
+    if yaw:
+        c = (lo + hi) / 2
+        v = (v - c) @ _yaw_pitch(yaw, 0.0).T + c
+    t = np.asarray(m.triangles)
+    if inward:  # flip winding so the room's normals face inwards
+        t = t[:, [0, 2, 1]]
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(v.astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(t.astype(np.int32))
+    return mesh
+
+
+def _static_scene() -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(_box_mesh(ROOM_MIN, ROOM_MAX, inward=True))  # geometry id 0
+    for lo, hi, yaw in _FURNITURE:
+        scene.add_triangles(_box_mesh(lo, hi, yaw))
+    return scene
+
+
+def _object_scene() -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    h = _OBJ_SIZE / 2
+    scene.add_triangles(_box_mesh((-h, -h, -h), (h, h, h)))
+    return scene
+
+
+# ----------------------------------------------------------------------------- texture
+
+
+@dataclass
+class _Texture:
+    table: np.ndarray  # float32 (TABLE_N**3,) lattice values in [0, 1)
+    rots: np.ndarray  # float32 (n_octaves, 3, 3) per-octave rotations (decorrelate octaves)
+    offs: np.ndarray  # float32 (n_octaves, 3) per-octave lattice offsets
+    palette: np.ndarray  # float32 (n_geoms, 6, 2, 3) two base colours per box face
+
+
+def _make_texture(seed: int, n_geoms: int) -> _Texture:
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5EED]))
+    table = rng.random(_TABLE_N**3, dtype=np.float32)
+    n_oct = len(_LUM_FREQS) + 3  # luminance octaves + 3 colour-blob channels
+    q = np.linalg.qr(rng.standard_normal((n_oct, 3, 3)))[0]
+    offs = rng.uniform(0, _TABLE_N, (n_oct, 3))
+    # Base colours: moderately saturated, never dark, so every face has texture contrast.
+    palette = rng.uniform(0.35, 1.0, (n_geoms, 6, 2, 3))
+    return _Texture(table, q.astype(np.float32), offs.astype(np.float32), palette.astype(np.float32))
+
+
+def _value_noise(tex: _Texture, p: np.ndarray, k: int, freq: float) -> np.ndarray:
+    """Smooth value noise in [0, 1] at points p (M, 3) [m]; octave k sets rotation/offset."""
+    q = (p @ tex.rots[k].T) * np.float32(freq) + tex.offs[k]
+    f = np.floor(q)
+    w = q - f
+    w = w * w * (3.0 - 2.0 * w)  # smoothstep weights: C1-continuous noise
+    i = f.astype(np.int64)
+    ix0, iy0, iz0 = (i[:, 0] & _TABLE_MASK) << (2 * _TABLE_BITS), (i[:, 1] & _TABLE_MASK) << _TABLE_BITS, i[:, 2] & _TABLE_MASK
+    ix1 = ((i[:, 0] + 1) & _TABLE_MASK) << (2 * _TABLE_BITS)
+    iy1 = ((i[:, 1] + 1) & _TABLE_MASK) << _TABLE_BITS
+    iz1 = (i[:, 2] + 1) & _TABLE_MASK
+    t = tex.table
+    wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
+    c00 = t[ix0 | iy0 | iz0] + wx * (t[ix1 | iy0 | iz0] - t[ix0 | iy0 | iz0])
+    c10 = t[ix0 | iy1 | iz0] + wx * (t[ix1 | iy1 | iz0] - t[ix0 | iy1 | iz0])
+    c01 = t[ix0 | iy0 | iz1] + wx * (t[ix1 | iy0 | iz1] - t[ix0 | iy0 | iz1])
+    c11 = t[ix0 | iy1 | iz1] + wx * (t[ix1 | iy1 | iz1] - t[ix0 | iy1 | iz1])
+    c0 = c00 + wy * (c10 - c00)
+    c1 = c01 + wy * (c11 - c01)
+    return c0 + wz * (c1 - c0)
+
+
+def _shade(
+    tex: _Texture,
+    p_tex: np.ndarray,
+    n_tex: np.ndarray,
+    n_world: np.ndarray,
+    geom: np.ndarray,
+    footprint: np.ndarray,
+) -> np.ndarray:
+    """RGB float32 (M, 3) in [0, 1].
+
+    p_tex (M,3): texture-space hit points [m] (object-local for the moving object);
+    n_tex (M,3): normals in texture space (picks the face's base colour);
+    n_world (M,3): world normals (lighting); geom (M,) palette index;
+    footprint (M,): metres per pixel on the surface (for octave fading).
+    """
+    # Luminance: fBm whose octaves fade to their mean (0.5) where a cell spans < ~1.5-3 px.
+    acc = np.zeros(len(p_tex), np.float32)
+    for k, (fr, amp) in enumerate(zip(_LUM_FREQS, _LUM_AMPS)):
+        px_per_cell = 1.0 / (fr * footprint)
+        fade = np.clip((px_per_cell - 1.5) / 1.5, 0.0, 1.0).astype(np.float32)
+        acc += np.float32(amp) * (0.5 + fade * (_value_noise(tex, p_tex, k, fr) - 0.5))
+    lum = acc / np.float32(sum(_LUM_AMPS))
+    # Sum of octaves squeezes contrast towards 0.5; stretch it back.
+    lum = np.clip(0.6 + 2.2 * (lum - 0.5), 0.1, 1.0)
+    # Colour blobs: per-channel low-frequency noise, sharpened into soft-edged patches,
+    # mixing the face's two base colours.
+    k0 = len(_LUM_FREQS)
+    blob = np.stack([_value_noise(tex, p_tex, k0 + c, _BLOB_FREQ) for c in range(3)], axis=1)
+    blob = np.clip((blob - 0.5) * 4.0 + 0.5, 0.0, 1.0)
+    face = np.argmax(np.abs(n_tex), axis=1) * 2 + (np.take_along_axis(n_tex, np.argmax(np.abs(n_tex), axis=1)[:, None], 1)[:, 0] > 0)
+    cols = tex.palette[geom, face]  # (M, 2, 3)
+    base = cols[:, 0] + blob * (cols[:, 1] - cols[:, 0])
+    light = 0.6 + 0.4 * np.abs(n_world @ _LIGHT.astype(np.float32))
+    return np.clip(base * (lum * light)[:, None], 0.0, 1.0)
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def _rays(K: np.ndarray, pose: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins (M,3) and world directions (M,3) whose camera-frame z component is 1.
+
+    With that normalisation open3d's t_hit (in units of the direction length) is z-depth.
+    """
+    w, h = size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    d_world = d_cam @ pose[:3, :3].T
+    o = np.broadcast_to(pose[:3, 3], d_world.shape)
+    return o, d_world
+
+
+def _cast(scene: o3d.t.geometry.RaycastingScene, o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
+    rays = np.concatenate([o, d], axis=1).astype(np.float32)
+    r = scene.cast_rays(o3d.core.Tensor(rays))
+    return {k: r[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_normals")}
+
+
+def render_clip(
+    n_frames: int = 60,
+    trajectory: str = "orbit",
+    size: tuple[int, int] = (256, 192),
+    moving_object: bool = False,
+    seed: int = 0,
+) -> SynthClip:
+    """Render a synthetic clip of the textured room.
+
+    n_frames: number of frames N (>= 2); trajectory: one of ``TRAJECTORIES``;
+    size: (W, H) in pixels; moving_object: add one independently moving textured cube and
+    return its per-pixel mask in ``dynamic``; seed: texture/colour seed.
+    Returns a ``SynthClip`` (see its docstring for shapes and units).
+    """
+    w, h = int(size[0]), int(size[1])
+    K = default_intrinsics((w, h))
+    poses = make_trajectory(trajectory, n_frames)
+    static = _static_scene()
+    n_static = 1 + len(_FURNITURE)
+    tex = _make_texture(seed, n_static + 1)  # last palette entry: the moving object
+    obj_scene = _object_scene() if moving_object else None
+    obj_poses = _object_poses(poses) if moving_object else None
+
+    n = len(poses)
+    frames = np.empty((n, h, w, 3), np.uint8)
+    depth = np.empty((n, h, w), np.float32)
+    dynamic = np.zeros((n, h, w), bool) if moving_object else None
+    f = np.float32(K[0, 0])
+    for i in range(n):
+        o, d = _rays(K, poses[i], (w, h))
+        hit = _cast(static, o, d)
+        t = hit["t_hit"]
+        geom = hit["geometry_ids"].astype(np.int64)
+        n_world = hit["primitive_normals"]
+        # World-space texture coordinates for the static scene.
+        p_tex = (o + t[:, None].astype(np.float64) * d).astype(np.float32)
+        n_tex = n_world
+        if obj_scene is not None:
+            # Ray cast the cube in its own frame: a rigid transform of (o, d) keeps the
+            # direction length, so t_hit stays comparable (z-depth) with the static hits.
+            To = obj_poses[i]
+            o_l = (o - To[:3, 3]) @ To[:3, :3]
+            d_l = d @ To[:3, :3]
+            oh = _cast(obj_scene, o_l, d_l)
+            m = oh["t_hit"] < t
+            dynamic[i] = m.reshape(h, w)
+            t = np.where(m, oh["t_hit"], t)
+            geom = np.where(m, n_static, geom)
+            n_obj_local = oh["primitive_normals"]
+            p_tex[m] = (o_l[m] + oh["t_hit"][m, None].astype(np.float64) * d_l[m]).astype(np.float32)
+            n_tex = np.where(m[:, None], n_obj_local, n_world)
+            n_world = np.where(m[:, None], (n_obj_local.astype(np.float64) @ To[:3, :3].T).astype(np.float32), n_world)
+        if not np.all(np.isfinite(t)):
+            raise RuntimeError("a ray left the closed room; camera outside the scene?")
+        # Metres per pixel across the surface: z / f, stretched at grazing angles.
+        d_unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+        cos = np.abs(np.sum(d_unit * n_world, axis=1)).astype(np.float32)
+        footprint = t / f / np.maximum(cos, 0.25)
+        rgb = _shade(tex, p_tex, n_tex, n_world, geom, footprint)
+        frames[i] = np.round(rgb * 255.0).astype(np.uint8).reshape(h, w, 3)
+        depth[i] = t.reshape(h, w)
+    log.debug("rendered %d frames (%s, %dx%d, moving_object=%s)", n, trajectory, w, h, moving_object)
+    return SynthClip(frames=frames, depth=depth, poses=poses, K=K, dynamic=dynamic, trajectory=trajectory, seed=int(seed))

@@ -1,0 +1,349 @@
+"""Dataset file I/O: the generic layout, TUM trajectories, Redwood/Open3D .log, depth PNGs.
+
+Generic dataset layout (what ``write_generic_layout`` writes and ``read_generic_layout`` reads)::
+
+    OUT/frames/000000.png ...      RGB frames (PNG, written with OpenCV: deterministic bytes)
+    OUT/intrinsics.txt             one line "fx fy cx cy" (pixels)
+    OUT/gt/poses.txt               TUM "t tx ty tz qx qy qz qw", camera-to-world, t = frame index
+    OUT/gt/depth/000000.png ...    uint16 depth in millimetres (0 = invalid)
+    OUT/gt/dynamic/000000.png ...  uint8 0/1, 1 = pixel sees a moving object (only if known)
+
+Pose convention everywhere: float64 (N, 4, 4) camera-to-world, OpenCV camera axes.
+Malformed input raises ``DatasetError`` (a ``ValueError``) whose message names the file.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gcvd_flow.engine.errors import UsageError
+
+PathLike = str | os.PathLike
+
+# cv2 PNG parameters: fixed compression level so bytes do not depend on OpenCV defaults.
+_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
+_DEPTH_MAX_MM = np.iinfo(np.uint16).max
+
+
+class DatasetError(UsageError):
+    """Malformed or missing dataset file; the message names the file.
+
+    A ``UsageError`` (hence a ``ValueError``): the CLI reports it in one line, exit code 2.
+    """
+
+    def __init__(self, path: PathLike, message: str) -> None:
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+# ----------------------------------------------------------------------------- quaternions
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) as (qx, qy, qz, qw) (TUM order, w last) -> rotations (..., 3, 3)."""
+    q = np.asarray(q, dtype=np.float64)
+    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotations (..., 3, 3) -> unit quaternions (..., 4) as (qx, qy, qz, qw) with qw >= 0
+    (q and -q are the same rotation; one sign gives stable text output)."""
+    R = np.asarray(R, dtype=np.float64)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    q[q[:, 3] < 0] *= -1.0
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+# ----------------------------------------------------------------------------- text formats
+
+
+def _numeric_rows(path: Path) -> list[tuple[int, list[float]]]:
+    """(line number, floats) of every non-empty, non-'#' line; DatasetError if unparsable."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(path, "file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise DatasetError(path, f"cannot read: {e}") from None
+    rows = []
+    for ln, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        try:
+            rows.append((ln, [float(x) for x in s.replace(",", " ").split()]))
+        except ValueError:
+            raise DatasetError(path, f"line {ln}: not numeric: {s[:80]!r}") from None
+    return rows
+
+
+def read_tum_poses(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory ``t tx ty tz qx qy qz qw`` (camera-to-world).
+
+    Returns (timestamps float64 (N,), poses float64 (N, 4, 4)). Quaternions are renormalised;
+    a quaternion far from unit length (|q| outside [0.9, 1.1]) is rejected as malformed.
+    """
+    path = Path(path)
+    rows = _numeric_rows(path)
+    if not rows:
+        raise DatasetError(path, "no poses")
+    for ln, r in rows:
+        if len(r) != 8:
+            raise DatasetError(path, f"line {ln}: expected 8 values 't tx ty tz qx qy qz qw', got {len(r)}")
+    a = np.array([r for _, r in rows], dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise DatasetError(path, "non-finite values")
+    qn = np.linalg.norm(a[:, 4:8], axis=1)
+    bad = np.nonzero((qn < 0.9) | (qn > 1.1))[0]
+    if len(bad):
+        raise DatasetError(path, f"line {rows[bad[0]][0]}: quaternion norm {qn[bad[0]]:.4g} is not ~1")
+    poses = np.tile(np.eye(4), (len(a), 1, 1))
+    poses[:, :3, :3] = quat_to_rotmat(a[:, 4:8])
+    poses[:, :3, 3] = a[:, 1:4]
+    return a[:, 0].copy(), poses
+
+
+def write_tum_poses(path: PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None:
+    """Write camera-to-world poses T_w_c (N, 4, 4) with timestamps (N,) as TUM text
+    ``t tx ty tz qx qy qz qw`` (t %.6f, the rest %.9f). Creates parent folders."""
+    path = Path(path)
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    P = np.asarray(poses, dtype=np.float64)
+    if P.ndim != 3 or P.shape[1:] != (4, 4) or len(P) != len(ts):
+        raise ValueError(f"poses must be (N, 4, 4) with N = len(timestamps); got {P.shape}, {ts.shape}")
+    q = rotmat_to_quat(P[:, :3, :3])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # No header line: one line per pose, so `wc -l` counts poses (tools and tests rely on it).
+    lines = []
+    for t, T, qi in zip(ts, P, q):
+        lines.append(f"{t:.6f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *qi)))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def read_redwood_log(path: PathLike) -> np.ndarray:
+    """Read an Open3D / Redwood ``.log`` trajectory -> camera-to-world float64 (N, 4, 4).
+
+    Format: 5 lines per pose: a metadata line (3 integers, e.g. ``i i i+1``) then the 4x4
+    matrix row by row.
+    """
+    path = Path(path)
+    rows = _numeric_rows(path)
+    if not rows or len(rows) % 5:
+        raise DatasetError(path, f"expected 5 lines per pose, got {len(rows)} non-empty lines")
+    poses = np.empty((len(rows) // 5, 4, 4))
+    for k in range(len(poses)):
+        ln, meta = rows[5 * k]
+        if len(meta) != 3:
+            raise DatasetError(path, f"line {ln}: expected a 3-integer metadata line, got {len(meta)} values")
+        for r in range(4):
+            ln, vals = rows[5 * k + 1 + r]
+            if len(vals) != 4:
+                raise DatasetError(path, f"line {ln}: expected 4 matrix values, got {len(vals)}")
+            poses[k, r] = vals
+    if not np.all(np.isfinite(poses)):
+        raise DatasetError(path, "non-finite values")
+    return poses
+
+
+def read_intrinsics_txt(path: PathLike) -> np.ndarray:
+    """Read intrinsics -> K float64 (3, 3).
+
+    Accepts one line ``fx fy cx cy`` (pixels; the generic layout) or 9 numbers (a 3x3 matrix,
+    row-major, on one or three lines).
+    """
+    path = Path(path)
+    vals = [v for _, r in _numeric_rows(path) for v in r]
+    if len(vals) == 4:
+        fx, fy, cx, cy = vals
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    elif len(vals) == 9:
+        K = np.array(vals, dtype=np.float64).reshape(3, 3)
+    else:
+        raise DatasetError(path, f"expected 'fx fy cx cy' (4 values) or a 3x3 matrix, got {len(vals)} values")
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+        raise DatasetError(path, "focal lengths must be finite and positive")
+    return K
+
+
+def write_intrinsics_txt(path: PathLike, K: np.ndarray) -> None:
+    """Write K (3, 3) as one line ``fx fy cx cy`` (%.9f)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"{K[0, 0]:.9f} {K[1, 1]:.9f} {K[0, 2]:.9f} {K[1, 2]:.9f}\n")
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", img, _PNG_PARAMS)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    path.write_bytes(buf.tobytes())
+
+
+def write_rgb_png(path: PathLike, rgb: np.ndarray) -> None:
+    """Write uint8 (H, W, 3) RGB as PNG (OpenCV stores BGR, hence the swap)."""
+    _write_png(Path(path), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+
+
+def read_rgb(path: PathLike) -> np.ndarray:
+    """Read an image file -> uint8 (H, W, 3) RGB."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DatasetError(path, "not a readable image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def depth_to_png16(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
+    """float depth (H, W) [m] -> uint16 (H, W) [m * scale], rounded; invalid/out of range -> 0."""
+    d = np.asarray(depth, dtype=np.float64) * scale
+    ok = np.isfinite(d) & (d > 0) & (d < _DEPTH_MAX_MM + 0.5)
+    return np.where(ok, np.round(np.where(ok, d, 0)), 0).astype(np.uint16)
+
+
+def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = 1000.0) -> None:
+    """Write float depth (H, W) [m] as a 16-bit PNG in units of 1/scale m (default mm)."""
+    _write_png(Path(path), depth_to_png16(depth, scale))
+
+
+def read_depth_png(path: PathLike, scale: float = 1000.0) -> np.ndarray:
+    """Read a 16-bit depth PNG -> float32 (H, W) metres (value / scale; 0 stays 0 = invalid)."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(path, "not a readable image")
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise DatasetError(path, f"expected a single-channel 16-bit depth PNG, got {img.dtype} {img.shape}")
+    return (img.astype(np.float64) / scale).astype(np.float32)
+
+
+class DepthPngSequence(Sequence):
+    """Lazily loaded depth maps: ``seq[i]`` -> float32 (H, W) metres; ``seq.paths`` the files."""
+
+    def __init__(self, paths: list[Path], scale: float = 1000.0) -> None:
+        self.paths = paths
+        self.scale = float(scale)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i: Any) -> Any:
+        if isinstance(i, slice):
+            return DepthPngSequence(self.paths[i], self.scale)
+        return read_depth_png(self.paths[i], self.scale)
+
+    def load_all(self) -> np.ndarray:
+        """All depth maps stacked: float32 (N, H, W) metres."""
+        return np.stack([self[i] for i in range(len(self))]) if len(self) else np.zeros((0, 0, 0), np.float32)
+
+
+def _sorted_pngs(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise DatasetError(folder, "folder not found")
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".png")
+
+
+def read_depth_pngs(folder: PathLike, scale: float = 1000.0) -> DepthPngSequence:
+    """All ``*.png`` in ``folder`` (sorted by name) as a lazily loading ``DepthPngSequence``.
+
+    ``scale``: stored units per metre (1000 = mm; TUM RGB-D uses 5000).
+    """
+    return DepthPngSequence(_sorted_pngs(Path(folder)), scale)
+
+
+# ----------------------------------------------------------------------------- generic layout
+
+
+def write_generic_layout(out_dir: PathLike, clip: Any) -> Path:
+    """Write a clip (e.g. ``stages.synth.SynthClip``) in the generic layout under ``out_dir``.
+
+    ``clip`` needs ``frames`` uint8 (N, H, W, 3), ``K`` (3, 3), and optionally ``poses``
+    (N, 4, 4) camera-to-world, ``depth`` float (N, H, W) metres, ``dynamic`` bool (N, H, W).
+    Returns the output folder. Files are overwritten; byte-identical for identical input.
+    """
+    out = Path(out_dir)
+    frames = np.asarray(clip.frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise ValueError(f"frames must be uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}")
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    for i, f in enumerate(frames):
+        write_rgb_png(out / "frames" / f"{i:06d}.png", f)
+    write_intrinsics_txt(out / "intrinsics.txt", np.asarray(clip.K))
+    poses = getattr(clip, "poses", None)
+    if poses is not None:
+        write_tum_poses(out / "gt" / "poses.txt", np.arange(len(poses), dtype=np.float64), poses)
+    depth = getattr(clip, "depth", None)
+    if depth is not None:
+        (out / "gt" / "depth").mkdir(parents=True, exist_ok=True)
+        for i, d in enumerate(depth):
+            write_depth_png(out / "gt" / "depth" / f"{i:06d}.png", d)
+    dynamic = getattr(clip, "dynamic", None)
+    if dynamic is not None:
+        (out / "gt" / "dynamic").mkdir(parents=True, exist_ok=True)
+        for i, m in enumerate(dynamic):
+            _write_png(out / "gt" / "dynamic" / f"{i:06d}.png", np.asarray(m).astype(np.uint8))
+    return out
+
+
+@dataclass
+class GenericLayout:
+    """What ``read_generic_layout`` found. Ground truth fields are None when absent.
+
+    frame_paths: sorted RGB PNGs; K: float64 (3, 3); timestamps (N,), poses (N, 4, 4)
+    camera-to-world; depth: lazily loaded metres; dynamic_paths: uint8 0/1 masks.
+    """
+
+    root: Path
+    frame_paths: list[Path]
+    K: np.ndarray
+    timestamps: np.ndarray | None = None
+    poses: np.ndarray | None = None
+    depth: DepthPngSequence | None = None
+    dynamic_paths: list[Path] | None = None
+
+    def load_frames(self) -> np.ndarray:
+        """uint8 (N, H, W, 3) RGB."""
+        return np.stack([read_rgb(p) for p in self.frame_paths])
+
+    def load_dynamic(self) -> np.ndarray | None:
+        """bool (N, H, W) or None."""
+        if self.dynamic_paths is None:
+            return None
+        out = []
+        for p in self.dynamic_paths:
+            m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            if m is None or m.ndim != 2:
+                raise DatasetError(p, "expected a single-channel mask PNG")
+            out.append(m > 0)
+        return np.stack(out)
+
+
+def read_generic_layout(root: PathLike, depth_scale: float = 1000.0) -> GenericLayout:
+    """Read the generic layout under ``root`` (see module docstring); checks counts agree."""
+    root = Path(root)
+    frame_paths = _sorted_pngs(root / "frames")
+    if not frame_paths:
+        raise DatasetError(root / "frames", "no PNG frames")
+    lay = GenericLayout(root=root, frame_paths=frame_paths, K=read_intrinsics_txt(root / "intrinsics.txt"))
+    n = len(frame_paths)
+    if (root / "gt" / "poses.txt").exists():
+        lay.timestamps, lay.poses = read_tum_poses(root / "gt" / "poses.txt")
+        if len(lay.poses) != n:
+            raise DatasetError(root / "gt" / "poses.txt", f"{len(lay.poses)} poses for {n} frames")
+    if (root / "gt" / "depth").is_dir():
+        lay.depth = read_depth_pngs(root / "gt" / "depth", depth_scale)
+        if len(lay.depth) != n:
+            raise DatasetError(root / "gt" / "depth", f"{len(lay.depth)} depth maps for {n} frames")
+    if (root / "gt" / "dynamic").is_dir():
+        lay.dynamic_paths = _sorted_pngs(root / "gt" / "dynamic")
+        if len(lay.dynamic_paths) != n:
+            raise DatasetError(root / "gt" / "dynamic", f"{len(lay.dynamic_paths)} masks for {n} frames")
+    return lay

@@ -1,0 +1,185 @@
+"""RUN_DIR: what a finished run writes for people and other tools, and reading it back.
+
+    poses.txt            TUM trajectory ``t tx ty tz qx qy qz qw``, T_w_c (camera-to-world)
+    depth/NNNNNN.npy     float32 (H, W) depth at working resolution, one global scale, 0 = invalid
+    cameras.json         intrinsics at working resolution, sizes, frame indices, keyframes, fps
+    run.json             written by the engine: resolved config, every stage's key and output digest
+
+``write_run_dir`` is the pipeline's export hook; ``load_run`` reads and checks a RUN_DIR with
+one-line errors naming the file; ``attach_images`` adds the run's frames from the cache.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+from gcvd_flow.engine.dag import MapValue
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.io.formats import write_tum_poses
+
+if TYPE_CHECKING:
+    import numpy as np
+
+
+# ------------------------------------------------------------------------------ writing a run
+
+
+def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
+    """Write RUN_DIR from a finished run: poses.txt (TUM, T_w_c), depth/NNNNNN.npy (float32),
+    cameras.json. ``runner`` is the engine's Runner (stage values by name)."""
+    import numpy as np
+
+    frames = runner.value("ingest")
+    cam = frames.summary
+    idx = list(cam["frame_indices"])
+    # only the poses: decoding the whole segment solution would hold every depth map at once
+    poses = np.asarray(runner.part("optimize_segments", ("poses",)), np.float64)
+    write_tum_poses(out / "poses.txt", np.asarray(idx, np.float64), poses)
+    depth_dir = out / "depth"
+    depth_dir.mkdir(exist_ok=True)
+    for old in depth_dir.glob("*.npy"):
+        old.unlink()
+    filt = runner.value("depth_filter")
+    for k, i in enumerate(idx):
+        np.save(depth_dir / f"{i:06d}.npy", np.asarray(filt[k]["depth"], np.float32), allow_pickle=False)
+    K = np.asarray(cam["K"])
+    doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
+           "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
+           "source_height": cam["source_height"], "intrinsics_guessed": cam["guessed"],
+           "intrinsics_origin": cam["origin"], "frame_indices": idx, "fps": cam.get("fps"),
+           "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
+    (out / "cameras.json").write_text(json.dumps(doc, indent=1))
+    return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "cameras": str(out / "cameras.json")}
+
+
+# ------------------------------------------------------------------------------ reading a run
+
+
+@dataclass
+class RunData:
+    """What an export needs from RUN_DIR; depth (and images, when available) are read lazily."""
+
+    run_dir: Path
+    K: np.ndarray  # (3, 3) at working resolution
+    width: int
+    height: int
+    frame_indices: list[int]  # source frame index of each exported frame
+    poses: np.ndarray  # (N, 4, 4) camera-to-world, OpenCV axes
+    depth_paths: list[Path]
+    fps: float | None = None
+    images: Sequence[np.ndarray] | None = None  # uint8 (H, W, 3) RGB per frame
+    images_error: str | None = None
+    _median: float | None = field(default=None, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def depth(self, k: int) -> np.ndarray:
+        import numpy as np
+
+        p = self.depth_paths[k]
+        try:
+            d = np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"{p}: not a readable .npy depth map ({exc})") from None
+        if d.shape != (self.height, self.width):
+            raise UsageError(f"{p}: depth is {d.shape}, cameras.json says {self.height}x{self.width}")
+        return np.asarray(d, np.float32)
+
+    @property
+    def depths(self) -> Sequence[np.ndarray]:
+        return MapValue(self.depth, len(self), None)
+
+    def name(self, k: int) -> str:
+        return f"{self.frame_indices[k]:06d}"
+
+    def median_depth(self) -> float:
+        """Median valid depth over (at most ~50 evenly spread) frames; UsageError if none."""
+        if self._median is None:
+            from gcvd_flow.exports.geometry import median_depth
+
+            step = max(1, len(self) // 50)
+            self._median = median_depth(self.depth(k) for k in range(0, len(self), step))
+            if not self._median > 0:
+                raise UsageError(f"{self.run_dir / 'depth'}: no valid (positive, finite) depth in any frame")
+        return self._median
+
+
+def load_run(run_dir: str | Path) -> RunData:
+    """Read and check RUN_DIR; every problem is a one-line UsageError naming the file."""
+    import numpy as np
+    from gcvd_flow.io.formats import read_tum_poses
+
+    run = Path(run_dir)
+    if not run.exists():
+        raise UsageError(f"{run}: no such run directory")
+    if not run.is_dir():
+        raise UsageError(f"{run}: not a directory (expected a `gcvd-flow run` output directory)")
+    cams_path = run / "cameras.json"
+    try:
+        cams = json.loads(cams_path.read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{cams_path}: missing (is {run} a finished `gcvd-flow run` directory?)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UsageError(f"{cams_path}: not valid JSON ({exc})") from None
+    try:
+        K = np.asarray(cams["K"], np.float64)
+        width, height = int(cams["width"]), int(cams["height"])
+        idx = [int(i) for i in cams["frame_indices"]]
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or width < 1 or height < 1:
+            raise ValueError("bad K / width / height")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsageError(f"{cams_path}: missing or malformed K / width / height / frame_indices ({exc})") from None
+    _, poses = read_tum_poses(run / "poses.txt")  # DatasetError (a UsageError) names the file
+    if len(poses) != len(idx):
+        raise UsageError(f"{run / 'poses.txt'}: {len(poses)} poses, but cameras.json lists {len(idx)} frames")
+    paths = []
+    for i in idx:
+        p = run / "depth" / f"{i:06d}.npy"
+        if not p.is_file():
+            raise UsageError(f"{p}: depth file missing")
+        try:  # header only: dtype and shape, before anything is written
+            d = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"{p}: not a readable .npy depth map ({exc})") from None
+        if d.shape != (height, width) or d.dtype.kind != "f":
+            raise UsageError(f"{p}: depth is {d.dtype} {d.shape}, expected float ({height}, {width})")
+        paths.append(p)
+    fps = cams.get("fps")
+    return RunData(run, K, width, height, idx, poses, paths,
+                   fps=float(fps) if isinstance(fps, (int, float)) and fps > 0 else None)
+
+
+def attach_images(run: RunData, cache: str | None, verify: bool = True) -> None:
+    """Set ``run.images`` from the run's recorded ``ingest`` output, or ``run.images_error``."""
+    from gcvd_flow.engine import api
+    from gcvd_flow.engine.artifacts import ArtifactError
+    from gcvd_flow.engine.store import StoreError
+
+    where = cache or str(api.default_cache_dir())
+    try:
+        frames = api.recorded_output(run.run_dir, "ingest", cache, verify)
+    except (UsageError, StoreError, ArtifactError) as exc:
+        run.images_error = f"the run's RGB frames are not available from the cache {where} ({exc})"
+        return
+    if len(frames) != len(run):
+        run.images_error = f"the cache's ingest output has {len(frames)} frames, the run {len(run)}"
+        return
+    summary = frames.summary or {}
+    if run.fps is None and isinstance(summary.get("fps"), (int, float)) and summary["fps"] > 0:
+        run.fps = float(summary["fps"])
+
+    def get(k: int) -> np.ndarray:
+        try:
+            img = frames[k]["image"]
+        except (StoreError, ArtifactError) as exc:
+            raise UsageError(f"RGB frame {run.frame_indices[k]} from the cache {where}: {exc}") from None
+        if img.shape != (run.height, run.width, 3):
+            raise UsageError(f"RGB frame {run.frame_indices[k]} from the cache {where} is {img.shape}, "
+                             f"expected ({run.height}, {run.width}, 3)")
+        return img
+
+    run.images = MapValue(get, len(run), None)

@@ -1,0 +1,95 @@
+"""Multi-view depth fusion with the final, globally consistent poses (a gcvd-flow addition).
+
+Why: in the weight-free CPU configuration the depth network's trainable part (a 1x1 head on
+frozen random features plus a 17-vertex mesh per frame) cannot make per-pixel corrections, so
+after test-time training the depth is about as good as its prior (synthetic loop: AbsRel 0.057
+prior 0.057). The poses, however, are very good after the pose graph (ATE < 0.1 % of the
+path). With known poses, every pixel can be triangulated directly from the optical flow to a
+few neighbours on both sides, with no two-view pose error, at the poses' scale. This is what
+the paper's flow loss does through the network, solved in closed form per pixel.
+
+For frame i and each reference j (default i-8 and i+8; i-8, i-4, i+4, i+8 measured 0.0423 vs 0.0417 AbsRel on the loop, at twice the cost): DIS flow i -> j with a
+forward-backward check, midpoint triangulation with T_ji = inv(P_j) P_i, triangulation angle
+as confidence. Measurements that disagree with the optimised depth by more than
+``max_log_dev`` in log depth (after one global ratio) are dropped (occlusions, flow on moving
+objects, textureless areas); the rest are fused in inverse depth with weights = angle^2
+(inverse-depth noise ~ 1 / angle). Pixels without a measurement keep the optimised depth.
+
+Shapes: images uint8 (H, W, 3) RGB; depth float32 (H, W) metres (pose scale); K (3, 3);
+poses (4, 4) camera-to-world.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from stages.frontend import flow as flow_mod
+from stages.geometry.two_view import triangulate_depths
+
+MIN_MEASUREMENTS = 30  # per reference: fewer triangulated pixels say nothing about the scale
+
+
+def _angles_deg(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Angle between the ray of p in camera a and the ray of q (camera b) rotated into a."""
+    Kinv = np.linalg.inv(K)
+    ra = np.concatenate([p, np.ones((len(p), 1))], 1) @ Kinv.T
+    rb = (np.concatenate([q, np.ones((len(q), 1))], 1) @ Kinv.T) @ R
+    c = np.sum(ra * rb, 1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def fuse_depth(
+    image: np.ndarray,
+    depth: np.ndarray,
+    pose: np.ndarray,
+    refs: Sequence[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    preset: str = "fine",
+    fb_thresh: float = 1.0,
+    min_angle_deg: float = 0.2,
+    max_log_dev: float = 0.3,
+) -> tuple[np.ndarray, float]:
+    """Fused depth float32 (H, W) of one frame and the fraction of pixels measured.
+
+    refs: [(image_j uint8 (H, W, 3), pose_j (4, 4) camera-to-world), ...].
+    """
+    depth = np.asarray(depth, np.float64)
+    h, w = depth.shape
+    K = np.asarray(K, np.float64)
+    vv, uu = np.mgrid[0:h, 0:w]
+    meas: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # (v, u, z, weight)
+    for img_j, pose_j in refs:
+        fl = flow_mod.compute_pair_flow(image, img_j, preset=preset, fb_thresh=fb_thresh)
+        valid = fl["fwd_valid"] & (depth > 0)
+        if valid.sum() < MIN_MEASUREMENTS:
+            continue
+        T = np.linalg.inv(np.asarray(pose_j, np.float64)) @ np.asarray(pose, np.float64)
+        if np.linalg.norm(T[:3, 3]) < 1e-9:
+            continue  # no baseline: nothing to triangulate
+        p = np.stack([uu[valid], vv[valid]], 1).astype(np.float64)
+        q = p + fl["fwd"][valid].astype(np.float64)
+        z, _ = triangulate_depths(p, q, K, T[:3, :3], T[:3, 3])
+        ang = _angles_deg(p, q, K, T[:3, :3])
+        ok = np.isfinite(z) & (z > 0) & (ang > min_angle_deg)
+        if ok.sum() >= MIN_MEASUREMENTS:
+            meas.append((vv[valid][ok], uu[valid][ok], z[ok], ang[ok] ** 2))
+    if not meas:
+        # nothing triangulated (no baseline, too small an angle, no consistent flow): keep the
+        # optimised depth rather than a scale estimated from nothing
+        return depth.astype(np.float32), 0.0
+    log_ratio = np.concatenate([np.log(z / depth[v, u]) for v, u, z, _ in meas])
+    shift = float(np.median(log_ratio))  # the optimised depth's scale vs the poses' scale
+    num = np.zeros((h, w))
+    den = np.zeros((h, w))
+    for v, u, z, wgt in meas:
+        keep = np.abs(np.log(z / depth[v, u]) - shift) < max_log_dev
+        np.add.at(num, (v[keep], u[keep]), wgt[keep] / z[keep])
+        np.add.at(den, (v[keep], u[keep]), wgt[keep])
+    have = den > 0
+    fused = np.where(have, den / np.maximum(num, 1e-12), depth * np.exp(shift))
+    # 3x3 median: per-pixel flow noise, and seams between measured and kept pixels
+    fused = cv2.medianBlur(fused.astype(np.float32), 3)
+    return fused, float(have.mean())

@@ -1,0 +1,185 @@
+"""Optical flow between adjacent frames, forward-backward consistency, flow chaining.
+
+Default backend: OpenCV DIS (weight-free, CPU, deterministic). Optional backend: RAFT
+(`stages/backends/raft_net.py`) when the user has weights.
+
+Shapes/units: images uint8 (H, W, 3) RGB; flows float32 (H, W, 2) as (dx, dy) in pixels, the
+forward flow of pair (a, b) maps pixel p of a to p + flow[p] in b; masks bool (H, W).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "compute_pair_flow",
+    "dis_flow",
+    "fb_consistency",
+    "warp_sample",
+    "chain_flows",
+    "DIS_PRESETS",
+]
+
+DIS_PRESETS: dict[str, int] = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+    # "medium" whose finest pyramid level is the full image (medium stops at half resolution):
+    # ~3.5x the time, 2.4x lower median end-point error on 8-frame pairs of the synthetic loop
+    # (0.11 -> 0.046 px), which is what triangulating a depth prior needs
+    "fine": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+FINEST_SCALE = {"fine": 0}
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 2:
+        return np.ascontiguousarray(img, dtype=np.uint8)
+    return cv2.cvtColor(np.ascontiguousarray(img, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np.ndarray:
+    """DIS flow a -> b, float32 (H, W, 2) px.
+
+    A fresh DIS object per call: the object keeps no state we rely on, and a new one guarantees
+    that results do not depend on call history (byte-identical across calls).
+    """
+    if preset not in DIS_PRESETS:
+        raise ValueError(f"unknown DIS preset {preset!r}; choose one of {sorted(DIS_PRESETS)}")
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+    if preset in FINEST_SCALE:
+        dis.setFinestScale(FINEST_SCALE[preset])
+    flow = dis.calc(_gray(img_a), _gray(img_b), None)
+    return np.ascontiguousarray(flow, dtype=np.float32)
+
+
+def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """Bilinearly sample `field` (H, W) or (H, W, C) at float pixel coords (..., 2) = (u, v).
+
+    Coordinates outside the image are clamped to the border (callers decide validity with
+    their own in-bounds test). Pure numpy so that it is exact (cv2.remap quantises the
+    sub-pixel position to 1/32 px) and deterministic.
+    """
+    f = np.asarray(field)
+    squeeze = f.ndim == 2
+    if squeeze:
+        f = f[..., None]
+    h, w = f.shape[:2]
+    x = np.clip(coords[..., 0].astype(np.float64), 0.0, w - 1.0)
+    y = np.clip(coords[..., 1].astype(np.float64), 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros_like(x, np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros_like(y, np.int64)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    ax = (x - x0)[..., None]
+    ay = (y - y0)[..., None]
+    ff = f.astype(np.float64, copy=False)
+    out = (
+        ff[y0, x0] * (1 - ax) * (1 - ay)
+        + ff[y0, x1] * ax * (1 - ay)
+        + ff[y1, x0] * (1 - ax) * ay
+        + ff[y1, x1] * ax * ay
+    )
+    out = out.astype(np.float32 if f.dtype != np.float64 else np.float64)
+    return out[..., 0] if squeeze else out
+
+
+def _targets(flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Target coordinates p + flow(p) (H, W, 2) float64 and their in-image mask (H, W)."""
+    h, w = flow.shape[:2]
+    v, u = np.mgrid[0:h, 0:w]
+    tgt = np.stack([u + flow[..., 0].astype(np.float64), v + flow[..., 1].astype(np.float64)], -1)
+    inside = (
+        np.isfinite(tgt).all(-1)
+        & (tgt[..., 0] >= 0)
+        & (tgt[..., 0] <= w - 1)
+        & (tgt[..., 1] >= 0)
+        & (tgt[..., 1] <= h - 1)
+    )
+    return tgt, inside
+
+
+def fb_consistency(fwd: np.ndarray, bwd: np.ndarray, thresh: float = 1.0) -> np.ndarray:
+    """Forward-backward consistency of `fwd` (a -> b) given `bwd` (b -> a): bool (H, W).
+
+    Valid iff p + fwd(p) lies inside image b and |fwd(p) + bwd(p + fwd(p))| < thresh px
+    (bwd sampled bilinearly). Occluded pixels and pixels leaving the view fail this test.
+    """
+    tgt, inside = _targets(fwd)
+    back = warp_sample(bwd, tgt)
+    err = np.linalg.norm(fwd.astype(np.float64) + back, axis=-1)
+    return inside & (err < thresh)
+
+
+def chain_flows(
+    flows: Sequence[tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Compose successive flows i->i+1, i+1->i+2, ... into the flow i->i+k.
+
+    Each element is (flow (H, W, 2), valid bool (H, W)) defined on its own source frame.
+    The composite is f(p) = f0(p) + f1(p + f0(p)) + ...; a pixel stays valid only if every
+    link is valid where the chain passes (validity sampled bilinearly, all four neighbours
+    must be valid: a conservative choice that keeps occlusion edges out) and stays in view.
+    Returns (flow float32 (H, W, 2), valid bool (H, W)).
+    """
+    if len(flows) == 0:
+        raise ValueError("chain_flows needs at least one flow")
+    f0, v0 = flows[0]
+    h, w = f0.shape[:2]
+    v, u = np.mgrid[0:h, 0:w]
+    base = np.stack([u, v], -1).astype(np.float64)
+    total = f0.astype(np.float64).copy()
+    valid = np.asarray(v0, bool).copy()
+    _, inside = _targets(f0)
+    valid &= inside
+    for f, vm in flows[1:]:
+        pos = base + total
+        step = warp_sample(f.astype(np.float64), pos)
+        vm_s = warp_sample(np.asarray(vm, np.float64), pos)
+        total = total + step
+        valid &= vm_s > 0.999
+        _, inside = _targets(total)
+        valid &= inside
+    return total.astype(np.float32), valid
+
+
+def compute_pair_flow(
+    img_a: np.ndarray,
+    img_b: np.ndarray,
+    backend: str = "dis",
+    preset: str = "medium",
+    fb_thresh: float = 1.0,
+    model: Any = None,
+) -> dict[str, np.ndarray]:
+    """Forward and backward flow of an adjacent pair plus their consistency masks.
+
+    img_a, img_b: uint8 (H, W, 3) RGB. backend: "dis" (preset in ultrafast/fast/medium) or
+    "raft" (`model` = module from stages.models.raft.load_raft). fb_thresh in px (paper: 1).
+    Returns dict(fwd float32 (H, W, 2), bwd float32 (H, W, 2), fwd_valid bool, bwd_valid bool).
+    """
+    if img_a.shape != img_b.shape:
+        raise ValueError(f"image shapes differ: {img_a.shape} vs {img_b.shape}")
+    if backend == "dis":
+        fwd = dis_flow(img_a, img_b, preset)
+        bwd = dis_flow(img_b, img_a, preset)
+    elif backend == "raft":
+        if model is None:
+            raise ValueError("backend='raft' needs model=load_raft(path)")
+        from stages.models.raft import raft_flow
+
+        fwd = raft_flow(model, img_a, img_b)
+        bwd = raft_flow(model, img_b, img_a)
+    else:
+        raise ValueError(f"unknown flow backend {backend!r}; use 'dis' or 'raft'")
+    return {
+        "fwd": fwd,
+        "bwd": bwd,
+        "fwd_valid": fb_consistency(fwd, bwd, fb_thresh),
+        "bwd_valid": fb_consistency(bwd, fwd, fb_thresh),
+    }

@@ -1,0 +1,471 @@
+"""Keyframe association: global descriptors, loop candidates, verification, the keyframe graph.
+
+DESIGN §5.6. Every keyframe gets a global descriptor; the cosine-similarity matrix proposes
+non-sequential pairs (more than ``min_separation`` keyframes apart, local maxima of an
+``nms`` x ``nms`` max-pool over the matrix, similarity >= threshold); each candidate is
+verified geometrically (SIFT + RANSAC homography / essential-matrix inlier ratio >= 0.5),
+by flow (fraction of forward-backward consistent pixels >= 0.1 with a 2 px test) and by size
+of motion (mean flow <= the keyframe threshold, i.e. the two views are "one keyframe apart").
+
+Default descriptor (weight-free, ``global_descriptor``): a 3-level spatial pyramid (1x1, 2x2,
+4x4 cells) of 8-bin unsigned gradient-orientation histograms (magnitude weighted, soft
+binned) plus an 8x6 colour thumbnail standardised per channel; each part is power-normalised
+(signed square root), mean-centred and L2-normalised, then both are concatenated with equal
+weight and L2-normalised again. It is place- and layout-specific (the pyramid keeps where
+structure is) and tolerant to the few-pixel shifts between views of the same place.
+Its cosine similarities are NOT on the scale of the paper's ResNet-GAP features (paper
+threshold 0.9); see ``DEFAULT_SIMILARITY_THRESHOLD`` for the calibrated value. The ImageNet
+ResNet-18 descriptor (paper) is in ``stages/backends/resnet.py``; pass its descriptors to
+:func:`build_graph` via ``descriptors=`` together with ``similarity_threshold=0.9``.
+
+Keyframe-pair flow: views of a revisited place can be far apart in image space, where DIS
+alone fails; so b is first pre-warped onto a with the RANSAC homography, DIS runs on the
+residual motion, and the result is mapped back to flow in b's original pixel coordinates.
+
+Pure functions; deterministic (cv2.setRNGSeed before every RANSAC call, DIS is deterministic).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+from scipy.ndimage import maximum_filter
+
+from stages.frontend.flow import dis_flow, fb_consistency
+
+log = logging.getLogger(__name__)
+
+# Calibrated on stages.synth clips (loop / orbit / forward / rotation, 120 frames, every 4th
+# frame paired with every other, at 160x120 and 256x192; 1740 pairs per size), binned by the
+# ground-truth mean rigid flow between the two views in units of the keyframe threshold
+# (0.1 * min(H, W)):
+#   <= 1 threshold (what verification accepts): min 0.715 / 0.753, 5th pct 0.78 / 0.80
+#   1-3 thresholds:                             median 0.68, 95th pct 0.82 / 0.80
+#   > 3 thresholds (different places):           max 0.59 / 0.57, median 0.40 / 0.47
+# 0.7 keeps every pair verification could accept and drops all clearly different places;
+# the geometric/flow verification rejects the rest. (Not comparable with ResNet's 0.9.)
+DEFAULT_SIMILARITY_THRESHOLD: float = 0.7
+# The paper's threshold for ImageNet ResNet GAP features (stages/backends/resnet.py).
+RESNET_SIMILARITY_THRESHOLD: float = 0.9
+
+DESCRIPTOR_SIZE: tuple[int, int] = (128, 96)  # (W, H) the image is resampled to
+_ORI_BINS = 8
+_PYRAMID = (1, 2, 4)
+_THUMB: tuple[int, int] = (8, 6)  # (W, H)
+
+SIFT_RATIO = 0.75
+# OpenCV's default contrast threshold (0.04) is tuned for megapixel photos; at working
+# resolutions (<= 384 px) it leaves ~60 keypoints on a 160x120 frame and homographies of
+# wide-baseline pairs fail. 0.02 gives ~4-5x more keypoints (measured on stages.synth clips).
+SIFT_CONTRAST = 0.02
+RANSAC_SEED = 0
+MIN_MATCHES = 12
+HOMOGRAPHY_RANSAC_PX = 3.0
+ESSENTIAL_RANSAC_PX = 1.0
+
+
+# ----------------------------------------------------------------------------- descriptor
+
+
+def _power_l2(v: np.ndarray) -> np.ndarray:
+    v = np.sign(v) * np.sqrt(np.abs(v))
+    v = v - v.mean()
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else v
+
+
+def global_descriptor(image: np.ndarray) -> np.ndarray:
+    """Weight-free global descriptor of an image.
+
+    Args:
+        image: uint8 (H, W, 3) RGB (any size; resampled to ``DESCRIPTOR_SIZE``).
+
+    Returns:
+        float32 (D,) L2-normalised, D = 8 * (1 + 4 + 16) + 3 * 8 * 6 = 312.
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"image must be (H, W, 3), got {img.shape}")
+    small = cv2.resize(img, DESCRIPTOR_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
+
+    # Gradient-orientation pyramid. Blur first so the histogram reflects structure, not the
+    # pixel-level texture noise that changes with any sub-pixel shift.
+    gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    gray = cv2.GaussianBlur(gray, (0, 0), 1.0)
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.hypot(gx, gy)
+    # Unsigned orientation in [0, pi): robust to contrast inversion between views.
+    ang = np.mod(np.arctan2(gy, gx), np.pi) / np.pi * _ORI_BINS
+    b0 = np.floor(ang).astype(np.int64) % _ORI_BINS
+    frac = ang - np.floor(ang)
+    b1 = (b0 + 1) % _ORI_BINS
+    h, w = gray.shape
+    hog_parts = []
+    for cells in _PYRAMID:
+        ys = np.minimum((np.arange(h) * cells) // h, cells - 1)
+        xs = np.minimum((np.arange(w) * cells) // w, cells - 1)
+        cell = (ys[:, None] * cells + xs[None, :]).ravel()
+        hist = np.zeros((cells * cells, _ORI_BINS), np.float64)
+        np.add.at(hist, (cell, b0.ravel()), (mag * (1 - frac)).ravel())
+        np.add.at(hist, (cell, b1.ravel()), (mag * frac).ravel())
+        # Normalise each cell by its own energy so bright, high-contrast cells do not
+        # dominate; the epsilon keeps flat cells (walls) near zero instead of amplifying noise.
+        norm = np.linalg.norm(hist, axis=1, keepdims=True)
+        hist = hist / (norm + 1e-3 * (norm.mean() + 1e-6) + 1e-6)
+        hog_parts.append(hist.ravel() / np.sqrt(cells * cells))
+    hog = _power_l2(np.concatenate(hog_parts))
+
+    # Colour layout thumbnail, standardised per channel (exposure/white-balance tolerant).
+    thumb = cv2.resize(small, _THUMB, interpolation=cv2.INTER_AREA)
+    thumb = thumb.reshape(-1, 3).astype(np.float64)
+    thumb = (thumb - thumb.mean(0)) / (thumb.std(0) + 1.0)
+    col = _power_l2(thumb.ravel())
+
+    desc = np.concatenate([hog, col]) / np.sqrt(2.0)
+    n = np.linalg.norm(desc)
+    return (desc / n if n > 0 else desc).astype(np.float32)
+
+
+def similarity_matrix(desc: np.ndarray) -> np.ndarray:
+    """Cosine similarity (K, K) float64 of L2-normalised descriptors (K, D)."""
+    d = np.asarray(desc, dtype=np.float64)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return d @ d.T
+
+
+def candidate_pairs(
+    desc: np.ndarray,
+    threshold: float = DEFAULT_SIMILARITY_THRESHOLD,
+    nms: int = 8,
+    min_separation: int = 8,
+) -> list[tuple[int, int, float]]:
+    """Loop-closure candidates among keyframes.
+
+    Args:
+        desc: (K, D) L2-normalised descriptors, one per keyframe (in keyframe order).
+        threshold: minimum cosine similarity.
+        nms: side of the max-pool window over the similarity matrix; a pair survives only if
+            it is the maximum of its nms x nms neighbourhood (of eligible pairs). This keeps
+            one pair per revisit instead of a block of near-duplicates.
+        min_separation: only pairs with b - a > min_separation (keyframe units) are eligible;
+            closer pairs are already linked by sequential edges (tau <= 8).
+
+    Returns:
+        [(a, b, similarity)] with a < b keyframe positions, sorted by decreasing similarity
+        (ties by (a, b)).
+    """
+    s = similarity_matrix(desc)
+    k = s.shape[0]
+    a_idx, b_idx = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
+    eligible = (b_idx - a_idx) > min_separation
+    masked = np.where(eligible, s, -np.inf)
+    if nms > 1:
+        pooled = maximum_filter(masked, size=int(nms), mode="constant", cval=-np.inf)
+    else:
+        pooled = masked
+    keep = eligible & (masked >= threshold) & (masked >= pooled)
+    out = [(int(a), int(b), float(s[a, b])) for a, b in zip(*np.nonzero(keep))]
+    out.sort(key=lambda t: (-t[2], t[0], t[1]))
+    return out
+
+
+# ----------------------------------------------------------------------------- matching
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(img, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def _sift_matches(img_a: np.ndarray, img_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ratio-test SIFT matches: (pts_a (M, 2), pts_b (M, 2)) float64 px, deterministic order."""
+    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)
+    kp_a, des_a = sift.detectAndCompute(_gray(img_a), None)
+    kp_b, des_b = sift.detectAndCompute(_gray(img_b), None)
+    if des_a is None or des_b is None or len(kp_a) < 2 or len(kp_b) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    knn = matcher.knnMatch(des_a, des_b, k=2)
+    pa, pb = [], []
+    for m in knn:
+        if len(m) == 2 and m[0].distance < SIFT_RATIO * m[1].distance:
+            pa.append(kp_a[m[0].queryIdx].pt)
+            pb.append(kp_b[m[0].trainIdx].pt)
+    return np.asarray(pa, np.float64).reshape(-1, 2), np.asarray(pb, np.float64).reshape(-1, 2)
+
+
+def _homography(pts_a: np.ndarray, pts_b: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """RANSAC homography H with p_a ~ H p_b, and its inlier ratio among the matches."""
+    if len(pts_a) < max(4, MIN_MATCHES):
+        return None, 0.0
+    cv2.setRNGSeed(RANSAC_SEED)
+    h, inl = cv2.findHomography(
+        pts_b, pts_a, cv2.RANSAC, HOMOGRAPHY_RANSAC_PX, maxIters=2000, confidence=0.999
+    )
+    if h is None or inl is None or not np.all(np.isfinite(h)):
+        return None, 0.0
+    return h, float(inl.ravel().astype(bool).mean())
+
+
+def _essential_inlier_ratio(pts_a: np.ndarray, pts_b: np.ndarray, K: np.ndarray) -> float:
+    """Inlier ratio of a RANSAC essential matrix (the calibrated form of the fundamental test)."""
+    if len(pts_a) < max(5, MIN_MATCHES):
+        return 0.0
+    cv2.setRNGSeed(RANSAC_SEED)
+    e, inl = cv2.findEssentialMat(
+        pts_a, pts_b, np.asarray(K, np.float64), cv2.RANSAC, 0.999, ESSENTIAL_RANSAC_PX
+    )
+    if e is None or inl is None:
+        return 0.0
+    return float(inl.ravel().astype(bool).mean())
+
+
+def _apply_h(h: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    den = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    den = np.where(np.abs(den) < 1e-12, 1e-12, den)
+    xo = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / den
+    yo = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / den
+    return xo, yo
+
+
+def _flow_with_prewarp(
+    img_a: np.ndarray, img_b: np.ndarray, h_ab: np.ndarray, fb_thresh: float
+) -> dict[str, np.ndarray]:
+    """Flow a <-> b with b pre-warped onto a by h_ab (p_a ~ h_ab p_b)."""
+    hgt, wid = img_a.shape[:2]
+    yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float64)
+    # b_w(p) = b(h_ab^-1 p): b resampled on a's grid. Pixels of b_w with no source in b are
+    # filled by edge replication; they get no valid flow below (source-in-image tests).
+    b_w = cv2.warpPerspective(
+        img_b, h_ab, (wid, hgt), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    fwd_w = dis_flow(img_a, b_w).astype(np.float64)  # on a's grid, into b_w coords
+    bwd_w = dis_flow(b_w, img_a).astype(np.float64)  # on b_w's grid, into a coords
+    h_inv = np.linalg.inv(h_ab)
+
+    # Forward: p in a -> p + fwd_w(p) in b_w -> h_ab^-1 (.) in b.
+    tx, ty = _apply_h(h_inv, xx + fwd_w[..., 0], yy + fwd_w[..., 1])
+    fwd = np.stack([tx - xx, ty - yy], -1)
+
+    # Backward: q in b sits at h_ab q in b_w; sample bwd_w there (bilinear) -> point in a.
+    qx, qy = _apply_h(h_ab, xx, yy)
+    samp = cv2.remap(
+        bwd_w.astype(np.float32), qx.astype(np.float32), qy.astype(np.float32),
+        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
+    )
+    bwd = np.stack([qx + samp[..., 0] - xx, qy + samp[..., 1] - yy], -1)
+    b_src_ok = (qx >= 0) & (qx <= wid - 1) & (qy >= 0) & (qy <= hgt - 1)
+
+    # Pixels of a whose b_w neighbourhood came from outside b (replicated border) are not
+    # measurements; fb_consistency already rejects targets outside b.
+    finite_f = np.isfinite(fwd).all(-1)
+    finite_b = np.isfinite(bwd).all(-1) & b_src_ok
+    fwd = np.where(finite_f[..., None], fwd, 0.0).astype(np.float32)
+    bwd = np.where(finite_b[..., None], bwd, 0.0).astype(np.float32)
+    fwd_valid = fb_consistency(fwd, bwd, fb_thresh) & finite_f
+    bwd_valid = fb_consistency(bwd, fwd, fb_thresh) & finite_b
+    return {"fwd": fwd, "bwd": bwd, "fwd_valid": fwd_valid, "bwd_valid": bwd_valid}
+
+
+def keyframe_pair_flow(
+    img_a: np.ndarray,
+    img_b: np.ndarray,
+    fb_thresh: float = 2.0,
+    _matches: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """Flow between two keyframes with homography pre-warping.
+
+    Args:
+        img_a, img_b: uint8 (H, W, 3) RGB of the same size.
+        fb_thresh: forward-backward consistency threshold in px (paper: 2 for keyframe pairs).
+
+    Returns:
+        dict(fwd float32 (H, W, 2) a -> b on a's grid, bwd float32 (H, W, 2) b -> a on b's
+        grid, fwd_valid / bwd_valid bool (H, W), homography float64 (3, 3) with
+        p_a ~ H p_b (identity when SIFT/RANSAC found none)).
+    """
+    if img_a.shape != img_b.shape:
+        raise ValueError(f"image shapes differ: {img_a.shape} vs {img_b.shape}")
+    pts_a, pts_b = _matches if _matches is not None else _sift_matches(img_a, img_b)
+    h, _ = _homography(pts_a, pts_b)
+    if h is None:
+        h = np.eye(3)
+    out = _flow_with_prewarp(img_a, img_b, h, fb_thresh)
+    out["homography"] = np.asarray(h, np.float64)
+    return out
+
+
+def verify_pair(
+    img_a: np.ndarray,
+    img_b: np.ndarray,
+    K: np.ndarray,
+    keyframe_threshold_px: float,
+    min_inlier_ratio: float = 0.5,
+    min_consistent: float = 0.1,
+    fb_thresh: float = 2.0,
+) -> dict[str, Any]:
+    """Geometric + flow verification of a loop candidate (DESIGN §5.6).
+
+    Returns a dict with ``accepted`` (bool), ``inlier_ratio`` (max of homography and
+    essential-matrix RANSAC inlier ratios over ratio-test SIFT matches), ``n_matches``,
+    ``consistent_fraction`` (fraction of a's pixels with 2 px fwd-bwd consistent flow),
+    ``mean_flow`` (px, mean |fwd| over consistent pixels, in original coordinates),
+    ``reason`` ("ok" or why it was rejected) and the flow dict of :func:`keyframe_pair_flow`
+    (``fwd``, ``bwd``, ``fwd_valid``, ``bwd_valid``, ``homography``).
+
+    The essential matrix (K is known) stands in for the fundamental matrix: a revisit with
+    parallax is not a homography, and a calibrated model has fewer degenerate fits.
+    """
+    pts_a, pts_b = _sift_matches(img_a, img_b)
+    n_matches = int(len(pts_a))
+    _, h_ratio = _homography(pts_a, pts_b)
+    e_ratio = _essential_inlier_ratio(pts_a, pts_b, K)
+    inlier_ratio = max(h_ratio, e_ratio)
+    flow = keyframe_pair_flow(img_a, img_b, fb_thresh=fb_thresh, _matches=(pts_a, pts_b))
+    valid = flow["fwd_valid"]
+    consistent = float(valid.mean())
+    mag = np.linalg.norm(flow["fwd"].astype(np.float64), axis=-1)
+    mean_flow = float(mag[valid].mean()) if valid.any() else float("inf")
+
+    if n_matches < MIN_MATCHES:
+        reason = f"too few matches ({n_matches} < {MIN_MATCHES})"
+    elif inlier_ratio < min_inlier_ratio:
+        reason = f"inlier ratio {inlier_ratio:.3f} < {min_inlier_ratio}"
+    elif consistent < min_consistent:
+        reason = f"consistent fraction {consistent:.3f} < {min_consistent}"
+    elif not mean_flow <= keyframe_threshold_px:
+        reason = f"mean flow {mean_flow:.2f} px > keyframe threshold {keyframe_threshold_px:.2f} px"
+    else:
+        reason = "ok"
+    out: dict[str, Any] = {
+        "accepted": reason == "ok",
+        "inlier_ratio": float(inlier_ratio),
+        "n_matches": n_matches,
+        "consistent_fraction": consistent,
+        "mean_flow": mean_flow,
+        "reason": reason,
+    }
+    out.update(flow)
+    return out
+
+
+# ----------------------------------------------------------------------------- graph
+
+
+def build_graph(
+    kf_indices: list[int],
+    kf_images: list[np.ndarray] | np.ndarray,
+    K: np.ndarray,
+    keyframe_threshold_px: float,
+    taus: tuple[int, ...] = (1, 2, 4, 8),
+    similarity_threshold: float = DEFAULT_SIMILARITY_THRESHOLD,
+    nms: int = 8,
+    min_separation: int | None = None,
+    descriptors: np.ndarray | None = None,
+    descriptor_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+    min_inlier_ratio: float = 0.5,
+    min_consistent: float = 0.1,
+    fb_thresh: float = 2.0,
+) -> tuple[dict[str, Any], dict[tuple[int, int], dict[str, np.ndarray]]]:
+    """Build the keyframe graph: sequential edges + verified non-sequential edges.
+
+    Args:
+        kf_indices: frame indices of the keyframes (increasing).
+        kf_images: uint8 (H, W, 3) RGB image of each keyframe.
+        K: (3, 3) intrinsics.
+        keyframe_threshold_px: threshold used for keyframe selection (``threshold_px``).
+        taus: keyframe distances of sequential edges (weight 1/tau).
+        similarity_threshold: descriptor threshold (default calibrated for
+            :func:`global_descriptor`; use ``RESNET_SIMILARITY_THRESHOLD`` for ResNet).
+        nms, min_separation: see :func:`candidate_pairs`; min_separation defaults to max(taus).
+        descriptors: (K, D) precomputed descriptors (e.g. ResNet-18); else computed with
+            ``descriptor_fn`` (default :func:`global_descriptor`).
+
+    Returns:
+        (graph, edge_flows). ``graph`` is JSON-able: {keyframes, similarity_threshold,
+        keyframe_threshold_px, sequential_edges: [{i, j, tau, weight}], nonsequential_edges:
+        [{i, j, similarity, inlier_ratio, consistent_fraction, mean_flow}], rejected: [{i, j,
+        similarity, inlier_ratio, consistent_fraction, mean_flow, reason}]}, i < j frame
+        indices. ``edge_flows[(i, j)]`` is the :func:`keyframe_pair_flow` dict of every tau = 1
+        sequential edge and every accepted non-sequential edge.
+    """
+    kfs = [int(i) for i in kf_indices]
+    n = len(kfs)
+    if len(kf_images) != n:
+        raise ValueError(f"{n} keyframe indices but {len(kf_images)} images")
+    if any(b <= a for a, b in zip(kfs, kfs[1:])):
+        raise ValueError("kf_indices must be strictly increasing")
+    sep = max(taus) if min_separation is None else int(min_separation)
+
+    sequential = []
+    for m in range(n):
+        for tau in sorted(set(int(t) for t in taus)):
+            if m + tau < n:
+                sequential.append({"i": kfs[m], "j": kfs[m + tau], "tau": tau, "weight": 1.0 / tau})
+
+    edge_flows: dict[tuple[int, int], dict[str, np.ndarray]] = {}
+    for m in range(n - 1):
+        edge_flows[(kfs[m], kfs[m + 1])] = keyframe_pair_flow(
+            kf_images[m], kf_images[m + 1], fb_thresh=fb_thresh
+        )
+
+    if descriptors is None:
+        fn = descriptor_fn or global_descriptor
+        descriptors = (
+            np.stack([fn(img) for img in kf_images]) if n else np.zeros((0, 1), np.float32)
+        )
+    desc = np.asarray(descriptors)
+    if desc.shape[0] != n:
+        raise ValueError(f"descriptors have {desc.shape[0]} rows for {n} keyframes")
+
+    accepted, rejected = [], []
+    cands = candidate_pairs(desc, similarity_threshold, nms=nms, min_separation=sep) if n else []
+    for a, b, sim in cands:
+        v = verify_pair(
+            kf_images[a], kf_images[b], K, keyframe_threshold_px,
+            min_inlier_ratio=min_inlier_ratio, min_consistent=min_consistent, fb_thresh=fb_thresh,
+        )
+        stats = {
+            "i": kfs[a],
+            "j": kfs[b],
+            "similarity": float(sim),
+            "inlier_ratio": v["inlier_ratio"],
+            "consistent_fraction": v["consistent_fraction"],
+            # inf (no consistent pixel) is not JSON: record None.
+            "mean_flow": v["mean_flow"] if np.isfinite(v["mean_flow"]) else None,
+        }
+        if v["accepted"]:
+            accepted.append(stats)
+            keys = ("fwd", "bwd", "fwd_valid", "bwd_valid", "homography")
+            edge_flows[(kfs[a], kfs[b])] = {k: v[k] for k in keys}
+        else:
+            rejected.append({**stats, "reason": v["reason"]})
+    log.debug(
+        "graph: %d keyframes, %d sequential, %d loop edges, %d rejected",
+        n, len(sequential), len(accepted), len(rejected),
+    )
+    graph = {
+        "keyframes": kfs,
+        "similarity_threshold": float(similarity_threshold),
+        "keyframe_threshold_px": float(keyframe_threshold_px),
+        "sequential_edges": sequential,
+        "nonsequential_edges": accepted,
+        "rejected": rejected,
+    }
+    return graph, edge_flows
+
+
+def flows_by_keyframe_position(
+    kf_indices: list[int], edge_flows: dict[tuple[int, int], dict[str, np.ndarray]]
+) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+    """Re-key the consecutive-keyframe flows of :func:`build_graph` by keyframe *position*.
+
+    ``edge_flows`` is keyed by frame indices (i, j); ``stages.optimize.optimize_keyframes``
+    expects ``pair_flows[(m, m + 1)]`` with m the position in the keyframe list. Same arrays,
+    no copy.
+    """
+    kfs = [int(i) for i in kf_indices]
+    return {(m, m + 1): edge_flows[(kfs[m], kfs[m + 1])] for m in range(len(kfs) - 1)}
