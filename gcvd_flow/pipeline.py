@@ -31,6 +31,7 @@ from gcvd_flow.engine.config import Section
 from gcvd_flow.engine.dag import Const, ItemRef, MapStage, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io import run_dir
+from gcvd_flow.io.weights import open_model
 from gcvd_flow.io.sources import Source, open_source as _open_source
 from stages.depth import filter as depth_filter
 from stages.depth import fusion as depth_fusion
@@ -40,7 +41,6 @@ from stages.frontend import masks as masks_mod
 from stages.frontend import priors as priors_mod
 from stages.graph import association as association_mod
 from stages.graph import keyframes as keyframes_mod
-from stages.models import load_model
 from stages.optimize import pose_graph as pose_graph_mod
 from stages.optimize import training
 from stages.optimize.training import torch_threads
@@ -125,7 +125,7 @@ def _flow_items(view, p: FlowParams):
 
 
 def _open_raft(p: FlowParams) -> Any:
-    return load_model("raft", p.weights)
+    return open_model("raft", p.weights)
 
 
 def run_flow(inputs: dict[str, Any], p: FlowParams, ctx: Any) -> dict[str, Any]:
@@ -188,7 +188,7 @@ def _mask_items(view, p: MasksParams):
 
 
 def _open_maskrcnn(p: MasksParams) -> Any:
-    return load_model("maskrcnn", p.weights, min_size=p.min_size)
+    return open_model("maskrcnn", p.weights, min_size=p.min_size)
 
 
 def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
@@ -256,7 +256,7 @@ def _prior_items(view, p: PriorsParams):
 
 
 def _open_midas(p: PriorsParams) -> Any:
-    return load_model("midas", p.weights)
+    return open_model("midas", p.weights)
 
 
 def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, Any]:
@@ -336,7 +336,7 @@ class AssociationParams(Section):
 
 
 def _open_resnet(p: AssociationParams) -> Any:
-    return load_model("resnet18", p.weights)
+    return open_model("resnet18", p.weights)
 
 
 def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:

@@ -18,11 +18,12 @@ from stages.graph.association import (
     keyframe_pair_flow,
     verify_pair,
 )
-from stages.models.resnet import ResNet18, load_resnet18, resnet_descriptor
+from stages.models.resnet import ResNet18, resnet_descriptor
 from stages.frontend.flow import compute_pair_flow
 from geometry_ref import rigid_flow
 from stages.graph.keyframes import pair_motion, select_keyframes
 from gcvd_flow.evaluate.synth import render_clip
+from gcvd_flow.io.weights import open_model
 
 SIZE = (160, 120)
 
@@ -173,10 +174,10 @@ def test_resnet18_roundtrip_safetensors_and_pth(tmp_path: Path, loop_clip) -> No
     assert ref.shape == (512,) and ref.dtype == np.float32
     assert np.linalg.norm(ref) == pytest.approx(1.0, abs=1e-5)
     for fname in ("r18.safetensors", "r18.pth"):
-        loaded = load_resnet18(tmp_path / fname)
+        loaded = open_model("resnet18", tmp_path / fname)
         assert not loaded.training
         np.testing.assert_allclose(resnet_descriptor(loaded, frames[0]), ref, atol=1e-6)
     # A mismatched file is rejected (strict loading).
     save_file({"conv1.weight": torch.zeros(64, 3, 7, 7)}, str(tmp_path / "bad.safetensors"))
-    with pytest.raises(RuntimeError):
-        load_resnet18(tmp_path / "bad.safetensors")
+    with pytest.raises(ValueError, match="bad.safetensors"):
+        open_model("resnet18", tmp_path / "bad.safetensors")

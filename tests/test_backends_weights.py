@@ -14,8 +14,9 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from stages.models.midas import MidasNet, load_midas, midas_prior, network_size
-from stages.models.raft import RAFT, CorrPyramid, coords_grid, load_raft, raft_flow, upsample_flow_convex
+from stages.models.midas import MidasNet, midas_prior, network_size
+from stages.models.raft import RAFT, CorrPyramid, coords_grid, raft_flow, upsample_flow_convex
+from gcvd_flow.io.weights import open_model
 
 
 def _save_safetensors(model: torch.nn.Module, path: Path) -> Path:
@@ -79,7 +80,7 @@ def test_raft_key_names_match_official_checkpoint():
 
 def test_raft_safetensors_roundtrip_and_determinism(raft_files):
     model, st, _ = raft_files
-    loaded = load_raft(st)
+    loaded = open_model("raft", st)
     assert not loaded.training
     _assert_same_weights(model, loaded)
     a, b = _images(48, 64)
@@ -89,18 +90,18 @@ def test_raft_safetensors_roundtrip_and_determinism(raft_files):
     assert np.isfinite(f1).all()
     assert np.array_equal(f1, f2)
     assert np.abs(f1).max() > 0
-    f3 = raft_flow(load_raft(st), a, b, iters=2)
+    f3 = raft_flow(open_model("raft", st), a, b, iters=2)
     assert np.array_equal(f1, f3)
 
 
 def test_raft_pth_weights_only_and_padding(raft_files):
     _, st, pth = raft_files
     a, b = _images(48, 64)
-    np.testing.assert_array_equal(raft_flow(load_raft(pth), a, b, iters=2),
-                                  raft_flow(load_raft(st), a, b, iters=2))
+    np.testing.assert_array_equal(raft_flow(open_model("raft", pth), a, b, iters=2),
+                                  raft_flow(open_model("raft", st), a, b, iters=2))
     # sides not multiples of 8: padded (replicate) then cropped back
     a2, b2 = _images(45, 61, seed=1)
-    f = raft_flow(load_raft(st), a2, b2, iters=1)
+    f = raft_flow(open_model("raft", st), a2, b2, iters=1)
     assert f.shape == (45, 61, 2) and f.dtype == np.float32 and np.isfinite(f).all()
 
 
@@ -111,14 +112,14 @@ def test_raft_missing_key_is_a_clear_error(raft_files, tmp_path):
     bad = tmp_path / "broken.safetensors"
     save_file(state, str(bad))
     with pytest.raises(ValueError, match=r"update_block\.mask\.0\.weight") as e:
-        load_raft(bad)
+        open_model("raft", bad)
     assert "broken.safetensors" in str(e.value)
     state = {k: v.detach().clone() for k, v in model.state_dict().items()}
     state["extra.weight"] = torch.zeros(1)
     bad2 = tmp_path / "extra.pth"
     torch.save(state, str(bad2))
     with pytest.raises(ValueError, match=r"extra\.weight"):
-        load_raft(bad2)
+        open_model("raft", bad2)
 
 
 def test_raft_inputs_validated():
@@ -195,12 +196,12 @@ def test_midas_architecture_keys_and_size():
 
 def test_midas_safetensors_roundtrip_prior_contract(midas_files):
     model, st, _ = midas_files
-    loaded = load_midas(st)
+    loaded = open_model("midas", st)
     assert not loaded.training
     _assert_same_weights(model, loaded)
     img, _ = _images(48, 64)
     p1 = midas_prior(loaded, img)
-    p2 = midas_prior(load_midas(st), img)
+    p2 = midas_prior(open_model("midas", st), img)
     assert p1.shape == (48, 64) and p1.dtype == np.float32
     assert np.isfinite(p1).all() and (p1 > 0).all()
     assert np.median(p1) == pytest.approx(1.0, rel=1e-5)
@@ -212,10 +213,10 @@ def test_midas_safetensors_roundtrip_prior_contract(midas_files):
 
 def test_midas_pth_weights_only(midas_files):
     model, st, pth = midas_files
-    loaded = load_midas(pth)
+    loaded = open_model("midas", pth)
     _assert_same_weights(model, loaded)
     img, _ = _images(48, 64, seed=2)
-    np.testing.assert_array_equal(midas_prior(loaded, img), midas_prior(load_midas(st), img))
+    np.testing.assert_array_equal(midas_prior(loaded, img), midas_prior(open_model("midas", st), img))
 
 
 def test_midas_missing_key_is_a_clear_error(midas_files, tmp_path):
@@ -225,11 +226,11 @@ def test_midas_missing_key_is_a_clear_error(midas_files, tmp_path):
     bad = tmp_path / "broken_midas.pt"
     torch.save(state, str(bad))
     with pytest.raises(ValueError, match=r"scratch\.output_conv\.4\.weight") as e:
-        load_midas(bad)
+        open_model("midas", bad)
     assert "broken_midas.pt" in str(e.value)
     # a RAFT file is not a MiDaS file
     torch.manual_seed(0)
     raft = tmp_path / "raft.safetensors"
     _save_safetensors(RAFT(), raft)
     with pytest.raises(ValueError, match="pretrained.layer1.0.weight"):
-        load_midas(raft)
+        open_model("midas", raft)

@@ -18,7 +18,8 @@ from safetensors.torch import save_file
 
 from conftest import by_stage, cli, cli_json
 from stages.models.maskrcnn import (DYNAMIC_COCO_CLASSES, MaskRCNN, batched_nms, build_maskrcnn, cell_anchors,
-                                      load_maskrcnn, nms, roi_align, semantic_static_mask)
+                                      nms, roi_align, semantic_static_mask)
+from gcvd_flow.io.weights import open_model
 
 TORCHVISION_PARAMS = 44_401_393  # sum(p.numel() for p in maskrcnn_resnet50_fpn().parameters())
 TORCHVISION_TENSORS = 307  # its state dict: 265 backbone.body (frozen BN: 4 buffers each), 16 fpn, 6 rpn, 20 roi_heads
@@ -80,7 +81,7 @@ def test_build_is_deterministic_under_seed(model):
 
 
 def test_safetensors_roundtrip_gives_identical_outputs(model, weights):
-    loaded = load_maskrcnn(weights, min_size=192)
+    loaded = open_model("maskrcnn", weights, min_size=192)
     assert not loaded.training and loaded.min_size == 192
     loaded.roi_heads.detections_per_img = model.roi_heads.detections_per_img
     img = _image(192, 256)
@@ -105,7 +106,7 @@ def test_legacy_torchvision_key_names_load(model, tmp_path):
     legacy["backbone.body.bn1.num_batches_tracked"] = torch.tensor(0)
     path = tmp_path / "maskrcnn_legacy.pth"
     torch.save(legacy, str(path))
-    loaded = load_maskrcnn(path)
+    loaded = open_model("maskrcnn", path)
     a, b = model.state_dict(), loaded.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
 
@@ -116,7 +117,7 @@ def test_renamed_key_is_an_error_naming_it(model, tmp_path):
     path = tmp_path / "bad.safetensors"
     save_file(state, str(path))
     with pytest.raises(ValueError, match=r"roi_heads\.box_head\.fc6\.weight") as err:
-        load_maskrcnn(path)
+        open_model("maskrcnn", path)
     assert str(path) in str(err.value)
 
 

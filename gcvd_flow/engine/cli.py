@@ -176,108 +176,140 @@ def _print_run(res: dict[str, Any], json_mode: bool) -> None:
         print(f"{k}: {v}")
 
 
-def dispatch(a: argparse.Namespace) -> int:
-    if a.cmd == "run":
-        res = _fast_noop(a)
-        if res is not None:
-            _print_run(res, a.json_mode)
-            return 0
-        from gcvd_flow.engine import api
-
-        res = api.run(_invocation(a), target=a.until)
-        record_paths = res.pop("_record_paths")
-        watch = res.pop("_watch")
-        if a.out:
-            from gcvd_flow.engine import fastpath
-
-            fastpath.write(a.out, stamp_invocation(a), res["cache"], res, record_paths, watch)
+def _cmd_run(a: argparse.Namespace) -> int:
+    res = _fast_noop(a)
+    if res is not None:
         _print_run(res, a.json_mode)
         return 0
+    from gcvd_flow.engine import api, fastpath
+
+    res = api.run(_invocation(a), target=a.until)
+    record_paths = res.pop("_record_paths")
+    watch = res.pop("_watch")
+    if a.out:
+        fastpath.write(a.out, stamp_invocation(a), res["cache"], res, record_paths, watch)
+    _print_run(res, a.json_mode)
+    return 0
+
+
+def _cmd_plan(a: argparse.Namespace) -> int:
     from gcvd_flow.engine import api
 
-    if a.cmd == "plan":
-        reps = api.plan(_invocation(a))
-        if a.json_mode:
-            _print_json({"stages": [r.as_plan_json() for r in reps]})
-        else:
-            for r in reps:
-                print(f"{r.name:<20} {r.action:<7} {'; '.join(r.reasons)}")
-        return 0
-    if a.cmd == "why":
-        res = api.why(a.stage, a.out, _invocation(a, input_=None, out=a.out))
-        if a.json_mode:
-            _print_json(res)
-        else:
-            if res["action"] == "cached":
-                print(f"{a.stage}: up to date (key {str(res['key'])[:12]})")
-            else:
-                print(f"{a.stage} would run:")
-                for r in res["reasons"]:
-                    print(f"  - {r}")
-        return 0
-    if a.cmd == "status":
-        reps = api.status(a.out, _invocation(a, input_=None, out=a.out))
-        if a.json_mode:
-            _print_json({"stages": [r.as_plan_json() for r in reps]})
-        else:
-            for r in reps:
-                state = "up to date" if r.action == "cached" else "changed: " + "; ".join(r.reasons)
-                print(f"{r.name:<20} {state}")
-        return 0
-    if a.cmd == "dag":
-        spec = api.load_spec(a.pipeline, allow_module_ref=True)
-        stages = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
-                  for s in spec.pipeline.stages]
-        if a.json_mode:
-            _print_json({"stages": stages})
-        else:
-            for s in stages:
-                arrow = " <- " + ", ".join(s["deps"]) if s["deps"] else ""
-                print(f"{s['name']}{' [map]' if s['map'] else ''}{arrow}")
-        return 0
-    if a.cmd == "fsck":
-        rep = api.fsck(a.cache)
-        if a.json_mode:
-            _print_json(rep)
-        else:
-            print(f"checked {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB): "
-                  f"{len(rep['corrupt'])} corrupt (quarantined), {rep['records_removed']} records dropped")
-            for d in rep["corrupt"]:
-                print(f"corrupt: {d}")
-        return 0
-    if a.cmd == "gc":
-        rep = api.gc(a.cache, a.keep)
-        if a.json_mode:
-            _print_json(rep)
-        else:
-            print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
-                  f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
-        return 0
-    if a.cmd == "pin":
-        store = api.open_store(a.cache)
-        if a.remove:
-            store.unpin(a.name)
-            print(f"unpinned {a.name}")
-        else:
-            run = api.read_run_dir(a.out)
-            store.pin(a.name, {"records": [s["key"] for s in run["stages"].values() if s.get("key")]})
-            print(f"pinned {a.out} as {a.name}")
-        return 0
-    if a.cmd in ("push", "pull"):
-        from gcvd_flow.engine import remote
+    reps = api.plan(_invocation(a))
+    if a.json_mode:
+        _print_json({"stages": [r.as_plan_json() for r in reps]})
+    else:
+        for r in reps:
+            print(f"{r.name:<20} {r.action:<7} {'; '.join(r.reasons)}")
+    return 0
 
-        store = api.open_store(a.cache)
-        rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote, a.out)
-        if a.json_mode:
-            _print_json(rep)
-        else:
-            print(f"{a.cmd}: {rep['records']} records, {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB)"
-                  + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else ""))
-        return 0
-    handler = getattr(a, "handler", None)
-    if handler is not None:
-        return int(handler(a) or 0)
-    raise UsageError(f"unknown command {a.cmd!r}")
+
+def _cmd_why(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api
+
+    res = api.why(a.stage, a.out, _invocation(a, input_=None, out=a.out))
+    if a.json_mode:
+        _print_json(res)
+    elif res["action"] == "cached":
+        print(f"{a.stage}: up to date (key {str(res['key'])[:12]})")
+    else:
+        print(f"{a.stage} would run:")
+        for r in res["reasons"]:
+            print(f"  - {r}")
+    return 0
+
+
+def _cmd_status(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api
+
+    reps = api.status(a.out, _invocation(a, input_=None, out=a.out))
+    if a.json_mode:
+        _print_json({"stages": [r.as_plan_json() for r in reps]})
+    else:
+        for r in reps:
+            state = "up to date" if r.action == "cached" else "changed: " + "; ".join(r.reasons)
+            print(f"{r.name:<20} {state}")
+    return 0
+
+
+def _cmd_dag(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api
+
+    spec = api.load_spec(a.pipeline, allow_module_ref=True)
+    stages = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
+              for s in spec.pipeline.stages]
+    if a.json_mode:
+        _print_json({"stages": stages})
+    else:
+        for s in stages:
+            arrow = " <- " + ", ".join(s["deps"]) if s["deps"] else ""
+            print(f"{s['name']}{' [map]' if s['map'] else ''}{arrow}")
+    return 0
+
+
+def _cmd_fsck(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api
+
+    rep = api.fsck(a.cache)
+    if a.json_mode:
+        _print_json(rep)
+    else:
+        print(f"checked {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB): "
+              f"{len(rep['corrupt'])} corrupt (quarantined), {rep['records_removed']} records dropped")
+        for d in rep["corrupt"]:
+            print(f"corrupt: {d}")
+    return 0
+
+
+def _cmd_gc(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api
+
+    rep = api.gc(a.cache, a.keep)
+    if a.json_mode:
+        _print_json(rep)
+    else:
+        print(f"removed {rep['objects_removed']} objects ({rep['bytes_removed'] / 1e6:.1f} MB), "
+              f"{rep['records_removed']} records; kept {rep['objects_kept']} objects")
+    return 0
+
+
+def _cmd_pin(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api
+
+    store = api.open_store(a.cache)
+    if a.remove:
+        store.unpin(a.name)
+        print(f"unpinned {a.name}")
+    else:
+        run = api.read_run_dir(a.out)
+        store.pin(a.name, {"records": [s["key"] for s in run["stages"].values() if s.get("key")]})
+        print(f"pinned {a.out} as {a.name}")
+    return 0
+
+
+def _cmd_push_pull(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api, remote
+
+    store = api.open_store(a.cache)
+    rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote, a.out)
+    if a.json_mode:
+        _print_json(rep)
+    else:
+        print(f"{a.cmd}: {rep['records']} records, {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB)"
+              + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else ""))
+    return 0
+
+
+ENGINE_COMMANDS = {"run": _cmd_run, "plan": _cmd_plan, "why": _cmd_why, "status": _cmd_status, "dag": _cmd_dag,
+                   "fsck": _cmd_fsck, "gc": _cmd_gc, "pin": _cmd_pin, "push": _cmd_push_pull,
+                   "pull": _cmd_push_pull}
+
+
+def dispatch(a: argparse.Namespace) -> int:
+    handler = ENGINE_COMMANDS.get(a.cmd) or getattr(a, "handler", None)
+    if handler is None:
+        raise UsageError(f"unknown command {a.cmd!r}")
+    return int(handler(a) or 0)
 
 
 def main(product: Product, argv: Sequence[str] | None = None) -> int:

@@ -274,6 +274,9 @@ class Runner:
 
     def _key_fields(self, stage: Stage, inputs: dict[str, str]) -> dict[str, Any]:
         fp, files = keys.code_fingerprint(stage.fn, self.pipeline.packages)
+        for name, opener in sorted(stage.resources.items()):  # e.g. the code that builds a model
+            rfp, rfiles = keys.code_fingerprint(opener, self.pipeline.packages)
+            fp, files = keys.key_of([fp, name, rfp]), tuple(sorted(set(files) | set(rfiles)))
         params = params_for_key(self.stage_params(stage))
         return {"code": fp, "code_files": {k: v for k, v in files}, "version": stage.version,
                 "params": params, "seed": self.seed if stage.uses_seed else None,

@@ -355,6 +355,48 @@ def verify_pair(
 # ----------------------------------------------------------------------------- graph
 
 
+def sequential_edges(kfs: list[int], taus: tuple[int, ...]) -> list[dict[str, Any]]:
+    """{i, j, tau, weight = 1/tau} for every keyframe and every tau that stays in the clip."""
+    out = []
+    for m in range(len(kfs)):
+        for tau in sorted(set(int(t) for t in taus)):
+            if m + tau < len(kfs):
+                out.append({"i": kfs[m], "j": kfs[m + tau], "tau": tau, "weight": 1.0 / tau})
+    return out
+
+
+def _verify_candidates(
+    cands: list[tuple[int, int, float]],
+    kfs: list[int],
+    kf_images: list[np.ndarray] | np.ndarray,
+    K: np.ndarray,
+    keyframe_threshold_px: float,
+    edge_flows: dict[tuple[int, int], dict[str, np.ndarray]],
+    **verify_kw: Any,
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """(accepted, rejected) statistics of each candidate pair (a, b, similarity) (keyframe
+    positions); the flows of accepted pairs are added to ``edge_flows`` under frame indices."""
+    accepted, rejected = [], []
+    for a, b, sim in cands:
+        v = verify_pair(kf_images[a], kf_images[b], K, keyframe_threshold_px, **verify_kw)
+        stats = {
+            "i": kfs[a],
+            "j": kfs[b],
+            "similarity": float(sim),
+            "inlier_ratio": v["inlier_ratio"],
+            "consistent_fraction": v["consistent_fraction"],
+            # inf (no consistent pixel) is not JSON: record None.
+            "mean_flow": v["mean_flow"] if np.isfinite(v["mean_flow"]) else None,
+        }
+        if v["accepted"]:
+            accepted.append(stats)
+            keys = ("fwd", "bwd", "fwd_valid", "bwd_valid", "homography")
+            edge_flows[(kfs[a], kfs[b])] = {k: v[k] for k in keys}
+        else:
+            rejected.append({**stats, "reason": v["reason"]})
+    return accepted, rejected
+
+
 def build_graph(
     kf_indices: list[int],
     kf_images: list[np.ndarray] | np.ndarray,
@@ -400,12 +442,7 @@ def build_graph(
         raise ValueError("kf_indices must be strictly increasing")
     sep = max(taus) if min_separation is None else int(min_separation)
 
-    sequential = []
-    for m in range(n):
-        for tau in sorted(set(int(t) for t in taus)):
-            if m + tau < n:
-                sequential.append({"i": kfs[m], "j": kfs[m + tau], "tau": tau, "weight": 1.0 / tau})
-
+    sequential = sequential_edges(kfs, taus)
     edge_flows: dict[tuple[int, int], dict[str, np.ndarray]] = {}
     for m in range(n - 1):
         edge_flows[(kfs[m], kfs[m + 1])] = keyframe_pair_flow(
@@ -421,28 +458,10 @@ def build_graph(
     if desc.shape[0] != n:
         raise ValueError(f"descriptors have {desc.shape[0]} rows for {n} keyframes")
 
-    accepted, rejected = [], []
     cands = candidate_pairs(desc, similarity_threshold, nms=nms, min_separation=sep) if n else []
-    for a, b, sim in cands:
-        v = verify_pair(
-            kf_images[a], kf_images[b], K, keyframe_threshold_px,
-            min_inlier_ratio=min_inlier_ratio, min_consistent=min_consistent, fb_thresh=fb_thresh,
-        )
-        stats = {
-            "i": kfs[a],
-            "j": kfs[b],
-            "similarity": float(sim),
-            "inlier_ratio": v["inlier_ratio"],
-            "consistent_fraction": v["consistent_fraction"],
-            # inf (no consistent pixel) is not JSON: record None.
-            "mean_flow": v["mean_flow"] if np.isfinite(v["mean_flow"]) else None,
-        }
-        if v["accepted"]:
-            accepted.append(stats)
-            keys = ("fwd", "bwd", "fwd_valid", "bwd_valid", "homography")
-            edge_flows[(kfs[a], kfs[b])] = {k: v[k] for k in keys}
-        else:
-            rejected.append({**stats, "reason": v["reason"]})
+    accepted, rejected = _verify_candidates(
+        cands, kfs, kf_images, K, keyframe_threshold_px, edge_flows,
+        min_inlier_ratio=min_inlier_ratio, min_consistent=min_consistent, fb_thresh=fb_thresh)
     log.debug(
         "graph: %d keyframes, %d sequential, %d loop edges, %d rejected",
         n, len(sequential), len(accepted), len(rejected),

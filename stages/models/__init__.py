@@ -1,9 +1,9 @@
 """Networks: the test-time-trained depth and pose nets, and the weights backends (RAFT, MiDaS,
-ResNet-18, Mask R-CNN) in plain torch, all read through one safe weights reader
-(``weights.read_state_dict``: safetensors, or ``torch.load(weights_only=True)``).
+ResNet-18, Mask R-CNN) in plain torch, built from a state dict that the caller read
+(``gcvd_flow.io.weights.read_state_dict``: safetensors, or ``torch.load(weights_only=True)``).
 
-``load_model(name, path, **options)`` is the registry by name: the pipeline says *which*
-backend a parameter chose; the loader modules are imported only when used.
+``load_model(name, state, source, **options)`` is the registry by name: the pipeline says
+*which* backend a parameter chose; the loader modules are imported only when used.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-# name -> (module, loader function); loaders take the weights path and keyword options
+# name -> (module, loader function); loaders take (state dict, source label, **options)
 REGISTRY: dict[str, tuple[str, str]] = {
     "raft": ("stages.models.raft", "load_raft"),
     "midas": ("stages.models.midas", "load_midas"),
@@ -20,9 +20,10 @@ REGISTRY: dict[str, tuple[str, str]] = {
 }
 
 
-def load_model(name: str, path: str, **options: Any) -> Any:
-    """Load the weights backend ``name`` from the file ``path`` (eval mode, CPU)."""
+def load_model(name: str, state: Any, source: str = "state dict", **options: Any) -> Any:
+    """The weights backend ``name`` with the weights ``state`` (name -> tensor; eval mode, CPU).
+    ``source`` names where the weights came from in error messages."""
     if name not in REGISTRY:
         raise ValueError(f"unknown model {name!r}; known: {', '.join(sorted(REGISTRY))}")
     module, fn = REGISTRY[name]
-    return getattr(importlib.import_module(module), fn)(path, **options)
+    return getattr(importlib.import_module(module), fn)(state, source, **options)

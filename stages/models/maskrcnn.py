@@ -59,8 +59,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import OrderedDict
-from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -69,7 +68,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from stages.models.resnet import IMAGENET_MEAN, IMAGENET_STD
-from stages.models.weights import load_strict, read_state_dict
+from stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 
@@ -756,16 +755,12 @@ def upgrade_state_dict(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor
     return out
 
 
-def load_maskrcnn(path: str | Path, min_size: int = MIN_SIZE) -> MaskRCNN:
-    """Load torchvision ``maskrcnn_resnet50_fpn`` weights from a local ``.safetensors`` / ``.pth`` file.
-
-    ``.pth`` is read with ``torch.load(weights_only=True)``; a ``module.`` prefix is stripped and
-    legacy key names are upgraded (:func:`upgrade_state_dict`). Any other key or shape mismatch
-    raises ``ValueError`` naming the first offending key and the file. Returns the model in eval mode.
-    """
-    p = Path(path)
+def load_maskrcnn(state: Mapping[str, torch.Tensor], source: str = "state dict", min_size: int = MIN_SIZE) -> MaskRCNN:
+    """Build torchvision's ``maskrcnn_resnet50_fpn`` from its state dict (eval mode); legacy key
+    names are upgraded (:func:`upgrade_state_dict`), any other key or shape mismatch raises
+    ``ValueError`` naming the first offending key and ``source``."""
     model = MaskRCNN(min_size=min_size)
-    load_strict(model, upgrade_state_dict(read_state_dict(p)), p)
+    load_strict(model, upgrade_state_dict(dict(state)), source)
     model.eval()
     return model
 

@@ -27,8 +27,8 @@ No file is downloaded here: the user supplies a local weights file.
 from __future__ import annotations
 
 import logging
+from typing import Mapping
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from stages.models.weights import load_strict, read_state_dict
+from stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 
@@ -248,16 +248,11 @@ class MidasNet(nn.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def load_midas(path: str | Path) -> MidasNet:
-    """Load MiDaS v2.1 small weights from a local ``.safetensors`` or ``.pth``/``.pt`` file.
-
-    ``.pt``/``.pth`` is read with ``torch.load(weights_only=True)``; a ``module.`` prefix is
-    stripped. Any key or shape mismatch raises ``ValueError`` naming the first offending key and
-    the file. Returns the model in eval mode.
-    """
-    p = Path(path)
+def load_midas(state: Mapping[str, torch.Tensor], source: str = "state dict") -> MidasNet:
+    """Build MidasNet from a state dict (eval mode); any key or shape mismatch raises
+    ``ValueError`` naming the first offending key and ``source`` (the file it came from)."""
     model = MidasNet()
-    load_strict(model, read_state_dict(p), p)
+    load_strict(model, state, source)
     model.eval()
     return model
 

@@ -29,14 +29,14 @@ No file is downloaded here: the user supplies a local weights file.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from stages.models.weights import load_strict, read_state_dict
+from stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 
@@ -315,16 +315,11 @@ class RAFT(nn.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def load_raft(path: str | Path) -> RAFT:
-    """Load RAFT weights from a local ``.safetensors`` or ``.pth``/``.pt`` file (eval mode).
-
-    ``.pth`` is read with ``torch.load(weights_only=True)`` (no pickle code execution); a
-    ``module.`` prefix is stripped. Any key or shape mismatch raises ``ValueError`` naming the
-    first offending key and the file.
-    """
-    p = Path(path)
+def load_raft(state: Mapping[str, torch.Tensor], source: str = "state dict") -> RAFT:
+    """Build RAFT from a state dict (eval mode); any key or shape mismatch raises
+    ``ValueError`` naming the first offending key and ``source`` (the file it came from)."""
     model = RAFT()
-    load_strict(model, read_state_dict(p), p)
+    load_strict(model, state, source)
     model.eval()
     return model
 

@@ -13,11 +13,13 @@ No file is downloaded here: the user supplies a local weights file.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 import torch
 from torch import nn
+
+from stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 
@@ -84,28 +86,13 @@ class ResNet18(nn.Module):
         return self.fc(torch.flatten(self.avgpool(self.features(x)), 1))
 
 
-def load_resnet18(path: str | Path) -> ResNet18:
-    """Load ResNet-18 weights from a local ``.safetensors`` or ``.pth``/``.pt`` file.
-
-    ``.pth`` files are read with ``torch.load(weights_only=True)`` (no pickle code execution).
-    A checkpoint wrapping the weights under ``state_dict`` is accepted; a ``module.`` prefix
-    (DataParallel) is stripped. Loading is strict: a mismatched file raises. Returns the model
-    in eval mode (BatchNorm uses running statistics).
-    """
-    p = Path(path)
-    if p.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        state = load_file(str(p), device="cpu")
-    else:
-        state = torch.load(str(p), map_location="cpu", weights_only=True)
-        if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
-            state = state["state_dict"]
-    if not isinstance(state, dict):
-        raise ValueError(f"{p}: expected a state dict, got {type(state).__name__}")
-    state = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
+def load_resnet18(state: Mapping[str, torch.Tensor], source: str = "state dict") -> ResNet18:
+    """Build ResNet-18 from a state dict (eval mode: BatchNorm uses running statistics); a key
+    or shape mismatch raises ``ValueError`` naming it and ``source``."""
     model = ResNet18()
-    model.load_state_dict(state, strict=True)
+    # torchvision's published file predates BatchNorm's num_batches_tracked buffer
+    state = {**{k: v for k, v in model.state_dict().items() if k.endswith("num_batches_tracked")}, **state}
+    load_strict(model, state, source)
     model.eval()
     return model
 

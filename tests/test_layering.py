@@ -1,0 +1,133 @@
+"""The layering rules hold by test (docs/contributing.md, "Layering"):
+
+* the engine (``gcvd_flow/engine``) imports no project package — neither ``stages``, nor the
+  product (``gcvd_flow.pipeline``, ``gcvd_flow.io`` ...), nor ``artifacts_schema`` — and neither
+  cv2 nor torch, at module level or inside functions;
+* ``stages/`` never imports ``gcvd_flow`` or ``artifacts_schema`` and never touches the file
+  system (the engine serialises, the product reads files);
+* no function in ``stages/`` or ``gcvd_flow/`` is longer than 80 lines unless a comment on the
+  line before it says why it must be long.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+ENGINE = ROOT / "gcvd_flow" / "engine"
+STAGES = ROOT / "stages"
+
+ENGINE_FORBIDDEN = ("stages", "artifacts_schema", "cv2", "torch", "gcvd_flow")  # gcvd_flow.engine excepted
+STAGES_FORBIDDEN = ("gcvd_flow", "artifacts_schema")
+# calls that read or write files; stages receive arrays and return arrays
+FILE_IO_CALLS = {"open", "imread", "imwrite", "load_file", "save_file", "safe_open", "read_text", "write_text",
+                 "read_bytes", "write_bytes", "mkdir", "unlink", "rmtree", "VideoCapture", "VideoWriter"}
+FILE_IO_ATTR_CALLS = {("np", "load"), ("np", "save"), ("np", "savez"), ("torch", "load"), ("torch", "save"),
+                      ("o3d", "io"), ("os", "remove"), ("shutil", "copy")}
+MAX_LINES = 80
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import in a file, in function bodies too; relative imports resolved."""
+    tree = ast.parse(path.read_text())
+    rel = path.relative_to(ROOT).with_suffix("")
+    package = ".".join(rel.parts[:-1] if rel.name != "__init__" else rel.parts[:-1])
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.append((node.lineno, mod))
+            out += [(node.lineno, f"{mod}.{a.name}") for a in node.names]
+    return out
+
+
+def _forbidden(mod: str, prefixes: tuple[str, ...], allowed: tuple[str, ...] = ()) -> bool:
+    if any(mod == a or mod.startswith(a + ".") for a in allowed):
+        return False
+    return any(mod == p or mod.startswith(p + ".") for p in prefixes)
+
+
+def test_engine_imports_nothing_of_the_product_nor_cv2_or_torch():
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {mod}"
+           for p in sorted(ENGINE.rglob("*.py")) for line, mod in _imports(p)
+           if _forbidden(mod, ENGINE_FORBIDDEN, allowed=("gcvd_flow.engine",))]
+    assert not bad, "forbidden edges out of the engine:\n" + "\n".join(bad)
+
+
+def test_stages_import_no_product_code():
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {mod}"
+           for p in sorted(STAGES.rglob("*.py")) for line, mod in _imports(p) if _forbidden(mod, STAGES_FORBIDDEN)]
+    assert not bad, "forbidden edges out of stages/:\n" + "\n".join(bad)
+
+
+def test_stages_do_no_file_io():
+    bad = []
+    for p in sorted(STAGES.rglob("*.py")):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if not isinstance(node, ast.Call):
+                continue
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+            owner = f.value.id if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) else None
+            if name in FILE_IO_CALLS or (owner, name) in FILE_IO_ATTR_CALLS:
+                bad.append(f"{p.relative_to(ROOT)}:{node.lineno} calls {owner + '.' if owner else ''}{name}")
+    assert not bad, "file I/O in stages/:\n" + "\n".join(bad)
+
+
+def test_the_walker_sees_imports_inside_functions(tmp_path, monkeypatch):
+    # the check above must not pass just because an import hides in a function body
+    src = "def f():\n    import torch\n    from stages.frontend import flow\n"
+    probe = tmp_path / "gcvd_flow" / "engine" / "probe.py"
+    probe.parent.mkdir(parents=True)
+    probe.write_text(src)
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    mods = {m for _, m in _imports(probe)}
+    assert "torch" in mods and "stages.frontend.flow" in mods
+    assert _forbidden("torch", ENGINE_FORBIDDEN) and not _forbidden("gcvd_flow.engine.keys", ENGINE_FORBIDDEN,
+                                                                     allowed=("gcvd_flow.engine",))
+
+
+def test_importing_the_engine_loads_neither_stages_nor_cv2_nor_torch():
+    code = ("import sys, pkgutil, importlib, gcvd_flow.engine as e\n"
+            "for m in pkgutil.iter_modules(e.__path__): importlib.import_module('gcvd_flow.engine.' + m.name)\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('stages', 'cv2', 'torch', 'artifacts_schema')\n"
+            "             or (m.startswith('gcvd_flow.') and not m.startswith('gcvd_flow.engine')))\n"
+            "print(' '.join(bad))\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "", f"importing the engine loaded: {p.stdout.strip()}"
+
+
+def _long_functions() -> list[str]:
+    out = []
+    for root in (ROOT / "gcvd_flow", STAGES):
+        for p in sorted(root.rglob("*.py")):
+            lines = p.read_text().splitlines()
+            for node in ast.walk(ast.parse("\n".join(lines))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = node.end_lineno - node.lineno + 1
+                    first = min([d.lineno for d in node.decorator_list] + [node.lineno])
+                    why = lines[first - 2].strip() if first >= 2 else ""
+                    if n > MAX_LINES and not (why.startswith("#") and "long" in why.lower()):
+                        out.append(f"{p.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    return out
+
+
+def test_no_function_over_80_lines_without_a_reason():
+    bad = _long_functions()
+    assert not bad, "functions over 80 lines (split them, or say why on the line above):\n" + "\n".join(bad)
+
+
+def test_a_forbidden_edge_would_be_caught():
+    assert _forbidden("cv2", ENGINE_FORBIDDEN) and _forbidden("gcvd_flow.pipeline", ENGINE_FORBIDDEN,
+                                                              allowed=("gcvd_flow.engine",))
+    assert _forbidden("gcvd_flow.engine.dag", STAGES_FORBIDDEN)
