@@ -1,4 +1,8 @@
-"""Dataset file I/O: the generic layout, TUM trajectories, Redwood/Open3D .log, depth PNGs.
+"""File formats: one reader and one writer per format, used by sources, exports, eval and synth.
+
+TUM trajectories, Redwood/Open3D ``.log``, ``intrinsics.txt``, RGB / mask / 16-bit depth PNGs
+(``png_bytes`` is the one PNG encoder for files; the engine's artifact codec is separate, see
+below), and the generic dataset layout.
 
 Generic dataset layout (what ``write_generic_layout`` writes and ``read_generic_layout`` reads)::
 
@@ -10,6 +14,11 @@ Generic dataset layout (what ``write_generic_layout`` writes and ``read_generic_
 
 Pose convention everywhere: float64 (N, 4, 4) camera-to-world, OpenCV camera axes.
 Malformed input raises ``DatasetError`` (a ``ValueError``) whose message names the file.
+
+PNG files are encoded with OpenCV at a fixed zlib level (deterministic bytes; 16-bit depth
+too). The cache's image artifacts are encoded by ``gcvd_flow.engine.artifacts.png_bytes``
+(Pillow, uint8 only) instead: the engine imports no project package, and its bytes are part
+of every output digest, so the two encoders stay apart on purpose.
 """
 
 from __future__ import annotations
@@ -157,7 +166,8 @@ def read_intrinsics_txt(path: PathLike) -> np.ndarray:
     """Read intrinsics -> K float64 (3, 3).
 
     Accepts one line ``fx fy cx cy`` (pixels; the generic layout) or 9 numbers (a 3x3 matrix,
-    row-major, on one or three lines).
+    row-major, on one or three lines). Non-finite values and focal lengths <= 0 are a
+    ``DatasetError`` naming the file (a garbage file must not run to the end).
     """
     path = Path(path)
     vals = [v for _, r in _numeric_rows(path) for v in r]
@@ -168,8 +178,10 @@ def read_intrinsics_txt(path: PathLike) -> np.ndarray:
         K = np.array(vals, dtype=np.float64).reshape(3, 3)
     else:
         raise DatasetError(path, f"expected 'fx fy cx cy' (4 values) or a 3x3 matrix, got {len(vals)} values")
-    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
-        raise DatasetError(path, "focal lengths must be finite and positive")
+    if not np.all(np.isfinite(K)):
+        raise DatasetError(path, "non-finite values (nan / inf); expected 'fx fy cx cy' in pixels")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise DatasetError(path, f"focal lengths must be positive, got fx={K[0, 0]:g} fy={K[1, 1]:g}")
     return K
 
 
@@ -183,16 +195,32 @@ def write_intrinsics_txt(path: PathLike, K: np.ndarray) -> None:
 # ----------------------------------------------------------------------------- images
 
 
-def _write_png(path: Path, img: np.ndarray) -> None:
+def png_bytes(img: np.ndarray) -> bytes:
+    """The PNG encoder for files: uint8 (H, W) grey / (H, W, 3) RGB or uint16 (H, W) -> bytes.
+
+    OpenCV at zlib level 3 (fixed, so bytes do not depend on OpenCV defaults); RGB is swapped to
+    OpenCV's BGR here, so callers always pass RGB.
+    """
+    img = np.asarray(img)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(".png", img, _PNG_PARAMS)
     if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    path.write_bytes(buf.tobytes())
+        raise OSError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    try:
+        data = png_bytes(img)
+    except OSError:
+        raise OSError(f"{path}: PNG encoding failed") from None
+    path.write_bytes(data)
 
 
 def write_rgb_png(path: PathLike, rgb: np.ndarray) -> None:
-    """Write uint8 (H, W, 3) RGB as PNG (OpenCV stores BGR, hence the swap)."""
-    _write_png(Path(path), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    """Write uint8 (H, W, 3) RGB as PNG."""
+    _write_png(Path(path), rgb)
 
 
 def read_rgb(path: PathLike) -> np.ndarray:
@@ -203,16 +231,39 @@ def read_rgb(path: PathLike) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def depth_to_png16(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
-    """float depth (H, W) [m] -> uint16 (H, W) [m * scale], rounded; invalid/out of range -> 0."""
-    d = np.asarray(depth, dtype=np.float64) * scale
-    ok = np.isfinite(d) & (d > 0) & (d < _DEPTH_MAX_MM + 0.5)
-    return np.where(ok, np.round(np.where(ok, d, 0)), 0).astype(np.uint16)
+def write_mask_png(path: PathLike, mask: np.ndarray) -> None:
+    """Write a boolean / 0-1 mask (H, W) as a uint8 0/1 PNG."""
+    _write_png(Path(path), np.asarray(mask).astype(np.uint8))
 
 
-def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = 1000.0) -> None:
-    """Write float depth (H, W) [m] as a 16-bit PNG in units of 1/scale m (default mm)."""
-    _write_png(Path(path), depth_to_png16(depth, scale))
+def read_mask_png(path: PathLike) -> np.ndarray:
+    """Read a single-channel mask PNG -> bool (H, W), True where the value is > 0."""
+    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if m is None or m.ndim != 2:
+        raise DatasetError(path, "expected a single-channel mask PNG")
+    return m > 0
+
+
+def depth_to_png16(depth: np.ndarray, scale: float = 1000.0) -> tuple[np.ndarray, int]:
+    """float depth (H, W) -> (uint16 (H, W) of depth * scale, rounded; count of clipped pixels).
+
+    Valid depth (finite, > 0) is clipped to [1, 65535], so it never becomes 0 (0 = invalid) and
+    depth beyond 65535 / scale is stored as 65535 and counted; invalid depth is 0. ``scale``:
+    stored units per depth unit (1000: millimetres of metres).
+    """
+    d = np.asarray(depth, np.float64) * scale
+    ok = np.isfinite(d) & (d > 0)
+    units = np.where(ok, np.round(np.where(ok, d, 0.0)), 0.0)
+    clipped = int(np.count_nonzero(units > _DEPTH_MAX_MM))
+    return np.where(ok, np.clip(units, 1, _DEPTH_MAX_MM), 0).astype(np.uint16), clipped
+
+
+def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = 1000.0) -> int:
+    """Write float depth (H, W) as a 16-bit PNG in units of 1/scale (default mm of metres);
+    returns the number of pixels clipped to 65535 (see ``depth_to_png16``)."""
+    png16, clipped = depth_to_png16(depth, scale)
+    _write_png(Path(path), png16)
+    return clipped
 
 
 def read_depth_png(path: PathLike, scale: float = 1000.0) -> np.ndarray:
@@ -289,7 +340,7 @@ def write_generic_layout(out_dir: PathLike, clip: Any) -> Path:
     if dynamic is not None:
         (out / "gt" / "dynamic").mkdir(parents=True, exist_ok=True)
         for i, m in enumerate(dynamic):
-            _write_png(out / "gt" / "dynamic" / f"{i:06d}.png", np.asarray(m).astype(np.uint8))
+            write_mask_png(out / "gt" / "dynamic" / f"{i:06d}.png", m)
     return out
 
 
@@ -317,13 +368,7 @@ class GenericLayout:
         """bool (N, H, W) or None."""
         if self.dynamic_paths is None:
             return None
-        out = []
-        for p in self.dynamic_paths:
-            m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-            if m is None or m.ndim != 2:
-                raise DatasetError(p, "expected a single-channel mask PNG")
-            out.append(m > 0)
-        return np.stack(out)
+        return np.stack([read_mask_png(p) for p in self.dynamic_paths])
 
 
 def read_generic_layout(root: PathLike, depth_scale: float = 1000.0) -> GenericLayout:

@@ -30,6 +30,7 @@ import numpy as np
 from gcvd_flow.engine.dag import ExternalRef
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import digest_file, key_of
+from gcvd_flow.io.formats import read_intrinsics_txt, read_rgb
 
 # FFmpeg's own log lines would break the one-line error contract; we report failures ourselves.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
@@ -54,12 +55,7 @@ class ImageFile:
     path: str
 
     def __call__(self) -> np.ndarray:
-        import cv2
-
-        img = cv2.imread(self.path, cv2.IMREAD_COLOR)
-        if img is None:
-            raise UsageError(f"{self.path}: cannot decode image")
-        return np.ascontiguousarray(img[..., ::-1])
+        return read_rgb(self.path)  # DatasetError (a UsageError) names the file
 
 
 _VIDEO_CACHE: dict[str, Any] = {}
@@ -138,15 +134,10 @@ def _from_images(root: Path, files: list[Path], layout: str, **kw: Any) -> Sourc
     return Source(str(root), layout, refs, _first_size(files[0]), names=[f.name for f in files], **kw)
 
 
-def _read_intrinsics_txt(path: Path) -> tuple[float, float, float, float]:
-    vals = path.read_text().split()
-    try:
-        fx, fy, cx, cy = (float(v) for v in vals[:4])
-    except ValueError:
-        raise UsageError(f"{path}: expected 'fx fy cx cy'") from None
-    if len(vals) < 4:
-        raise UsageError(f"{path}: expected 'fx fy cx cy'")
-    return fx, fy, cx, cy
+def _intrinsics_of(path: Path) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of an ``intrinsics.txt`` (formats.read_intrinsics_txt checks it)."""
+    K = read_intrinsics_txt(path)
+    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
 
 
 def open_video(path: Path) -> Source:
@@ -191,7 +182,7 @@ def open_source(path_str: str) -> Source:
         raise UsageError(f"{path}: not a video ({', '.join(sorted(VIDEO_EXTS))}) or a folder")
     # generic layout (gcvd-flow synth)
     if (path / "frames").is_dir():
-        intr = _read_intrinsics_txt(path / "intrinsics.txt") if (path / "intrinsics.txt").exists() else None
+        intr = _intrinsics_of(path / "intrinsics.txt") if (path / "intrinsics.txt").exists() else None
         gt = {}
         if (path / "gt" / "poses.txt").exists():
             gt["poses"] = str(path / "gt" / "poses.txt")
