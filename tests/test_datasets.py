@@ -1,4 +1,4 @@
-"""Tests for gcvd_flow.datasets: roundtrips, layout, malformed input, the shared ICL log."""
+"""Tests for gcvd_flow.io.formats: roundtrips, layout, malformed input, the shared ICL log."""
 
 from __future__ import annotations
 
@@ -54,17 +54,52 @@ def test_depth_png_roundtrip(tmp_path):
     d = rng.uniform(0.1, 9.0, (12, 16)).astype(np.float32)
     d[0, 0] = 0.0
     d[0, 1] = np.nan
-    d[0, 2] = 70.0  # beyond uint16 millimetres
-    ds.write_depth_png(tmp_path / "000000.png", d)
-    ds.write_depth_png(tmp_path / "000001.png", d * 0.5)
+    d[0, 2] = 70.0  # beyond uint16 millimetres: clipped to 65535, counted
+    d[0, 3] = 1e-4  # valid but < 0.5 mm: 1 mm, never 0 (= invalid)
+    assert ds.write_depth_png(tmp_path / "000000.png", d) == 1
+    assert ds.write_depth_png(tmp_path / "000001.png", d * 0.5) == 0  # 0.5 * 70 m = 35 m fits
     seq = ds.read_depth_pngs(tmp_path)
     assert len(seq) == 2 and [p.name for p in seq.paths] == ["000000.png", "000001.png"]
     back = seq[0]
     assert back.dtype == np.float32 and back.shape == d.shape
-    ok = np.isfinite(d) & (d > 0) & (d < 65)
+    ok = np.isfinite(d) & (d > 0.001) & (d < 65)
     assert np.all(np.abs(back[ok] - d[ok]) <= 0.0005 + 1e-6)  # rounding to 1 mm
-    assert back[0, 0] == 0 and back[0, 1] == 0 and back[0, 2] == 0  # invalid -> 0
+    assert back[0, 0] == 0 and back[0, 1] == 0  # invalid -> 0
+    assert back[0, 2] == np.float32(65.535) and back[0, 3] == np.float32(0.001)
     assert seq.load_all().shape == (2, 12, 16)
+
+
+def test_depth_to_png16_clipping_scale_and_invalid():
+    d = np.array([[0.0, np.nan, -1.0, 1e-4, np.inf], [1.2345, 65.5354, 65.5356, 70.0, 2.0]], np.float32)
+    png, clipped = ds.depth_to_png16(d)
+    assert png.dtype == np.uint16
+    assert png[0].tolist() == [0, 0, 0, 1, 0]  # invalid -> 0, tiny valid depth -> 1
+    assert png[1].tolist() == [round(float(np.float32(1.2345)) * 1000), 65535, 65535, 65535, 2000]
+    assert clipped == 2  # 65.5356 m and 70 m round above 65535 mm; 65.5354 m rounds to 65535
+    png2, clipped2 = ds.depth_to_png16(d, scale=500.0)  # half-millimetre units of depth / 2
+    assert clipped2 == 0 and png2[1, 3] == 35000 and png2[0, 3] == 1
+    # the export's depth-png is the same conversion (one writer per format)
+    from gcvd_flow.exports.depth_png import depth_to_mm16
+
+    mm, c = depth_to_mm16(d, depth_scale=0.5)
+    np.testing.assert_array_equal(mm, png2)
+    assert c == clipped2
+
+
+def test_png_bytes_is_the_one_encoder(tmp_path):
+    import cv2
+
+    rgb = np.random.default_rng(1).integers(0, 256, (9, 7, 3), dtype=np.uint8)
+    ds.write_rgb_png(tmp_path / "a.png", rgb)
+    assert (tmp_path / "a.png").read_bytes() == ds.png_bytes(rgb)
+    np.testing.assert_array_equal(ds.read_rgb(tmp_path / "a.png"), rgb)  # RGB in, RGB out
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "a.png"))[..., ::-1], rgb)  # BGR on disk
+    d16 = np.array([[0, 1, 65535]], np.uint16)
+    back = cv2.imdecode(np.frombuffer(ds.png_bytes(d16), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == np.uint16 and back.tolist() == d16.tolist()
+    m = np.eye(4, dtype=bool)
+    ds.write_mask_png(tmp_path / "m.png", m)
+    np.testing.assert_array_equal(ds.read_mask_png(tmp_path / "m.png"), m)
 
 
 def test_generic_layout_roundtrip_and_deterministic_bytes(tmp_path):
@@ -109,6 +144,9 @@ def test_intrinsics_formats(tmp_path):
         (ds.read_redwood_log, "0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1\n0 0 0 1\n", "line 4"),
         (ds.read_intrinsics_txt, "525 525 319.5\n", "fx fy cx cy"),
         (ds.read_intrinsics_txt, "-1 525 319.5 239.5\n", "positive"),
+        (ds.read_intrinsics_txt, "525 0 319.5\n0 -525 239.5\n0 0 1\n", "positive"),
+        (ds.read_intrinsics_txt, "nan 525 319.5 239.5\n", "non-finite"),
+        (ds.read_intrinsics_txt, "525 525 inf 239.5\n", "non-finite"),
     ],
 )
 def test_malformed_files_name_the_file(tmp_path, reader, text, fragment):
@@ -151,3 +189,30 @@ def test_icl_redwood_log():
     # First pose is (near) identity in this file; the camera moves a few metres overall.
     np.testing.assert_allclose(P[0], np.eye(4), atol=1e-3)
     assert 1.0 < np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum() < 10.0
+
+
+@pytest.mark.parametrize("text, fragment", [("nan 75 31.5 23.5\n", "non-finite"),
+                                            ("-75 75 31.5 23.5\n", "focal lengths must be positive"),
+                                            ("75 75 31.5\n", "fx fy cx cy")])
+def test_garbage_intrinsics_txt_stops_the_run_in_one_line(tmp_path, text, fragment):
+    from conftest import cli
+
+    clip = render_clip(n_frames=3, trajectory="rotation", size=(32, 24), seed=0)
+    ds.write_generic_layout(tmp_path / "clip", clip)
+    (tmp_path / "clip" / "intrinsics.txt").write_text(text)
+    p = cli("run", str(tmp_path / "clip"), "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "cache"))
+    assert p.returncode == 2, p.stderr
+    err = p.stderr.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / "clip" / "intrinsics.txt") in err[0] and fragment in err[0], err
+    assert not (tmp_path / "run" / "poses.txt").exists()
+
+
+def test_sources_read_intrinsics_with_the_formats_reader(tmp_path):
+    from gcvd_flow.io.sources import open_source
+
+    clip = render_clip(n_frames=3, trajectory="rotation", size=(32, 24), seed=0)
+    ds.write_generic_layout(tmp_path, clip)
+    (tmp_path / "intrinsics.txt").write_text("30 0 15.5\n0 31 11.5\n0 0 1\n")  # a 3x3 matrix
+    src = open_source(str(tmp_path))
+    assert src.intrinsics == (30.0, 31.0, 15.5, 11.5) and src.intrinsics_origin == "intrinsics.txt"
+    np.testing.assert_array_equal(src.items[1].loader(), clip.frames[1])  # frames read by formats.read_rgb

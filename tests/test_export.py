@@ -73,7 +73,7 @@ def test_tum_is_a_copy(run, exported):
 
 
 def test_colmap_model_inverts_to_the_run_poses_and_reprojects(run, exported):
-    from gcvd_flow.exports.geometry import colmap_to_c2w
+    from gcvd_flow.exports.colmap import colmap_to_c2w
 
     cams, K, poses, depths = _run_data(run["run"])
     d = exported["out"] / "colmap"
@@ -317,7 +317,8 @@ def test_interrupted_write_leaves_no_file(tmp_path):
 def test_colmap_and_opengl_conversions_round_trip():
     from scipy.spatial.transform import Rotation
 
-    from gcvd_flow.exports.geometry import c2w_to_colmap, colmap_to_c2w, opencv_to_opengl, opengl_to_opencv
+    from gcvd_flow.exports.colmap import c2w_to_colmap, colmap_to_c2w
+    from gcvd_flow.exports.nerfstudio import opencv_to_opengl, opengl_to_opencv
 
     rng = np.random.default_rng(0)
     rots = Rotation.random(50, random_state=1).as_matrix()
@@ -336,7 +337,7 @@ def test_colmap_and_opengl_conversions_round_trip():
 
 
 def test_voxel_accumulator_matches_global_downsampling():
-    from gcvd_flow.exports.geometry import VoxelAccumulator
+    from gcvd_flow.exports.clouds import VoxelAccumulator
 
     rng = np.random.default_rng(3)
     pts = rng.uniform(-1, 1, size=(20000, 3))

@@ -99,7 +99,7 @@ class RunData:
     def median_depth(self) -> float:
         """Median valid depth over (at most ~50 evenly spread) frames; UsageError if none."""
         if self._median is None:
-            from gcvd_flow.exports.geometry import median_depth
+            from gcvd_flow.exports.clouds import median_depth
 
             step = max(1, len(self) // 50)
             self._median = median_depth(self.depth(k) for k in range(0, len(self), step))

@@ -1,0 +1,163 @@
+"""What every export format shares: options, the export context, atomic writes, number text.
+
+A format is a *writer*: ``write(ctx: ExportContext) -> dict`` (the details reported under
+``formats[FMT]`` by ``--json``), registered by name in ``gcvd_flow.exports.WRITERS``. A writer
+that reads the run's RGB frames says so with ``@uses_images("required")`` (skipped, with the
+reason, when the cache no longer holds them) or ``@uses_images("optional")`` (runs either
+way; ``ctx.run.images`` is None then).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.io.formats import png_bytes
+from gcvd_flow.io.run_dir import RunData
+
+DEFAULT_FPS = 30.0
+MCAP_IMAGES = ("png", "jpeg", "raw")
+
+Writer = Callable[["ExportContext"], dict[str, Any]]
+
+
+def uses_images(how: Literal["required", "optional"]) -> Callable[[Writer], Writer]:
+    """Mark a writer as reading the run's RGB frames (see the module docstring)."""
+
+    def mark(fn: Writer) -> Writer:
+        fn.images = how  # type: ignore[attr-defined]
+        return fn
+
+    return mark
+
+
+def images_use(writer: Writer) -> str | None:
+    """"required", "optional" or None (the writer does not read the RGB frames)."""
+    return getattr(writer, "images", None)
+
+
+# ------------------------------------------------------------------------------ options
+
+
+@dataclass
+class Options:
+    every: int = 1
+    voxel: float = 0.0
+    tsdf_voxel: float | None = None
+    depth_scale: float = 1.0
+    fps: float | None = None
+    mcap_images: str = "png"
+    max_points: int = 20000
+
+    def check(self) -> None:
+        """UsageError naming the flag for any out-of-range option (before anything is written)."""
+        if self.every < 1:
+            raise UsageError(f"--every {self.every}: must be >= 1")
+        if self.voxel < 0 or (self.tsdf_voxel is not None and self.tsdf_voxel <= 0):
+            raise UsageError("--voxel must be >= 0 and --tsdf-voxel > 0")
+        if not (self.depth_scale > 0 and math.isfinite(self.depth_scale)):
+            raise UsageError(f"--depth-scale {self.depth_scale}: must be a positive number")
+        if self.fps is not None and not self.fps > 0:
+            raise UsageError(f"--fps {self.fps}: must be > 0")
+        if self.max_points < 0:
+            raise UsageError(f"--max-points {self.max_points}: must be >= 0")
+        if self.mcap_images not in MCAP_IMAGES:
+            raise UsageError(f"--mcap-images {self.mcap_images!r}: choose one of {', '.join(MCAP_IMAGES)}")
+
+
+# ------------------------------------------------------------------------------ atomic writes
+
+
+@contextmanager
+def _atomic(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same suffix, for writers that go by it); rename
+    it onto ``path`` only when the block succeeds."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    with _atomic(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_text(path: Path, text: str) -> None:
+    write_bytes(path, text.encode())
+
+
+def clean_stale(folder: Path, keep: set[str], suffix: str) -> None:
+    """Drop NNNNNN<suffix> files of an earlier export that this one does not write."""
+    if folder.is_dir():
+        for p in folder.glob(f"[0-9][0-9][0-9][0-9][0-9][0-9]{suffix}"):
+            if p.name not in keep:
+                p.unlink()
+
+
+def num(x: float) -> str:
+    """Shortest text that reads back to the same float (and no "-0.0")."""
+    return repr(float(x) + 0.0)
+
+
+def rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms (..., 4, 4): T_b_a -> T_a_b (e.g. c2w -> w2c)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+# ------------------------------------------------------------------------------ the context
+
+
+@dataclass
+class ExportContext:
+    """One export: the run, the output folder, the options, and outputs shared by formats."""
+
+    run: RunData
+    out: Path
+    opt: Options
+    log: Callable[[str], None]
+    written: set[str] = field(default_factory=set)  # formats written so far, in write order
+    _shared: dict[Any, Any] = field(default_factory=dict, repr=False)
+
+    def shared(self, key: Any, make: Callable[[], Any]) -> Any:
+        """``make()`` once per export (e.g. images/ for colmap and nerfstudio, a fused cloud)."""
+        if key not in self._shared:
+            self._shared[key] = make()
+        return self._shared[key]
+
+    def images_dir(self) -> dict[str, Any]:
+        """DIR/images/NNNNNN.png: the run's RGB frames (written once per export)."""
+
+        def make() -> dict[str, Any]:
+            run, d = self.run, self.out / "images"
+            assert run.images is not None
+            names = set()
+            for k in range(len(run)):
+                write_bytes(d / f"{run.name(k)}.png", png_bytes(run.images[k]))
+                names.add(f"{run.name(k)}.png")
+            clean_stale(d, names, ".png")
+            return {"dir": str(d), "files": len(run)}
+
+        return self.shared("images", make)
+
+    def time_ns(self, k: int) -> int:
+        """Log time of frame k: source frame index / fps (--fps, else the input's, else 30)."""
+        fps = self.opt.fps or self.run.fps or DEFAULT_FPS
+        return int(round(self.run.frame_indices[k] / fps * 1e9))
