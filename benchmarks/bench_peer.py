@@ -2,7 +2,7 @@
 
 Both run cold on the same frames (the first ``--frames N`` of ../shared/data/icl_livingroom1_micro,
 640x480, intrinsics 525, 525, 319.5, 239.5) and are scored with the project's own metrics
-(``stages/metrics.py``: ATE after Sim(3) Umeyama alignment, RPE over one frame) against the
+(``gcvd_flow/evaluate/metrics.py``: ATE after Sim(3) Umeyama alignment, RPE over one frame) against the
 dataset's ground truth, the same ``*.log`` file ``gcvd-flow eval`` reads.
 
 * gcvd-flow: ``gcvd-flow run DATA --intrinsics ... --cache FRESH --json`` (default profile), then
@@ -41,9 +41,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gcvd_flow.io.formats import quat_to_rotmat, read_redwood_log, read_tum_poses, write_tum_poses  # noqa: E402
+from gcvd_flow.evaluate.run_eval import load_gt as load_eval_gt, trajectory_metrics  # noqa: E402
+from gcvd_flow.exports.colmap import colmap_to_c2w  # noqa: E402
+from gcvd_flow.io.formats import read_tum_poses, write_tum_poses  # noqa: E402
 from gcvd_flow.io.sources import natural_key  # noqa: E402
-from stages import metrics  # noqa: E402
 
 ICL = ROOT.parent / "shared" / "data" / "icl_livingroom1_micro"
 INTRINSICS = "525,525,319.5,239.5"
@@ -76,22 +77,16 @@ def timed(cmd: list[str], log_file: Path, what: str, cwd: Path | None = None) ->
 
 
 def load_gt(data: Path) -> np.ndarray:
-    """Camera-to-world GT poses by source frame: the first *.log, as `gcvd-flow eval` picks it."""
-    logs = sorted(data.glob("*.log"))
-    if not logs:
-        raise BenchError(f"{data}: no *.log ground-truth trajectory")
-    return read_redwood_log(logs[0])
+    """Camera-to-world GT poses by source frame, read as `gcvd-flow eval` reads them."""
+    try:
+        return np.asarray(load_eval_gt(data)["poses"])
+    except ValueError as exc:  # UsageError / DatasetError: one line naming the file
+        raise BenchError(str(exc)) from None
 
 
 def score(frame_idx: list[int], est: np.ndarray, gt_all: np.ndarray) -> dict:
-    """ATE (Sim(3)), RPE (delta 1 over consecutive entries), path length, as `gcvd-flow eval`."""
-    gt = gt_all[frame_idx]
-    res: dict = {}
-    res.update(metrics.ate(est, gt))
-    res.update(metrics.rpe(est, gt, delta=1))
-    res["path_length"] = metrics.path_length(gt)
-    res["ate_percent_of_path"] = 100.0 * res["ate_rmse"] / max(res["path_length"], 1e-12)
-    return res
+    """ATE (Sim(3)), RPE (delta 1 over consecutive entries), path length: `gcvd-flow eval`'s code."""
+    return trajectory_metrics(est, gt_all[frame_idx])
 
 
 # ------------------------------------------------------------------------------ gcvd-flow
@@ -148,12 +143,8 @@ def parse_images_txt(path: Path) -> tuple[list[int], np.ndarray]:
         tok = ln.split()
         if len(tok) != 10:
             raise BenchError(f"{path}: unexpected image line {ln[:80]!r}")
-        qw, qx, qy, qz, tx, ty, tz = map(float, tok[1:8])
-        R = quat_to_rotmat(np.array([qx, qy, qz, qw]))  # takes (x, y, z, w)
-        T = np.eye(4)
-        T[:3, :3] = R.T
-        T[:3, 3] = -R.T @ np.array([tx, ty, tz])
-        recs.append((int(Path(tok[9]).stem), T))
+        vals = np.array([float(v) for v in tok[1:8]])
+        recs.append((int(Path(tok[9]).stem), colmap_to_c2w(vals[:4], vals[4:])[0]))
     recs.sort(key=lambda r: r[0])
     return [r[0] for r in recs], np.array([r[1] for r in recs]).reshape(-1, 4, 4)
 

@@ -7,10 +7,8 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
-from typing import Any
 
 from gcvd_flow.engine import cli as engine_cli
 from gcvd_flow.engine.errors import UsageError
@@ -53,11 +51,14 @@ def add_commands(sub) -> None:
     p.add_argument("--json", dest="json_mode", action="store_true")
     p.set_defaults(handler=cmd_demo)
 
+    # The format names live in gcvd_flow.exports.WRITERS (not imported here: the CLI starts light);
+    # an unknown name is an error that lists them.
     p = sub.add_parser("export", help="write a finished run as TUM, depth PNGs, COLMAP, PLY, TSDF mesh, "
-                       "nerfstudio or MCAP (see gcvd_flow/exports.py)")
+                       "nerfstudio or MCAP (see gcvd_flow/exports/)")
     p.add_argument("run_dir", metavar="RUN_DIR")
     p.add_argument("--format", dest="formats", action="append", default=[], metavar="FMT",
-                   help="tum, depth-png, colmap, ply, tsdf, nerfstudio, mcap or all (repeatable or comma-separated)")
+                   help="an export format (tum, depth-png, colmap, ply, tsdf, nerfstudio, mcap, ...) or all; "
+                   "repeatable or comma-separated")
     p.add_argument("--to", metavar="DIR", help="output directory (default: RUN_DIR/export)")
     p.add_argument("--every", type=int, default=1, metavar="N",
                    help="ply / tsdf / mcap cloud / colmap points: use every N-th frame (default 1)")
@@ -94,7 +95,6 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def cmd_synth(a: argparse.Namespace) -> int:
     from gcvd_flow.evaluate.synth import render_clip
-
     from gcvd_flow.io.formats import write_generic_layout
 
     if a.frames < 2:
@@ -112,95 +112,12 @@ def cmd_synth(a: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------ evaluation
 
 
-def _load_gt(gt: Path) -> dict[str, Any]:
-    """Ground truth of a dataset folder: {poses (M,4,4) c2w by source frame, depth_files, scale}."""
-    import numpy as np  # noqa: F401 - heavy imports stay out of CLI start-up
-    from gcvd_flow.io.formats import read_redwood_log, read_tum_poses
-
-    if not gt.exists():
-        raise UsageError(f"{gt}: no such directory")
-    if (gt / "gt").is_dir():  # a synth OUT folder
-        gt = gt / "gt"
-    out: dict[str, Any] = {"depth_files": [], "depth_scale": 1000.0}
-    if (gt / "poses.txt").exists():
-        _, out["poses"] = read_tum_poses(gt / "poses.txt")
-    else:
-        logs = sorted(gt.glob("*.log"))
-        if not logs:
-            raise UsageError(f"{gt}: no poses.txt (TUM) or *.log (Redwood) ground truth")
-        out["poses"] = read_redwood_log(logs[0])
-    if (gt / "depth").is_dir():
-        from gcvd_flow.io.sources import natural_key
-
-        out["depth_files"] = sorted((p for p in (gt / "depth").iterdir() if p.suffix.lower() == ".png"),
-                                    key=lambda p: natural_key(p.name))
-    if (gt / "depth_scale").exists():
-        out["depth_scale"] = float((gt / "depth_scale").read_text().split()[0])
-    return out
-
-
-def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -> dict[str, Any]:
-    """ATE / RPE of poses.txt and depth errors of depth/*.npy against a ground-truth folder."""
-    import cv2
-    import numpy as np
-
-    from gcvd_flow.evaluate import metrics
-
-    from gcvd_flow.io.formats import read_tum_poses
-
-    run = Path(run_dir)
-    if not (run / "poses.txt").exists():
-        raise UsageError(f"{run / 'poses.txt'}: missing (is {run} a finished run?)")
-    cams = json.loads((run / "cameras.json").read_text())
-    stamps, est = read_tum_poses(run / "poses.txt")
-    idx = [int(round(t)) for t in stamps]
-    gt = _load_gt(Path(gt_dir))
-    if max(idx) >= len(gt["poses"]):
-        raise UsageError(f"{gt_dir}: ground truth has {len(gt['poses'])} poses, the run uses frame {max(idx)}")
-    gt_poses = np.asarray(gt["poses"])[idx]
-    res: dict[str, Any] = {"frames": len(idx)}
-    res.update(metrics.ate(est, gt_poses))
-    res.update(metrics.rpe(est, gt_poses, delta=1))
-    res["path_length"] = float(metrics.path_length(gt_poses))
-    res["ate_percent_of_path"] = 100.0 * res["ate_rmse"] / max(res["path_length"], 1e-12)
-    if gt["depth_files"]:
-        per_frame = []
-        for i in idx:
-            pred_path = run / "depth" / f"{i:06d}.npy"
-            if not pred_path.exists() or i >= len(gt["depth_files"]):
-                continue
-            pred = np.load(pred_path, allow_pickle=False)
-            g = cv2.imread(str(gt["depth_files"][i]), cv2.IMREAD_UNCHANGED)
-            if g is None:
-                raise UsageError(f"{gt['depth_files'][i]}: cannot read depth PNG")
-            g = g.astype(np.float32) / gt["depth_scale"]
-            if g.shape != pred.shape:  # compare at the run's working resolution
-                g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
-            per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))
-        if per_frame:
-            res.update(metrics.aggregate_depth_metrics(per_frame))
-            res["depth_frames"] = len(per_frame)
-    res["width"], res["height"] = cams.get("width"), cams.get("height")
-    return res
-
-
-def _print_metrics(res: dict[str, Any]) -> None:
-    rows = [("ATE RMSE", "ate_rmse", "m"), ("ATE / path", "ate_percent_of_path", "%"),
-            ("RPE trans", "rpe_trans", "m"), ("RPE rot", "rpe_rot", "deg"), ("AbsRel", "abs_rel", ""),
-            ("SqRel", "sq_rel", ""), ("RMSE", "rmse", "m"), ("delta<1.25", "delta1", "")]
-    for label, k, unit in rows:
-        if k in res:
-            print(f"{label:<12} {res[k]:10.4f} {unit}")
-    print(f"{'frames':<12} {res['frames']:10d}")
-
-
 def cmd_eval(a: argparse.Namespace) -> int:
+    from gcvd_flow.evaluate.run_eval import evaluate, format_metrics, write_metrics
+
     res = evaluate(a.run_dir, a.gt, a.max_depth)
-    (Path(a.run_dir) / "metrics.json").write_text(json.dumps(res, indent=1, sort_keys=True))
-    if a.json_mode:
-        print(json.dumps(res, indent=1, sort_keys=True))
-    else:
-        _print_metrics(res)
+    write_metrics(a.run_dir, res)
+    print(json.dumps(res, indent=1, sort_keys=True) if a.json_mode else format_metrics(res))
     return 0
 
 
@@ -218,8 +135,8 @@ def cmd_export(a: argparse.Namespace) -> int:
 
 def cmd_demo(a: argparse.Namespace) -> int:
     from gcvd_flow import api
+    from gcvd_flow.evaluate.run_eval import evaluate, format_metrics, write_metrics
     from gcvd_flow.evaluate.synth import render_clip
-
     from gcvd_flow.io.formats import write_generic_layout
 
     t0 = time.perf_counter()
@@ -240,13 +157,13 @@ def cmd_demo(a: argparse.Namespace) -> int:
         for s in res["stages"]:
             print(f"  {s['name']:<20} executed {s['executed']:>4}  cached {s['cached']:>4}  {s['seconds']:7.2f} s")
     metrics_ = evaluate(out / "run", clip_dir)
-    (out / "run" / "metrics.json").write_text(json.dumps(metrics_, indent=1, sort_keys=True))
+    write_metrics(out / "run", metrics_)
     total = time.perf_counter() - t0
     if a.json_mode:
         print(json.dumps({"run": res, "metrics": metrics_, "seconds": total}, indent=1))
     else:
         print(f"\nmetrics against the exact ground truth ({out / 'run' / 'metrics.json'}):")
-        _print_metrics(metrics_)
+        print(format_metrics(metrics_))
         print(f"\ndemo finished in {total:.0f} s; outputs in {out / 'run'} (poses.txt, depth/, cameras.json)")
     return 0
 

@@ -180,3 +180,61 @@ def test_agrees_with_evo_trajectories_sync_se3_and_delta():
             rpe.process_data((ref, e))
             ours_r = metrics.rpe(est, gt, delta=delta, align="se3")[key]
             assert ours_r == pytest.approx(rpe.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)
+
+
+def _fake_run(tmp_path, clip, frames, scale=1.0):
+    """A RUN_DIR as `gcvd-flow run` writes it, from ground truth (poses and depth scaled by `scale`)."""
+    import json
+
+    from gcvd_flow.io.formats import write_tum_poses
+
+    run = tmp_path / "run"
+    (run / "depth").mkdir(parents=True)
+    P = clip.poses[frames].copy()
+    P[:, :3, 3] *= scale
+    write_tum_poses(run / "poses.txt", np.asarray(frames, np.float64), P)
+    for i in frames:
+        np.save(run / "depth" / f"{i:06d}.npy", (clip.depth[i] * scale).astype(np.float32))
+    h, w = clip.depth.shape[1:]
+    (run / "cameras.json").write_text(json.dumps({"width": w, "height": h, "K": clip.K.tolist(),
+                                                  "frame_indices": list(frames)}))
+    return run
+
+
+def test_run_eval_against_a_synth_folder(tmp_path):
+    """`gcvd-flow eval`'s code: ground truth by source frame index, Sim(3) and median scaling."""
+    from gcvd_flow.evaluate.run_eval import evaluate, format_metrics, load_gt
+    from gcvd_flow.evaluate.synth import render_clip
+    from gcvd_flow.io.formats import write_generic_layout
+
+    clip = render_clip(n_frames=6, trajectory="orbit", size=(48, 32), seed=0)
+    write_generic_layout(tmp_path / "clip", clip)
+    gt = load_gt(tmp_path / "clip")
+    assert gt["poses"].shape == (6, 4, 4) and len(gt["depth_files"]) == 6 and gt["depth_scale"] == 1000.0
+    frames = [0, 2, 3, 5]  # a strided / trimmed run: matched by source frame index
+    res = evaluate(_fake_run(tmp_path, clip, frames, scale=0.3), tmp_path / "clip")
+    assert res["frames"] == 4 and res["depth_frames"] == 4 and (res["width"], res["height"]) == (48, 32)
+    assert res["ate_rmse"] < 1e-6 and res["scale"] == pytest.approx(1 / 0.3, rel=1e-6)
+    assert res["abs_rel"] < 1e-3  # the GT PNGs are rounded to 1 mm
+    assert "ATE RMSE" in format_metrics(res) and "AbsRel" in format_metrics(res)
+
+
+def test_run_eval_bad_ground_truth_names_the_file(tmp_path):
+    from gcvd_flow.engine.errors import UsageError
+    from gcvd_flow.evaluate.run_eval import evaluate, load_gt
+    from gcvd_flow.evaluate.synth import render_clip
+    from gcvd_flow.io.formats import write_generic_layout
+
+    clip = render_clip(n_frames=4, trajectory="orbit", size=(48, 32), seed=0)
+    write_generic_layout(tmp_path / "clip", clip)
+    (tmp_path / "clip" / "gt" / "depth_scale").write_text("-5\n")
+    with pytest.raises(UsageError, match="depth_scale"):
+        load_gt(tmp_path / "clip")
+    (tmp_path / "clip" / "gt" / "depth_scale").unlink()
+    run = _fake_run(tmp_path, clip, [0, 1, 2, 3])
+    with pytest.raises(UsageError, match="ground truth has 3 poses"):
+        (tmp_path / "clip" / "gt" / "poses.txt").write_text(
+            "\n".join((tmp_path / "clip" / "gt" / "poses.txt").read_text().splitlines()[:3]) + "\n")
+        evaluate(run, tmp_path / "clip")
+    with pytest.raises(UsageError, match="poses.txt"):
+        evaluate(tmp_path / "nope", tmp_path / "clip")
