@@ -26,7 +26,7 @@ from gcvd_flow.engine.config import build_config
 from gcvd_flow.engine.dag import Pipeline
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
-from gcvd_flow.engine.store import CorruptObject, Store, StoreError, default_cache_dir
+from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
 RUN_FILE = "run.json"
 
@@ -166,20 +166,60 @@ def _previous_stages(out: str | None) -> dict[str, Any] | None:
         return None
 
 
+MAX_HEALING_PASSES = 8
+
+
 def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None) -> dict[str, Any]:
-    """Run the pipeline, export results into ``inv.out``; returns the --json document."""
+    """Run the pipeline, export results into ``inv.out``; returns the --json document.
+
+    Self-healing: a corrupt object (quarantined on read) or a missing one makes every record
+    that names it invisible (records are checked against their objects), so another pass
+    recomputes exactly what it held; the run ends normally with one warning line naming the
+    damaged objects and the stages that recomputed something. The same object failing twice
+    (a recomputation that cannot restore it) is an error."""
     t0 = time.perf_counter()
-    spec, config, runner = _prepare(inv, log, target)
-    try:
-        reports = runner.run(target)
-    except CorruptObject as exc:
-        # The corrupt object is quarantined now, so records naming it no longer resolve:
-        # one more pass recomputes exactly what it held.
-        log(f"warning: {exc}; recomputing")
-        spec, config, runner = _prepare(inv, log)
-        reports = runner.run(target)
-    result: dict[str, Any] = {"stages": [r.as_run_json() for r in reports],
-                              "seconds": round(time.perf_counter() - t0, 3)}
+    damaged: list[str] = []
+    passes: list[list[StageReport]] = []
+    while True:
+        spec, config, runner = _prepare(inv, log, target)
+        try:
+            with runner.store.lease():  # gc waits for this run (and never deletes its objects)
+                reports = runner.run(target)
+                passes.append(reports)
+                result = _finish_run(inv, spec, config, runner, target)
+            break
+        except (CorruptObject, MissingObject) as exc:
+            passes.append(list(runner.reports.values()))
+            if exc.digest in damaged or len(damaged) >= MAX_HEALING_PASSES:
+                raise StoreError(f"{exc}; recomputing did not restore it (run `gcvd-flow fsck`)") from None
+            damaged.append(exc.digest)
+    result["stages"] = [r.as_run_json() for r in _merge_passes(passes)]
+    result["seconds"] = round(time.perf_counter() - t0, 3)
+    if damaged:
+        redone = sorted({r.name for ps in passes[1:] for r in ps if r.executed})
+        result["healed"] = {"objects": damaged, "recomputed": redone}
+        log(f"warning: {len(damaged)} damaged cache object(s) ({', '.join(d[:12] for d in damaged)}) were "
+            f"quarantined or missing; recomputed: {', '.join(redone) or 'nothing'}")
+    return result
+
+
+def _merge_passes(passes: list[list[StageReport]]) -> list[StageReport]:
+    """The last pass's reports, with what earlier (interrupted) passes executed counted as
+    executed rather than cached."""
+    final = [StageReport(r.name, r.action, list(r.reasons), r.executed, r.cached, r.seconds, r.key, r.output,
+                         r.fields) for r in passes[-1]]
+    for r in final:
+        earlier = sum(p.executed for ps in passes[:-1] for p in ps if p.name == r.name)
+        r.executed += earlier
+        r.cached = max(0, r.cached - earlier)
+        r.seconds += sum(p.seconds for ps in passes[:-1] for p in ps if p.name == r.name)
+    return final
+
+
+def _finish_run(inv: Invocation, spec: PipelineSpec, config: Any, runner: Runner,
+                target: str | None) -> dict[str, Any]:
+    """Register the run in the cache, export its results and write RUN_DIR/run.json."""
+    result: dict[str, Any] = {}
     stage_records = runner.stage_summary()
     runner.store.add_run({"records": [r["key"] for r in stage_records.values() if r["key"]],
                           "pipeline": spec.name})
@@ -190,7 +230,8 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
             result["outputs"] = spec.export(out, runner, config)
         doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
                "stages": stage_records, "stage_order": list(stage_records),
-               "env": spec.pipeline.numeric_env(), "gcvd_flow": _version()}
+               "env": spec.pipeline.numeric_env(), "gcvd_flow": _version(),
+               "cache": str(runner.store.root.resolve())}
         tmp = out / (RUN_FILE + ".tmp")
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
         os.replace(tmp, out / RUN_FILE)
@@ -294,8 +335,15 @@ def fsck(cache: str | None) -> dict[str, Any]:
     return open_store(cache).fsck().as_dict()
 
 
-def gc(cache: str | None, keep: int) -> dict[str, int]:
-    return open_store(cache).gc(keep=keep)
+def gc(cache: str | None, keep: int, wait: bool = True, log: Callable[[str], None] = _stderr) -> dict[str, int]:
+    """Drop what the last ``keep`` runs and the pins do not reach; waits for runs in progress."""
+    if not 0 <= keep <= Store.MAX_KEEP:
+        raise UsageError(f"--keep {keep}: must be from 0 to {Store.MAX_KEEP} (runs to keep)")
+    try:
+        return open_store(cache).gc(keep=keep, wait=wait,
+                                    on_wait=lambda: log("gc: waiting for the runs using this cache to finish"))
+    except StoreError as exc:
+        raise UsageError(f"gc: {exc}") from None
 
 
 def _version() -> str:

@@ -11,13 +11,14 @@ Exit codes: 0 success, 2 bad usage or bad input (one line on stderr, no tracebac
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import sys
 import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.errors import StoreError, UsageError
 
 
 @dataclass
@@ -104,7 +105,9 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
 
     p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
     p.add_argument("--cache", metavar="DIR")
-    p.add_argument("--keep", type=int, default=5, metavar="N")
+    p.add_argument("--keep", type=int, default=5, metavar="N", help="runs to keep (default 5; pins are always kept)")
+    p.add_argument("--no-wait", action="store_true",
+                   help="fail (exit 2) instead of waiting when a run, pull or push is using the cache")
     p.add_argument("--json", dest="json_mode", action="store_true")
 
     p = sub.add_parser("pin", help="keep a run's artifacts through gc (until unpinned)")
@@ -264,7 +267,7 @@ def _cmd_fsck(a: argparse.Namespace) -> int:
 def _cmd_gc(a: argparse.Namespace) -> int:
     from gcvd_flow.engine import api
 
-    rep = api.gc(a.cache, a.keep)
+    rep = api.gc(a.cache, a.keep, wait=not a.no_wait)
     if a.json_mode:
         _print_json(rep)
     else:
@@ -325,6 +328,15 @@ def main(product: Product, argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
+    except StoreError as exc:  # a cache that cannot serve this run (even after healing)
+        print(f"{product.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the environment: permissions, a full disk, a file where a folder must be
+        where = exc.filename if exc.filename is not None else ""
+        what = exc.strerror or type(exc).__name__
+        hint = "; the cache is consistent, free space and run again" if exc.errno == errno.ENOSPC else ""
+        print(f"{product.prog}: error: {where}{': ' if where else ''}{what}{hint}", file=sys.stderr)
+        return 2
     except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback
         if getattr(exc, "user_error", False):  # bad input found inside a stage
             print(f"{product.prog}: error: {exc}", file=sys.stderr)
@@ -332,4 +344,3 @@ def main(product: Product, argv: Sequence[str] | None = None) -> int:
         traceback.print_exc()
         print(f"{product.prog}: internal error (this is a bug; the traceback is above)", file=sys.stderr)
         return 1
-

@@ -55,6 +55,7 @@ class ItemTask:
     index: int
     resources: dict[str, Callable[[Any], Any]] | None = None
     resource_key: str = ""  # digest of the parameters the resources are opened with
+    preimage: Any = None  # what ``key`` is the digest of (goes into the record)
 
 
 @dataclass
@@ -133,7 +134,7 @@ def compute_item(task: ItemTask) -> ItemResult:
                 enc = Encoder(store)
                 out = enc.manifest(task.kind, value)
                 rec = {"record_kind": "item", "stage": task.stage_name, "key": task.key,
-                       "outputs": out, "objects": enc.objects,
+                       "outputs": out, "objects": enc.objects, "preimage": task.preimage,
                        "inputs": {n: r.digest for n, r in sorted(task.refs.items())},
                        "seconds": round(time.perf_counter() - t0, 6)}
                 store.put_record(task.key, rec)

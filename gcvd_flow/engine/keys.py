@@ -13,6 +13,7 @@ import functools
 import importlib.metadata
 import importlib.util
 import inspect
+import json
 import math
 import struct
 import sys
@@ -361,7 +362,22 @@ def _numeric_env(libraries: tuple[tuple[str, tuple[str, ...]], ...],
     return tuple(sorted(env.items()))
 
 
+def key_preimage(record_kind: str, stage_name: str, code_fp: str, params: Any,
+                 input_digests: Any, env: dict[str, Any]) -> list[Any]:
+    """What a key is the digest of (docs/design.md, "Cache keys"), as JSON-able data: records
+    carry it, so that whoever reads a record can re-derive its key (a record filed under
+    another key — a swapped or misplaced record — is detected, never used)."""
+    return json.loads(json.dumps([record_kind, stage_name, code_fp, params, input_digests, env],
+                                 allow_nan=False, default=_no_json))
+
+
+def _no_json(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise EncodingError(f"cannot put a value of type {type(obj).__name__} in a key")
+
+
 def stage_key(record_kind: str, stage_name: str, code_fp: str, params: Any,
               input_digests: Any, env: dict[str, Any]) -> str:
     """The cache key recipe (docs/design.md, "Cache keys")."""
-    return key_of([record_kind, stage_name, code_fp, params, input_digests, env])
+    return key_of(key_preimage(record_kind, stage_name, code_fp, params, input_digests, env))

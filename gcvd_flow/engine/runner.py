@@ -102,7 +102,8 @@ class Checkpointer:
 
     def __init__(self, store: Store, stage_key: str, stage: str, log: Callable[[str], None]):
         self.store = store
-        self.key = keys.key_of(["checkpoint", stage_key])
+        self.preimage = ["checkpoint", stage_key]
+        self.key = keys.key_of(self.preimage)
         self.stage = stage
         self.log = log
         self.saves = 0
@@ -124,7 +125,7 @@ class Checkpointer:
             # views, encoded one at a time: never more than one shard's bytes in memory
             value["shards"] = {name: Tensors(self._arrays(t)) for name, t in shards.items()}
         out = enc.manifest("checkpoint", value)
-        self.store.put_record(self.key, {"record_kind": "checkpoint", "stage": self.stage,
+        self.store.put_record(self.key, {"record_kind": "checkpoint", "stage": self.stage, "preimage": self.preimage,
                                          "outputs": out, "objects": enc.objects})
         self.saves += 1
 
@@ -283,12 +284,16 @@ class Runner:
                 "inputs": inputs, "env": self.pipeline.numeric_env()}
 
     @staticmethod
-    def _key(record_kind: str, stage: Stage, f: dict[str, Any], params: Any = None,
-             inputs: Any = None) -> str:
+    def _preimage(record_kind: str, stage: Stage, f: dict[str, Any], params: Any = None,
+                  inputs: Any = None) -> list[Any]:
         p = f["params"] if params is None else params
-        return keys.stage_key(record_kind, stage.name, f["code"],
-                              {"params": p, "seed": f["seed"], "version": f["version"]},
-                              f["inputs"] if inputs is None else inputs, f["env"])
+        return keys.key_preimage(record_kind, stage.name, f["code"],
+                                 {"params": p, "seed": f["seed"], "version": f["version"]},
+                                 f["inputs"] if inputs is None else inputs, f["env"])
+
+    def _key(self, record_kind: str, stage: Stage, f: dict[str, Any], params: Any = None,
+             inputs: Any = None) -> str:
+        return keys.key_of(self._preimage(record_kind, stage, f, params, inputs))
 
     def _item_params(self, stage: MapStage, f: dict[str, Any]) -> Any:
         p = f["params"]
@@ -431,6 +436,7 @@ class Runner:
                 out = enc.manifest(stage.kind, value)
                 rec = {"record_kind": "stage", "stage": stage.name, "key": key, "outputs": out,
                        "objects": enc.objects, "fields": _jsonable_fields(f),
+                       "preimage": self._preimage("stage", stage, f),
                        "seconds": round(time.perf_counter() - t0, 6)}
                 if stage.nondeterministic:
                     rec["nondeterministic"] = stage.nondeterministic
@@ -454,11 +460,12 @@ class Runner:
         item_keys = []
         for i, it in enumerate(items):
             refs = {n: self._resolve(r) for n, r in sorted(it.items())}
-            ik = self._key("item", stage, f, item_params, {n: r.digest for n, r in refs.items()})
+            pre = self._preimage("item", stage, f, item_params, {n: r.digest for n, r in refs.items()})
+            ik = keys.key_of(pre)
             item_keys.append(ik)
             tasks.append(ItemTask(str(self.store.root), self.store.verify, stage.name, stage.fn,
                                   stage.kind, ik, refs, params, self.seed, i, stage.resources or None,
-                                  keys.key_of(f["params"])))
+                                  keys.key_of(f["params"]), pre))
         outputs: list[str | None] = [None] * len(tasks)
         objects: dict[str, int] = {}
         prog = Progress(stage.name, len(tasks), progress_enabled(self.json_mode))
@@ -468,6 +475,7 @@ class Runner:
             rec = self.store.get_record(t.key)
             if rec is not None:
                 outputs[t.index] = rec["outputs"]
+                objects.update(rec["objects"])
                 rep.cached += 1
                 prog.update()
             else:
@@ -476,6 +484,7 @@ class Runner:
         try:
             for res in run_exec.run(todo):
                 outputs[res.index] = res.output
+                objects.update(res.objects)
                 if res.computed:
                     rep.executed += 1
                 else:
@@ -488,9 +497,10 @@ class Runner:
         if summary_tree is not None and stage.summary_kind:
             validate(stage.summary_kind, summary_tree)
         out = enc.manifest(f"map:{stage.kind}", None, items=outputs, summary=summary_tree)
+        # the stage record names its items' objects too: one lookup tells whether all are there
         rec = {"record_kind": "stage", "stage": stage.name, "key": key, "outputs": out,
-               "objects": enc.objects, "children": item_keys, "fields": _jsonable_fields(f),
-               "seconds": round(time.perf_counter() - t0, 6)}
+               "objects": {**objects, **enc.objects}, "children": item_keys, "fields": _jsonable_fields(f),
+               "preimage": self._preimage("stage", stage, f), "seconds": round(time.perf_counter() - t0, 6)}
         self.store.sync()
         self.store.put_record(key, rec)
         self._outputs[stage.name] = out

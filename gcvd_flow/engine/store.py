@@ -39,16 +39,45 @@ from typing import Any, Iterator
 
 import blake3
 
-from gcvd_flow.engine.keys import digest_bytes, is_digest
+from gcvd_flow.engine.keys import digest_bytes, is_digest, key_of
 from gcvd_flow.engine.paths import default_cache_dir  # noqa: F401 - re-exported
 
 
-class StoreError(RuntimeError):
-    pass
+from gcvd_flow.engine.errors import StoreError  # noqa: E402 - re-exported (stdlib-only module)
+
+
+def record_problem(key: str, rec: Any) -> str | None:
+    """Why ``rec`` is not a usable record for ``key`` (None if it is): malformed, or filed
+    under a key its preimage does not hash to (a swapped or forged-by-mistake record)."""
+    if not isinstance(rec, dict) or not is_digest(rec.get("outputs")):
+        return "malformed record"
+    objs = rec.get("objects")
+    if not isinstance(objs, dict) or not all(is_digest(d) and type(s) is int and s >= 0 for d, s in objs.items()):
+        return "malformed object list"
+    if not isinstance(rec.get("children", []), list) or not all(is_digest(c) for c in rec.get("children", [])):
+        return "malformed children"
+    try:
+        if key_of(rec.get("preimage")) != key:
+            return "its preimage does not hash to its key"
+    except (TypeError, ValueError):
+        return "unreadable preimage"
+    return None
 
 
 class CorruptObject(StoreError):
     """An object's bytes do not match its digest (it has been moved to quarantine)."""
+
+    def __init__(self, message: str, digest: str = ""):
+        super().__init__(message)
+        self.digest = digest
+
+
+class MissingObject(StoreError):
+    """An object a record names is not in the cache (deleted, or lost with a crash)."""
+
+    def __init__(self, message: str, digest: str = ""):
+        super().__init__(message)
+        self.digest = digest
 
 
 def canonical_json(obj: Any) -> bytes:
@@ -128,9 +157,11 @@ class Store:
         return self.root / "tmp" / f"{os.getpid()}-{uuid.uuid4().hex}"
 
     def _publish(self, tmp: Path, digest: str) -> None:
-        """Rename a complete, fsynced temp file into place as an immutable object."""
+        """Rename a complete temp file into place as an immutable object. An existing object of
+        another size (truncated by a crash or by hand) is replaced, never trusted."""
         dest = self.object_path(digest)
-        if dest.exists():
+        size = self.object_size(digest)
+        if size is not None and size == tmp.stat().st_size:
             tmp.unlink(missing_ok=True)
             return
         # chmod before rename: an object is never visible writable
@@ -142,8 +173,8 @@ class Store:
 
     def put_bytes(self, data: bytes | memoryview) -> str:
         digest = digest_bytes(data)
-        if self.has(digest):
-            return digest
+        if self.object_size(digest) == len(data):
+            return digest  # present and whole (reads re-hash: a same-size corruption is caught there)
         tmp = self._tmp_file()
         with open(tmp, "wb") as f:
             f.write(data)
@@ -175,12 +206,12 @@ class Store:
         path = self.object_path(digest)
         try:
             data = path.read_bytes()
-        except FileNotFoundError:
-            raise StoreError(f"object {digest[:12]} is missing from the cache") from None
+        except (FileNotFoundError, NotADirectoryError):
+            raise MissingObject(f"object {digest[:12]} is missing from the cache", digest) from None
         if self.verify if verify is None else verify:
             if digest_bytes(data) != digest:
                 self.quarantine(digest)
-                raise CorruptObject(f"object {digest[:12]} is corrupt (moved to quarantine)")
+                raise CorruptObject(f"object {digest[:12]} is corrupt (moved to quarantine)", digest)
         return data
 
     def quarantine(self, digest: str) -> None:
@@ -192,7 +223,7 @@ class Store:
     def object_size(self, digest: str) -> int | None:
         try:
             return self.object_path(digest).stat().st_size
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             return None
 
     def iter_objects(self) -> Iterator[str]:
@@ -208,7 +239,12 @@ class Store:
         return self.root / "records" / key[:2] / f"{key}.json"
 
     def put_record(self, key: str, record: dict[str, Any]) -> None:
-        """Atomically write the record for ``key`` (write last: it makes outputs visible)."""
+        """Atomically write the record for ``key`` (write last: it makes outputs visible).
+
+        A record carries ``preimage``, the data its key is the digest of (keys.key_preimage), so
+        that any reader can check the record belongs to the key it is filed under."""
+        if key_of(record.get("preimage")) != key:
+            raise StoreError(f"record for {key[:12]} does not carry its key's preimage")
         path = self.record_path(key)
         self._ensure_dir(path.parent)
         tmp = self._tmp_file()
@@ -221,17 +257,25 @@ class Store:
         if self.fsync_always:
             _fsync_dir(path.parent)
 
-    def get_record(self, key: str) -> dict[str, Any] | None:
-        """The record for ``key`` if it and the objects it names are all present."""
+    def read_record(self, key: str) -> dict[str, Any] | None:
+        """The record filed under ``key`` if it is well-formed and belongs to ``key`` (its
+        preimage hashes to ``key``), whether or not its objects are present; else None."""
         path = self.record_path(key)
         try:
             rec = json.loads(path.read_bytes())
         except (FileNotFoundError, NotADirectoryError):
             return None
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            path.unlink(missing_ok=True)  # cannot happen through put_record; be safe anyway
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError):
             return None
-        for digest, size in rec.get("objects", {}).items():
+        return rec if record_problem(key, rec) is None else None
+
+    def get_record(self, key: str) -> dict[str, Any] | None:
+        """The record for ``key`` if it belongs to ``key`` and every object it names is present
+        with its recorded size (a map stage's record names its items' objects too)."""
+        rec = self.read_record(key)
+        if rec is None:
+            return None
+        for digest, size in rec["objects"].items():
             if self.object_size(digest) != size:
                 return None
         return rec
@@ -269,6 +313,22 @@ class Store:
                 fcntl.flock(fd, fcntl.LOCK_UN)
         finally:
             os.close(fd)
+
+    @contextlib.contextmanager
+    def lease(self) -> Iterator[None]:
+        """Held by every run, pull and push for as long as it reads or writes the store: a shared
+        OS lock that gc must take exclusively, so gc never deletes what a live run is using. The
+        kernel releases it when the holder dies (kill -9 leaves no stale lease)."""
+        fd = self._gc_lock_fd()
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH)
+            yield
+        finally:
+            os.close(fd)
+
+    def _gc_lock_fd(self) -> int:
+        path = self.root / "locks" / "gc.lock"
+        return os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
 
     # ---------------------------------------------------------------- runs and gc
 
@@ -313,8 +373,32 @@ class Store:
                     live.update(sub_rec.get("objects", {}))
         return live
 
-    def gc(self, keep: int = 5) -> dict[str, int]:
-        """Delete objects and records not reachable from the last ``keep`` runs or pins."""
+    MAX_KEEP = 1_000_000
+
+    def gc(self, keep: int = 5, wait: bool = True, on_wait: Any = None) -> dict[str, int]:
+        """Delete objects and records not reachable from the last ``keep`` runs or pins.
+
+        Waits for runs in progress (their leases) unless ``wait`` is False, in which case it
+        raises StoreError; ``on_wait()`` is called once if it has to wait."""
+        if not isinstance(keep, int) or isinstance(keep, bool) or not 0 <= keep <= self.MAX_KEEP:
+            raise ValueError(f"keep must be an integer from 0 to {self.MAX_KEEP}, got {keep!r}")
+        fd = self._gc_lock_fd()
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                    raise
+                if not wait:
+                    raise StoreError("a run, pull or push is using the cache; gc did nothing (try again later)") from None
+                if on_wait is not None:
+                    on_wait()
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            return self._gc_locked(keep)
+        finally:
+            os.close(fd)
+
+    def _gc_locked(self, keep: int) -> dict[str, int]:
         runs = self.runs()
         roots_runs = [r for _, r in runs[-keep:]] if keep > 0 else []
         roots_runs += self.pinned()
