@@ -1,6 +1,6 @@
 """Small numpy geometry helpers (no torch): pixel grids, back-projection, exact rigid flow.
 
-Conventions (docs/CONTRACT.md): pixel (u, v) = (column, row), centre of the top-left pixel is
+Conventions (docs/contributing.md): pixel (u, v) = (column, row), centre of the top-left pixel is
 (0, 0); poses are camera-to-world 4x4 in OpenCV camera axes; depth is z-depth in metres.
 """
 

@@ -1,4 +1,4 @@
-"""Flow-guided temporal depth filter (CVD2 style, DESIGN §5.11)."""
+"""Flow-guided temporal depth filter (CVD2 style, docs/design.md, "Stage: depth_filter")."""
 
 from __future__ import annotations
 

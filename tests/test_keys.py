@@ -1,4 +1,4 @@
-"""Canonical encoding, digests and code fingerprints (DESIGN §4)."""
+"""Canonical encoding, digests and code fingerprints (docs/design.md, "Cache keys")."""
 
 from __future__ import annotations
 

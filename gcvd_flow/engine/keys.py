@@ -1,7 +1,8 @@
 """Cache keys: canonical typed encoding, BLAKE3 digests and code fingerprints.
 
 A key is ``BLAKE3(canonical_encoding([record_kind, stage_name, code_fingerprint, params,
-input_digests, env]))`` (DESIGN §4). Keys must be equal on every machine that has the same
+input_digests, env]))`` (docs/design.md, "Cache keys"). Keys must be equal on every machine that
+has the same
 code, parameters, inputs and numeric environment, so nothing here may depend on absolute
 paths, host names, user names or times.
 """

@@ -1,6 +1,6 @@
 """Plan, execute and explain a pipeline against a content-addressed store.
 
-For each stage in topological order the runner computes the key (DESIGN §4) from the stage's
+For each stage in topological order the runner computes the key (docs/design.md, "Cache keys") from the stage's
 code fingerprint, its own parameters, the digests of its inputs' *outputs* and the numeric
 environment. A record for the key means the stage is cached; otherwise it runs (a map stage
 item by item, each item keyed by its own inputs) and its record is written last.

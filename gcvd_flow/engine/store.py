@@ -10,7 +10,8 @@ Layout of a cache directory::
     runs/<id>.json          roots of finished runs (for gc), pins/<name>.json pinned roots
     quarantine/             objects whose bytes no longer match their name (found by fsck)
 
-Write protocol (DESIGN §4): write to ``tmp/``, hash, rename into ``objects/``; the record
+Write protocol (docs/design.md, "Write protocol and locks"): write to ``tmp/``, hash, rename into
+``objects/``; the record
 that points at the outputs is written the same way and last. A reader therefore only ever sees
 complete objects, and a record only once all of its objects exist, whatever moment a process
 is killed at.

@@ -1,6 +1,6 @@
 """Differentiable camera geometry in torch (SE(3), back-projection, projection, point sampling).
 
-Conventions (docs/CONTRACT.md): pixel (u, v) = (column, row), the centre of the top-left pixel
+Conventions (docs/contributing.md): pixel (u, v) = (column, row), the centre of the top-left pixel
 is (0, 0); poses are camera-to-world 4x4 in OpenCV axes; depth is z-depth. A relative pose
 ``T_ab`` (4, 4) maps camera-a coordinates to camera-b coordinates: ``T_ab = inv(P_b) @ P_a``
 (same as ``stages.geometry_np.relative_pose``).
@@ -176,7 +176,8 @@ def rigid_flow(depth_a: torch.Tensor, K: torch.Tensor, T_ab: torch.Tensor) -> to
 def sample_bilinear(img: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinearly sample img (B, C, H, W) at pixel points uv (B, M, 2) -> ((B, M, C), inside (B, M)).
 
-    Uses grid_sample on a (B, 1, M) point grid, so the cost is O(M), not O(H*W) (DESIGN §9).
+    Uses grid_sample on a (B, 1, M) point grid, so the cost is O(M), not O(H*W)
+    (docs/design.md, "Lessons from the prototype").
     ``inside`` is True where the point lies within the pixel-centre box [0, W-1] x [0, H-1].
     """
     b, c, h, w = img.shape

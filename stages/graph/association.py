@@ -1,6 +1,7 @@
 """Keyframe association: global descriptors, loop candidates, verification, the keyframe graph.
 
-DESIGN §5.6. Every keyframe gets a global descriptor; the cosine-similarity matrix proposes
+docs/design.md, "Stage: association". Every keyframe gets a global descriptor; the cosine-similarity
+matrix proposes
 non-sequential pairs (more than ``min_separation`` keyframes apart, local maxima of an
 ``nms`` x ``nms`` max-pool over the matrix, similarity >= threshold); each candidate is
 verified geometrically (SIFT + RANSAC homography / essential-matrix inlier ratio >= 0.5),
@@ -307,7 +308,7 @@ def verify_pair(
     min_consistent: float = 0.1,
     fb_thresh: float = 2.0,
 ) -> dict[str, Any]:
-    """Geometric + flow verification of a loop candidate (DESIGN §5.6).
+    """Geometric + flow verification of a loop candidate (docs/design.md, "Stage: association").
 
     Returns a dict with ``accepted`` (bool), ``inlier_ratio`` (max of homography and
     essential-matrix RANSAC inlier ratios over ratio-test SIFT matches), ``n_matches``,

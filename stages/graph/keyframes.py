@@ -1,4 +1,4 @@
-"""Keyframe selection by accumulated static-scene image motion (DESIGN §5.5).
+"""Keyframe selection by accumulated static-scene image motion (docs/design.md, "Stage: keyframes").
 
 GCVD places a keyframe whenever the camera has moved "enough" since the previous keyframe,
 where "enough" is measured in image space: the mean optical-flow magnitude over *static*

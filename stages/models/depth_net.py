@@ -1,6 +1,7 @@
 """GCVD depth network: backbone -> non-affine LayerNorm -> depth = clip(1/disp) -> mesh deformation.
 
-Weight-free default (DESIGN §6): a small U-Net with a fixed, seeded random initialisation reads
+Weight-free default (docs/design.md, "Weight-free defaults"): a small U-Net with a fixed, seeded
+random initialisation reads
 the image *and* the log of the single-image prior and produces per-pixel features. A trainable
 head (the "last two layers": two 1x1 convolutions, ``head.0`` and ``head.2``) predicts a
 log-inverse-depth *residual* on top of the prior. The last head layer is zero-initialised, so the

@@ -272,7 +272,7 @@ def network_size(h: int, w: int, long_side: int = NET_SIZE) -> tuple[int, int]:
 
 @torch.no_grad()
 def midas_prior(model: MidasNet, image: np.ndarray) -> np.ndarray:
-    """MiDaS-shaped prior of one image (CONTRACT.md "prior").
+    """MiDaS-shaped prior of one image (docs/contributing.md, "Array conventions").
 
     ImageNet normalisation, bicubic resize to the network size (long side 256, multiples of 32,
     aspect kept), network, bilinear resize back to (H, W), clip to >= 0 plus an epsilon of

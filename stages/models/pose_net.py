@@ -10,7 +10,8 @@ scene units) that is *right-multiplied* onto an initial camera-to-world pose:
 - ``DirectPoses``: one free 6-vector per frame.
 
 Default in ``stages.optimize``: ``DirectPoses``. With a good initialisation (two-view essential-
-matrix chain, DESIGN §9) every frame needs an independent small correction; the decoder couples
+matrix chain, docs/design.md, "Lessons from the prototype") every frame needs an independent small
+correction; the decoder couples
 frames through shared weights. Measured (keyframe stage, DIS flow, flow-triangulation prior, same
 settings): ICL 211 frames ATE 2.9 cm direct vs 3.5 cm PoseNet; synthetic loop 120 frames 0.48 %
 vs 0.46 % of the path (a tie). ``pose_param="net"`` selects the network.
