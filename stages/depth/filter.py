@@ -134,9 +134,8 @@ def filter_depth(
         # must use the flows of the *opposite* direction, each sampled on the grid of the frame
         # the track is in: for j > c these are bwd_flows[j-1..c] (k+1 -> k), for j < c they
         # are fwd_flows[j..c-1] (k -> k+1). The authors' code gets the backward (j < c) term
-        # wrong by sampling the wrong flow (docs/design.md, "Known traps of the authors' code"):
-        # e.g. sampling the backward flow again on
-        # the way back measures about twice the motion instead of the round-trip error, so
+        # wrong (docs/design.md, "Known traps of the authors' code"): sampling the backward flow
+        # again on the way back measures about twice the motion instead of the round-trip error, so
         # every past neighbour of a moving camera looks inconsistent and the filter silently
         # becomes one-sided (tests/test_depth_filter.py checks past/future symmetry).
         # chain_flow picks the flow by the direction of travel, right in both cases.
