@@ -106,6 +106,11 @@ class Invocation:
     json_mode: bool = False
     pipeline: str = ""  # a registered pipeline name (the product's CLI and API set theirs)
     verify: bool = True
+    remote: str | None = None  # read-through remote: a name in the remotes file or a URL
+    remotes_file: str | None = None
+    push: bool = False  # write-through: push what each stage computed to the remote
+    executor: str = "process"  # or "dask"
+    scheduler: str | None = None  # Dask scheduler address; None: a LocalCluster of `jobs` workers
 
     def recorded(self) -> dict[str, Any]:
         """What a run dir remembers to recompute keys later (`why`, `status`)."""
@@ -116,14 +121,34 @@ class Invocation:
 
 def open_store(cache: str | None, verify: bool = True) -> Store:
     root = Path(cache) if cache else default_cache_dir()
+    if root.exists() and not root.is_dir():
+        raise UsageError(f"{root}: cache is not a directory")
     try:
-        return Store(root, verify=verify)
+        store = Store(root, verify=verify)
     except OSError as exc:
         raise UsageError(f"cannot use cache directory {root}: {exc.strerror}") from None
+    if not os.access(store.root / "objects", os.W_OK | os.X_OK):
+        raise UsageError(f"{root}: cache directory is not writable")
+    return store
+
+
+def check_out_dir(out: str | Path) -> Path:
+    """RUN_DIR must be (or be creatable as) a writable directory: checked before any work."""
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{p}: exists and is not a directory (--out needs a directory)")
+    anc = p
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise UsageError(f"{anc}: is not a directory, so {p} cannot be created")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise UsageError(f"{anc}: not writable, so {p} cannot be {'written' if anc == p else 'created'}")
+    return p
 
 
 def _prepare(inv: Invocation, log: Callable[[str], None], target: str | None = None,
-             allow_module_ref: bool = True) -> tuple[PipelineSpec, Any, Runner]:
+             allow_module_ref: bool = True, writes_out: bool = True) -> tuple[PipelineSpec, Any, Runner]:
     if not inv.pipeline:
         raise UsageError("no pipeline named")
     spec = load_spec(inv.pipeline, allow_module_ref)
@@ -132,6 +157,8 @@ def _prepare(inv: Invocation, log: Callable[[str], None], target: str | None = N
         spec.pipeline.get(target)  # unknown stage -> one clear line
     if inv.input is None:
         raise UsageError("no INPUT given")
+    if inv.out and writes_out:
+        check_out_dir(inv.out)
     source = spec.open_source(inv.input, config) if spec.open_source else None
     store = open_store(inv.cache, inv.verify)
     seed = int(getattr(config, "seed", 0))
@@ -169,7 +196,17 @@ def _previous_stages(out: str | None) -> dict[str, Any] | None:
 MAX_HEALING_PASSES = 8
 
 
-def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None) -> dict[str, Any]:
+def _attach(inv: Invocation, runner: Runner, log: Callable[[str], None], executor: Any) -> None:
+    """Remote record source, executor kind and a shared executor (run-many) for one run."""
+    if inv.remote or inv.push:
+        from gcvd_flow.engine.remote import record_source
+
+        runner.records = record_source(runner.store, inv.remote, inv.remotes_file, push=inv.push, log=log)
+    runner.executor_kind, runner.scheduler, runner.shared_executor = inv.executor, inv.scheduler, executor
+
+
+def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None,
+        executor: Any = None) -> dict[str, Any]:
     """Run the pipeline, export results into ``inv.out``; returns the --json document.
 
     Self-healing: a corrupt object (quarantined on read) or a missing one makes every record
@@ -182,6 +219,7 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
     passes: list[list[StageReport]] = []
     while True:
         spec, config, runner = _prepare(inv, log, target)
+        _attach(inv, runner, log, executor)
         try:
             with runner.store.lease():  # gc waits for this run (and never deletes its objects)
                 reports = runner.run(target)
@@ -195,6 +233,8 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
             damaged.append(exc.digest)
     result["stages"] = [r.as_run_json() for r in _merge_passes(passes)]
     result["seconds"] = round(time.perf_counter() - t0, 3)
+    if runner.records is not None:
+        result["remote"] = runner.records.report()
     if damaged:
         redone = sorted({r.name for ps in passes[1:] for r in ps if r.executed})
         result["healed"] = {"objects": damaged, "recomputed": redone}
@@ -243,7 +283,7 @@ def _finish_run(inv: Invocation, spec: PipelineSpec, config: Any, runner: Runner
 
 
 def plan(inv: Invocation, log: Callable[[str], None] = _stderr) -> list[StageReport]:
-    _, _, runner = _prepare(inv, log)
+    _, _, runner = _prepare(inv, log, writes_out=False)
     return runner.plan(_previous_stages(inv.out))
 
 
@@ -276,7 +316,7 @@ def why(stage: str, out: str, extra: Invocation | None = None,
     """Field-by-field difference between the current key of ``stage`` and its last run."""
     inv = _invocation_from_run(out, extra)
     previous = read_run_dir(out)["stages"]
-    spec, _, runner = _prepare(inv, log, allow_module_ref=False)
+    spec, _, runner = _prepare(inv, log, allow_module_ref=False, writes_out=False)
     spec.pipeline.get(stage)  # unknown stage -> clear error
     reports = {r.name: r for r in runner.plan(previous, target=stage)}
     rep = reports[stage]
@@ -294,7 +334,7 @@ def why(stage: str, out: str, extra: Invocation | None = None,
 def status(out: str, extra: Invocation | None = None, log: Callable[[str], None] = _stderr) -> list[StageReport]:
     inv = _invocation_from_run(out, extra)
     previous = read_run_dir(out)["stages"]
-    _, _, runner = _prepare(inv, log, allow_module_ref=False)
+    _, _, runner = _prepare(inv, log, allow_module_ref=False, writes_out=False)
     return runner.plan(previous)
 
 

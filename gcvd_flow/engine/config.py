@@ -81,6 +81,10 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         return tomllib.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise UsageError(f"config file not found: {p}") from None
+    except IsADirectoryError:
+        raise UsageError(f"config file {p} is a directory") from None
+    except OSError as exc:
+        raise UsageError(f"config file {p}: cannot read ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise UsageError(f"config file {p} is not valid TOML: {exc}") from None
 

@@ -223,9 +223,19 @@ def write_rgb_png(path: PathLike, rgb: np.ndarray) -> None:
     _write_png(Path(path), rgb)
 
 
+def _imread(path: PathLike, flags: int) -> np.ndarray | None:
+    """cv2.imread for any path: the bytes are read by Python (OpenCV's own file functions crash
+    on file names that are not valid UTF-8) and decoded from memory; None if not an image."""
+    try:
+        data = np.fromfile(os.fspath(path), np.uint8)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read ({exc.strerror or exc})") from None
+    return cv2.imdecode(data, flags) if data.size else None
+
+
 def read_rgb(path: PathLike) -> np.ndarray:
     """Read an image file -> uint8 (H, W, 3) RGB."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = _imread(path, cv2.IMREAD_COLOR)
     if img is None:
         raise DatasetError(path, "not a readable image")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
@@ -238,7 +248,7 @@ def write_mask_png(path: PathLike, mask: np.ndarray) -> None:
 
 def read_mask_png(path: PathLike) -> np.ndarray:
     """Read a single-channel mask PNG -> bool (H, W), True where the value is > 0."""
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    m = _imread(path, cv2.IMREAD_UNCHANGED)
     if m is None or m.ndim != 2:
         raise DatasetError(path, "expected a single-channel mask PNG")
     return m > 0
@@ -268,7 +278,7 @@ def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = 1000.0) ->
 
 def read_depth_png(path: PathLike, scale: float = 1000.0) -> np.ndarray:
     """Read a 16-bit depth PNG -> float32 (H, W) metres (value / scale; 0 stays 0 = invalid)."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = _imread(path, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DatasetError(path, "not a readable image")
     if img.dtype != np.uint16 or img.ndim != 2:

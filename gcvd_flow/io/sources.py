@@ -109,7 +109,12 @@ class Source:
 
     @property
     def digest(self) -> str:
-        return key_of([r.digest for r in self.items])
+        """What the ``ingest`` stage's key takes from the input: every frame's content, and
+        what the layout says about the camera (intrinsics read from a file such as
+        ``intrinsics.txt``, and where they came from), so editing that file re-runs ingest."""
+        return key_of([[r.digest for r in self.items], self.layout,
+                       None if self.intrinsics is None else [float(v) for v in self.intrinsics],
+                       self.intrinsics_origin])
 
 
 def _image_files(folder: Path) -> list[Path]:
@@ -143,6 +148,11 @@ def _intrinsics_of(path: Path) -> tuple[float, float, float, float]:
 def open_video(path: Path) -> Source:
     import cv2
 
+    try:  # OpenCV's FFmpeg reader takes a UTF-8 path and crashes on anything else
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise UsageError(f"{os.fsencode(path)!r}: the video's path is not valid UTF-8; rename it "
+                         "(or link it under a UTF-8 name)") from None
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise UsageError(f"{path}: cannot open video (unsupported or corrupt file)")

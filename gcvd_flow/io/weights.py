@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import struct
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -61,10 +62,12 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
                 raise WeightsError(f"{p}: not a valid safetensors file ({exc})") from None
         else:
             try:
-                state = torch.load(str(p), map_location="cpu", weights_only=True)
+                with warnings.catch_warnings():  # torch warns about pickle protocols on stderr
+                    warnings.simplefilter("ignore")
+                    state = torch.load(str(p), map_location="cpu", weights_only=True)
             except pickle.UnpicklingError as exc:
-                first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else "refused"
-                raise WeightsError(f"{p}: refused to unpickle (only tensors are allowed: {first})") from None
+                why = next((ln.strip() for ln in str(exc).splitlines() if "Unsupported" in ln), "not tensors")
+                raise WeightsError(f"{p}: refused to unpickle: only tensors are allowed ({why[:120]})") from None
             except (RuntimeError, EOFError, ValueError, AttributeError, ImportError, TypeError) as exc:
                 raise WeightsError(f"{p}: not a readable torch weights file ({type(exc).__name__})") from None
     except OSError as exc:
