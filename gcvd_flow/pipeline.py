@@ -19,11 +19,13 @@ poses T_w_c camera-to-world (4, 4) float64; depth float32 (H, W), one global sca
 
 from __future__ import annotations
 
+import dataclasses
 import sys
+import typing
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 import artifacts_schema
 from gcvd_flow.engine.api import PipelineSpec
@@ -41,9 +43,11 @@ from stages.frontend import masks as masks_mod
 from stages.frontend import priors as priors_mod
 from stages.graph import association as association_mod
 from stages.graph import keyframes as keyframes_mod
+from stages.optimize import edges as opt_edges
+from stages.optimize import keyframes as opt_keyframes
+from stages.optimize import params as opt_params
 from stages.optimize import pose_graph as pose_graph_mod
-from stages.optimize import training
-from stages.optimize.training import torch_threads
+from stages.optimize import segments as opt_segments
 
 WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
 
@@ -368,67 +372,26 @@ ASSOCIATION = Stage("association", run_association, deps=("ingest", "keyframes")
 
 
 # ============================================================================== optimisation: shared
-class DepthParams(Section):
-    layer_norm: bool = True
-    mesh: bool = True
-    mesh_vertices: int = 17
+def section_from_dataclass(cls: type, name: str) -> type[Section]:
+    """A config section (pydantic, ``Section``) with the fields of a parameter dataclass of
+    ``stages.optimize.params``: same names, types and defaults; ``metadata`` gives each field's
+    description and constraints (``ge``, ``gt``, ...). The parameters are declared only there."""
+    hints = typing.get_type_hints(cls)
+    fields: dict[str, Any] = {
+        f.name: (hints[f.name], Field(f.default, **dict(f.metadata))) for f in dataclasses.fields(cls)
+    }
+    return create_model(name, __base__=Section, __module__=__name__, __doc__=cls.__doc__, **fields)
 
 
-class LossParams(Section):
-    grad: bool = True
-    w_photo: float = 1.0
-    w_flow: float = 10.0
-    w_depth: float = 0.5
-    w_grad: float = 0.1
-    w_mesh: float = 0.5
+DepthParams = section_from_dataclass(opt_params.DepthModel, "DepthParams")
+LossParams = section_from_dataclass(opt_params.LossWeights, "LossParams")
+OptimizeKeyframesParams = section_from_dataclass(opt_params.KeyframeSettings, "OptimizeKeyframesParams")
+OptimizeEdgesParams = section_from_dataclass(opt_params.EdgeSettings, "OptimizeEdgesParams")
+OptimizeSegmentsParams = section_from_dataclass(opt_params.SegmentSettings, "OptimizeSegmentsParams")
 
-
-class OptimizeKeyframesParams(Section):
-    window: int = 40
-    overlap: int = 8
-    steps: int = 150
-    lr: float = 2e-4
-    pose_lr: float = 5e-4
-    mesh_lr_mult: float = 100.0
-    loss_scale: float = 0.25
-    points: int = 128
-    pose_param: Literal["direct", "net"] = "direct"
-    init: Literal["essential", "identity"] = "essential"
-    checkpoint_every: int = 50
-    threads: int = Field(2, ge=1, description="torch threads of the optimisation stages (results "
-                         "are bit-identical only for the same count)")
-
-
+# the sections every optimisation stage reads (optimize_keyframes also holds the shared solver
+# settings: pose_lr, mesh_lr_mult, mesh_shape_lr_frac, points, taus, flow_taus, threads, ...)
 OPT = ("depth", "losses", "optimize_keyframes")
-
-
-# Config section -> OptimizeParams field names, for fields whose names differ.
-_SECTION_FIELDS = {
-    "optimize_edges": {"steps": "edge_steps", "lr": "edge_lr"},
-    "optimize_segments": {"steps": "seg_steps", "lr": "seg_lr", "loss_scale": "seg_loss_scale",
-                          "pair_power": "seg_pair_power", "grad_mult": "seg_grad_mult",
-                          "window": "seg_window"},
-}
-
-
-def optimize_params(bundle: Any) -> dict[str, Any]:
-    """Flatten the config sections a stage reads into ``stages.optimize.training.OptimizeParams`` fields."""
-    import dataclasses
-
-    OptimizeParams = training.OptimizeParams
-
-    known = {f.name for f in dataclasses.fields(OptimizeParams)}
-    out: dict[str, Any] = {}
-    for section in ("depth", "losses", "optimize_keyframes", "optimize_edges", "optimize_segments"):
-        model = getattr(bundle, section, None)
-        if model is None:
-            continue
-        rename = _SECTION_FIELDS.get(section, {})
-        for k, v in model.model_dump().items():
-            name = rename.get(k, k)
-            if name in known:
-                out[name] = tuple(v) if isinstance(v, list) else v
-    return out
 
 
 def _stack(items: Any, indices: list[int], field: str) -> np.ndarray:
@@ -445,7 +408,8 @@ def _inv(T: np.ndarray) -> np.ndarray:
 
 # ============================================================================== optimize_keyframes
 def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
-    """Keyframe windows -> {keyframes, poses (K,4,4) c2w, depths [K x (H,W)], rel_poses, state}."""
+    """Keyframe windows -> {keyframes, poses (K,4,4) T_w_c, depths [K x (H,W)],
+    rel_poses [{a, b, tau, T_b_a = inv(T_w_b) @ T_w_a}], state}."""
     kf = list(inputs["keyframes"]["indices"])
     frames = inputs["ingest"]
     pos = {f: k for k, f in enumerate(kf)}
@@ -457,15 +421,14 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
     missing = [k for k in range(len(kf) - 1) if (k, k + 1) not in pair_flows]
     if missing:
         raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
-    with torch_threads(b.optimize_keyframes.threads):
-        res = training.optimize_keyframes(
-            _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
-            _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
-            params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer)
+    res = opt_keyframes.optimize_keyframes(
+        _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
+        _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
+        depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seed=ctx.seed, checkpointer=ctx.checkpointer)
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
             "depths": [np.asarray(d, np.float32) for d in res["depths"]],
             "rel_poses": [{"a": int(r["a"]), "b": int(r["b"]), "tau": int(r["tau"]),
-                           "T": np.asarray(r["T"], np.float64)} for r in res["rel_poses"]],
+                           "T_b_a": np.asarray(r["T_b_a"], np.float64)} for r in res["rel_poses"]],
             "state": {k: np.asarray(v) for k, v in res["state"].items()}}
 
 
@@ -475,34 +438,25 @@ OPTIMIZE_KEYFRAMES = Stage("optimize_keyframes", run_optimize_keyframes,
 
 
 # ============================================================================== optimize_edges
-class OptimizeEdgesParams(Section):
-    steps: int = 100
-    lr: float = 1e-4
-
-
 def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
-    """Verified non-sequential keyframe pairs -> {edges: [{a, b, i, j, T_ab, loss}]}.
-
-    T_ab follows stages.optimize.training (camera a -> camera b coordinates, inv(P_b) @ P_a).
-    """
+    """Verified non-sequential keyframe pairs -> {edges: [{a, b, i, j, T_b_a, loss}]}, a, b keyframe
+    positions, i, j frame indices, T_b_a = inv(T_w_b) @ T_w_a (camera a -> camera b coordinates)."""
     okf = inputs["optimize_keyframes"]
     kf = list(okf["keyframes"])
     pos = {f: k for k, f in enumerate(kf)}
-    P = np.asarray(okf["poses"])
+    T_w_k = np.asarray(okf["poses"])
     frames, priors_, masks_ = inputs["ingest"], inputs["priors"], inputs["masks"]
     K = np.asarray(frames.summary["K"])
     flows = {(e["i"], e["j"]): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
-    params = optimize_params(b)
     edges = []
     for n, e in enumerate(inputs["association"]["graph"].get("nonsequential_edges", [])):
         i, j = int(e["i"]), int(e["j"])
         a, c = pos[i], pos[j]
-        with torch_threads(b.optimize_keyframes.threads):
-            res = training.optimize_edge(
-                frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
-                masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(P[c]) @ P[a],
-                params=params, seed=ctx.seed + n)
-        edges.append({"a": a, "b": c, "i": i, "j": j, "T_ab": np.asarray(res["T_ab"], np.float64),
+        res = opt_edges.optimize_edge(
+            frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
+            masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(T_w_k[c]) @ T_w_k[a],
+            depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, edge=b.optimize_edges, seed=ctx.seed + n)
+        edges.append({"a": a, "b": c, "i": i, "j": j, "T_b_a": np.asarray(res["T_b_a"], np.float64),
                       "loss": float(res["loss"])})
     return {"edges": edges}
 
@@ -524,26 +478,26 @@ class PoseGraphParams(Section):
 def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     """Keyframe poses + sequential and loop edges -> globally consistent keyframe poses."""
     okf = inputs["optimize_keyframes"]
-    P = np.asarray(okf["poses"], np.float64)
-    if not p.enabled or len(P) < 2:
-        return {"poses": P, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
-    # stages.optimize.training gives T = inv(P_b) @ P_a; the pose graph measures inv(P_a) @ P_b.
-    edges = [{"a": r["a"], "b": r["b"], "T_ab": _inv(r["T"]), "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
+    T_w_k = np.asarray(okf["poses"], np.float64)
+    if not p.enabled or len(T_w_k) < 2:
+        return {"poses": T_w_k, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
+    # the optimisations give T_b_a = inv(T_w_b) @ T_w_a; the pose graph measures T_a_b = inv(T_w_a) @ T_w_b
+    edges = [{"a": r["a"], "b": r["b"], "T_a_b": _inv(r["T_b_a"]), "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
     rejected = []
     for e in inputs["optimize_edges"]["edges"]:
-        meas = _inv(e["T_ab"])
+        T_a_b = _inv(e["T_b_a"])
         # Gate gross outliers: drift bends a trajectory by degrees, not tens of degrees, so a
         # loop measurement that disagrees that much with odometry is a failed edge optimisation.
-        odo = np.linalg.inv(P[e["a"]]) @ P[e["b"]]
-        dR = odo[:3, :3].T @ meas[:3, :3]
+        T_a_b_odo = np.linalg.inv(T_w_k[e["a"]]) @ T_w_k[e["b"]]
+        dR = T_a_b_odo[:3, :3].T @ T_a_b[:3, :3]
         angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
         if angle > p.max_loop_rotation_deg:
             rejected.append({"i": e["i"], "j": e["j"], "rotation_disagreement_deg": angle})
             continue
-        edges.append({"a": e["a"], "b": e["b"], "T_ab": meas, "weight": p.loop_weight})
+        edges.append({"a": e["a"], "b": e["b"], "T_a_b": T_a_b, "weight": p.loop_weight})
     if rejected:
         ctx.log(f"ignored {len(rejected)} loop edge(s) disagreeing with odometry by > {p.max_loop_rotation_deg} deg")
-    res = pose_graph_mod.optimize_pose_graph(P, edges, kind=p.kind, max_iterations=p.max_iterations)
+    res = pose_graph_mod.optimize_pose_graph(T_w_k, edges, kind=p.kind, max_iterations=p.max_iterations)
     return {"poses": np.asarray(res["poses"], np.float64), "enabled": True,
             "iterations": int(res["iterations"]), "initial_error": float(res["initial_error"]),
             "final_error": float(res["final_error"]), "rejected_loops": rejected}
@@ -554,15 +508,6 @@ POSE_GRAPH = Stage("pose_graph", run_pose_graph, deps=("optimize_keyframes", "op
 
 
 # ============================================================================== optimize_segments
-class OptimizeSegmentsParams(Section):
-    steps: int = 60
-    lr: float = 1e-4
-    loss_scale: float = 0.25
-    pair_power: float = 0.5
-    grad_mult: float = 5.0
-    window: int = 40
-
-
 class _FlowDicts:
     """flows[i] -> the arrays of pair (i, i+1)'s flow."""
 
@@ -577,19 +522,19 @@ class _FlowDicts:
 
 
 def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
-    """All frames with keyframe poses frozen -> {poses (N,4,4) c2w, depths [N x (H,W)]}.
+    """All frames with keyframe poses frozen -> {poses (N,4,4) T_w_c, depths [N x (H,W)]}.
 
     Images, priors and masks are read one window at a time (lazily stacked fields) and flows
     through a window-sized cache of decoded items: memory stays flat in the clip length (at
     256x192 one flow pair is ~0.9 MB; a 1000-frame clip would hold ~0.9 GB)."""
     frames, flows = inputs["ingest"], inputs["flow"]
     okf = inputs["optimize_keyframes"]
-    with torch_threads(b.optimize_keyframes.threads):
-        res = training.optimize_segments(
-            frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
-            np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
-            np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
-            params=optimize_params(b), seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
+    res = opt_segments.optimize_segments(
+        frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
+        np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
+        np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
+        depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
+        seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
     return {"poses": np.asarray(res["poses"], np.float64),
             "depths": [np.asarray(d, np.float32) for d in res["depths"]]}
 

@@ -56,12 +56,12 @@ def test_loop_closure_reduces_rotational_drift() -> None:
         t[:3, :3] = bias @ noise @ t[:3, :3]
         meas.append(t)
     init = _chain(gt[0], meas)
-    edges = [dict(a=k, b=k + 1, T_ab=meas[k], weight=1.0) for k in range(n - 1)]
+    edges = [dict(a=k, b=k + 1, T_a_b=meas[k], weight=1.0) for k in range(n - 1)]
     # tau = 2 edges from the same (drifting) odometry: consistent with the chain.
     edges += [
-        dict(a=k, b=k + 2, T_ab=meas[k] @ meas[k + 1], weight=0.5) for k in range(n - 2)
+        dict(a=k, b=k + 2, T_a_b=meas[k] @ meas[k + 1], weight=0.5) for k in range(n - 2)
     ]
-    edges.append(dict(a=n - 1, b=0, T_ab=edge_measurement(gt[n - 1], gt[0]), weight=1.0))
+    edges.append(dict(a=n - 1, b=0, T_a_b=edge_measurement(gt[n - 1], gt[0]), weight=1.0))
 
     res = optimize_pose_graph(init, edges, kind="se3")
     ate0, ate1 = _ate(init, gt), _ate(res["poses"], gt)
@@ -73,9 +73,9 @@ def test_loop_closure_reduces_rotational_drift() -> None:
     # Deterministic.
     res2 = optimize_pose_graph(init, edges, kind="se3")
     assert np.array_equal(res["poses"], res2["poses"])
-    # The optimize.py convention (T_b_from_a = inv(P_b) @ P_a) gives the same result.
+    # The optimisations' convention (T_b_a = inv(T_w_b) @ T_w_a) gives the same result.
     flipped = [
-        {k: v for k, v in e.items() if k != "T_ab"} | {"T_b_from_a": np.linalg.inv(e["T_ab"])}
+        {k: v for k, v in e.items() if k != "T_a_b"} | {"T_b_a": np.linalg.inv(e["T_a_b"])}
         for e in edges
     ]
     res3 = optimize_pose_graph(init, flipped, kind="se3")
@@ -94,10 +94,10 @@ def test_sim3_fixes_scale_drift_better_than_se3() -> None:
         t[:3, 3] /= s_true[k]
         meas.append(t)
     init = _chain(gt[0], meas)
-    edges = [dict(a=k, b=k + 1, T_ab=meas[k], weight=1.0) for k in range(n - 1)]
+    edges = [dict(a=k, b=k + 1, T_a_b=meas[k], weight=1.0) for k in range(n - 1)]
     loop = edge_measurement(gt[n - 1], gt[0])
     loop[:3, 3] /= s_true[n - 1]
-    edges.append(dict(a=n - 1, b=0, T_ab=loop, weight=1.0, s_ab=s_true[0] / s_true[n - 1]))
+    edges.append(dict(a=n - 1, b=0, T_a_b=loop, weight=1.0, s_a_b=s_true[0] / s_true[n - 1]))
 
     se3 = optimize_pose_graph(init, edges, kind="se3")
     sim3 = optimize_pose_graph(init, edges, kind="sim3")

@@ -72,6 +72,24 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
                    help="installed pipeline to run (developers: also module:attr)")
 
 
+def _add_remote_args(p: argparse.ArgumentParser, help_: str) -> None:
+    p.add_argument("--remote", dest="remote_name", metavar="NAME|URL", help=help_)
+    p.add_argument("--remotes", dest="remotes_file", metavar="FILE",
+                   help="remotes file (default: $GCVD_FLOW_REMOTES or the user config dir's remotes.toml)")
+
+
+def _add_scale_args(p: argparse.ArgumentParser) -> None:
+    """Teams and clusters (docs/teams.md): a remote cache read through / written through, and
+    where map items run."""
+    _add_remote_args(p, "look records this cache lacks up in this remote (name or URL) before computing")
+    p.add_argument("--push", action="store_true",
+                   help="push what each stage computed to the remote (--remote, else the default remote)")
+    p.add_argument("--executor", choices=("process", "dask"), default="process",
+                   help="map items in local processes (default) or as Dask tasks")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="with --executor dask: the cluster's scheduler (default: a local cluster of --jobs workers)")
+
+
 def build_parser(product: Product) -> argparse.ArgumentParser:
     global _PRODUCT
     _PRODUCT = product
@@ -82,6 +100,7 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run the pipeline on a video / folder; results in RUN_DIR")
     _add_run_args(p)
     p.add_argument("--until", metavar="STAGE", help="stop after STAGE (and what it needs)")
+    _add_scale_args(p)
     p = sub.add_parser("plan", help="dry run: which stages would run, and why")
     _add_run_args(p)
     p.set_defaults(out_required=False)
@@ -102,6 +121,8 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     p = sub.add_parser("fsck", help="re-hash every cached object; quarantine corrupt ones")
     p.add_argument("--cache", metavar="DIR")
     p.add_argument("--json", dest="json_mode", action="store_true")
+    _add_remote_args(p, "verify this remote in place instead (lists what is bad; deletes only with --repair)")
+    p.add_argument("--repair", action="store_true", help="with --remote: delete bad objects and records")
 
     p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
     p.add_argument("--cache", metavar="DIR")
@@ -119,8 +140,11 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
                         ("pull", "copy a run's artifacts (or all) from a remote cache directory, verified")):
         p = sub.add_parser(name, help=help_)
-        p.add_argument("remote", metavar="REMOTE_DIR")
-        p.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
+        p.add_argument("remote", metavar="REMOTE_DIR", nargs="?", help="a directory (or use --remote)")
+        _add_remote_args(p, "remote by name (remotes.toml) or URL: s3://bucket/prefix, sftp://host/path, a path")
+        which = p.add_mutually_exclusive_group()
+        which.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
+        which.add_argument("--all", action="store_true", help="everything (the default)")
         p.add_argument("--cache", metavar="DIR")
         p.add_argument("--json", dest="json_mode", action="store_true")
 
@@ -138,7 +162,9 @@ def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | Non
                           sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
                           json_mode=getattr(a, "json_mode", False),
                           pipeline=getattr(a, "pipeline", None) or _product().pipeline,
-                          verify=getattr(a, "verify", True))
+                          verify=getattr(a, "verify", True), remote=getattr(a, "remote_name", None),
+                          remotes_file=getattr(a, "remotes_file", None), push=getattr(a, "push", False),
+                          executor=getattr(a, "executor", None) or "process", scheduler=getattr(a, "scheduler", None))
 
 
 def _print_json(doc: Any) -> None:
@@ -180,7 +206,7 @@ def _print_run(res: dict[str, Any], json_mode: bool) -> None:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
-    res = _fast_noop(a)
+    res = None if a.push else _fast_noop(a)  # --push: check the remote has everything
     if res is not None:
         _print_run(res, a.json_mode)
         return 0
@@ -253,6 +279,8 @@ def _cmd_dag(a: argparse.Namespace) -> int:
 def _cmd_fsck(a: argparse.Namespace) -> int:
     from gcvd_flow.engine import api
 
+    if a.remote_name:
+        return _cmd_fsck_remote(a)
     rep = api.fsck(a.cache)
     if a.json_mode:
         _print_json(rep)
@@ -293,13 +321,34 @@ def _cmd_pin(a: argparse.Namespace) -> int:
 def _cmd_push_pull(a: argparse.Namespace) -> int:
     from gcvd_flow.engine import api, remote
 
+    if a.remote and a.remote_name:
+        raise UsageError("give the remote once: REMOTE_DIR or --remote NAME|URL")
     store = api.open_store(a.cache)
-    rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote, a.out)
+    rep = (remote.push if a.cmd == "push" else remote.pull)(store, a.remote_name or a.remote, a.out,
+                                                            remotes_file=a.remotes_file)
     if a.json_mode:
         _print_json(rep)
     else:
         print(f"{a.cmd}: {rep['records']} records, {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB)"
-              + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else ""))
+              + (f", {rep['refused']} objects refused (hash mismatch)" if rep["refused"] else "")
+              + (f", {len(rep['refused_records'])} records refused" if rep.get("refused_records") else ""))
+    return 0
+
+
+def _cmd_fsck_remote(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import remote
+
+    rep = remote.fsck_remote(a.remote_name, repair=a.repair, remotes_file=a.remotes_file)
+    if a.json_mode:
+        _print_json(rep)
+        return 0
+    print(f"remote {rep['remote']}: {rep['objects']} objects ({rep['bytes'] / 1e6:.1f} MB), {rep['records']} "
+          f"records: {len(rep['bad_objects'])} bad objects, {len(rep['bad_records'])} bad records, "
+          f"{len(rep['stray_files'])} stray files, {rep['tmp_files']} temporary files"
+          + (" (deleted)" if rep["repaired"] and not rep["clean"] else "")
+          + ("; clean" if rep["clean"] else "" if rep["repaired"] else "; run with --repair to delete them"))
+    for line in rep["bad_objects"] + rep["bad_records"] + rep["stray_files"]:
+        print(f"bad: {line}")
     return 0
 
 

@@ -194,5 +194,89 @@ class ProcessPoolItemExecutor:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def make_executor(jobs: int, worker_init: Callable[[], None] | None = None):
+_DASK_INIT_DONE = False
+
+
+def compute_item_on_dask_worker(task: ItemTask, worker_init: Callable[[], None] | None = None) -> ItemResult:
+    """A map item as a Dask task. The worker reads the item's inputs from the store and writes
+    its outputs to the store itself (``task.store_root`` must be the same path on every worker:
+    a shared file system); only the task (digests, loaders) and the result (digests) travel.
+
+    Two workers given the same item (Dask retries a task whose worker died; two runs or two
+    clusters share the cache) still compute it once: ``compute_item`` takes the item's OS lock
+    (flock on ``locks/``) and re-checks the record under it, exactly as for two local processes.
+    The lock must therefore be honoured across the machines of the cluster: it is on one machine
+    and on NFSv4 / CephFS / Lustre (which implement flock across clients); on a file system
+    that ignores flock, concurrent duplicates are still harmless (same key, same bytes, records
+    and objects replaced atomically), they only cost the duplicate work."""
+    global _DASK_INIT_DONE
+    if not _DASK_INIT_DONE:
+        _worker_init(worker_init)
+        _DASK_INIT_DONE = True
+    return compute_item(task)
+
+
+class DaskItemExecutor:
+    """Items as Dask tasks: on the cluster at ``scheduler`` (``tcp://host:port``), else on a
+    ``distributed.LocalCluster`` of ``jobs`` worker processes with one thread each. Results come
+    in completion order; at most ``4 x workers`` tasks are in flight (the client holds only
+    digests, but a million-item stage need not be submitted at once)."""
+
+    def __init__(self, jobs: int, worker_init: Callable[[], None] | None = None, scheduler: str | None = None):
+        import logging
+
+        from distributed import Client, LocalCluster
+
+        self.worker_init = worker_init
+        self._cluster = None
+        if scheduler:
+            self._client = Client(scheduler, timeout="30s")
+        else:
+            self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
+                                         dashboard_address=None, silence_logs=logging.ERROR,
+                                         env={"OMP_NUM_THREADS": "1"})
+            self._client = Client(self._cluster)
+        self.jobs = max(1, len(self._client.scheduler_info().get("workers", {})) or jobs)
+
+    def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
+        from distributed import as_completed
+
+        it = iter(tasks)
+        limit = 4 * self.jobs
+        first = []
+        for t in it:
+            first.append(self._submit(t))
+            if len(first) >= limit:
+                break
+        if not first:
+            return
+        ac = as_completed(first)
+        for fut in ac:
+            res = fut.result()  # a task that failed raises here, as in the process pool
+            fut.release()
+            nxt = next(it, None)
+            if nxt is not None:
+                ac.add(self._submit(nxt))
+            yield res
+
+    def _submit(self, task: ItemTask):
+        # pure=False: the item's lock and record re-check decide whether work happens, not Dask's
+        # task-key deduplication; retries: a worker lost mid-item (killed, OOM) is retried elsewhere
+        return self._client.submit(compute_item_on_dask_worker, task, self.worker_init, pure=False,
+                                   retries=2, key=f"{task.stage_name}-{task.index}-{task.key[:16]}")
+
+    def close(self) -> None:
+        self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+EXECUTORS = ("process", "dask")
+
+
+def make_executor(jobs: int, worker_init: Callable[[], None] | None = None, kind: str = "process",
+                  scheduler: str | None = None):
+    """``process``: in this process (jobs <= 1) or a local process pool; ``dask``: a Dask cluster."""
+    if kind == "dask":
+        return DaskItemExecutor(jobs, worker_init, scheduler)
     return InProcessExecutor() if jobs <= 1 else ProcessPoolItemExecutor(jobs, worker_init)

@@ -1,10 +1,33 @@
-"""Share caches: push / pull records and objects to a remote store (a shared directory).
+"""Share caches: push / pull / read through / verify a remote cache through fsspec.
 
-A remote has the same layout as a local cache, so a teammate's cache directory on a network
-share is a remote as it is. Everything pulled is verified: an object whose bytes do not hash
-to its name is refused, and a record is copied only once every object it names arrived, so a
-broken or malicious remote can cost a recomputation but never a wrong result (and artifacts
-are JSON + npy/PNG/safetensors: nothing in them can execute code).
+A remote has the layout of a local cache (``objects/ab/cdef...``, ``records/ab/<key>.json``),
+so a teammate's cache directory is a remote as it is, and so is a prefix in a bucket
+(``s3://bucket/prefix`` through s3fs, credentials and endpoint from the standard AWS
+environment) or a directory on an SSH server (``sftp://host/path`` through paramiko). Any
+other fsspec file system works the same way; there is no code of ours per backend beyond the
+two facts below.
+
+Upload (push): objects first, then the records that name them (a map stage's item records
+before the stage record). Where the file system can rename (local paths, SFTP), every file is
+written under ``tmp/`` and renamed into place; object stores (S3, GCS, Azure) have no rename
+but a PUT is atomic (an object appears whole or not at all), so there files are put directly
+under their final name. Which objects the remote already has is learnt by *listing* its fan-out
+directories (one request per directory, or one recursive listing for big pushes), never one
+request per object; only missing objects (or ones of the wrong size) move. A push killed at any
+point therefore leaves whole objects and records whose objects all exist: the remote stays
+readable, and the next push completes it.
+
+Download (pull, read-through runs): a record is used only if its preimage hashes to the key it
+is filed under (``store.record_problem``: a swapped record is refused with a one-line warning
+naming it); every object is read at most to the size its record declares (for local paths only
+as a regular file: no FIFO, no symlink), re-hashed, and refused (one warning line, never used)
+unless its bytes hash to its name. A record enters the local store only once all its objects
+and child records did. Nothing pulled is unpickled or executed: artifacts are JSON and
+npy / PNG / safetensors.
+
+What a remote is *not* trusted for: a writer with access to it can publish wrong outputs under
+a correctly derived key (the preimage proves which computation a record claims to be, not that
+it was done honestly). Restrict write access to the remote (docs/teams.md).
 """
 
 from __future__ import annotations
@@ -12,18 +35,33 @@ from __future__ import annotations
 import json
 import os
 import stat
+import time
+import uuid
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
-from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.errors import StoreError, UsageError
 from gcvd_flow.engine.keys import digest_bytes, is_digest
-from gcvd_flow.engine.store import Store, record_problem
-
+from gcvd_flow.engine.store import Store, canonical_json, record_problem
 
 MAX_RECORD_BYTES = 64 << 20
+BATCH_BYTES = 64 << 20  # at most this much object data in memory per transfer batch
+BATCH_COUNT = 64  # objects / records per concurrent request batch
+LIST_ALL_ABOVE = 32  # more fan-out directories than this: one recursive listing instead
+# Protocols whose PUT is atomic and which have no (cheap) rename: files go in under their name.
+ATOMIC_PUT_PROTOCOLS = {"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "oss", "memory"}
+STALE_TMP_S = 600.0  # fsck --repair deletes temporary files older than this
+
+Log = Callable[[str], None]
 
 
-def _read_regular(path: Path, limit: int) -> bytes | None:
+def _stderr(msg: str) -> None:
+    import sys
+
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _read_regular(path: str | Path, limit: int) -> bytes | None:
     """At most ``limit`` bytes of a regular file that is not a symlink; None for anything else
     (a FIFO would block, a link could point at /dev/zero or out of the remote)."""
     try:
@@ -41,62 +79,334 @@ def _read_regular(path: Path, limit: int) -> bytes | None:
         os.close(fd)
 
 
-def _read_record(store: Store, key: str, stats: dict[str, Any]) -> dict[str, Any] | None:
-    raw = _read_regular(store.record_path(key), MAX_RECORD_BYTES)
-    if raw is None:
-        return None
-    try:
-        rec = json.loads(raw)
-    except ValueError:
-        rec = None
-    problem = record_problem(key, rec)
-    if problem is not None:
-        stats["refused_records"].append(f"{key[:12]}: {problem}")
-        return None
-    return rec
+class Remote:
+    """A remote cache at an fsspec URL (or plain path) with its storage options."""
+
+    def __init__(self, url: str, options: dict[str, Any] | None = None, label: str | None = None):
+        import fsspec
+
+        self.url = url
+        self.label = label or url
+        try:
+            self.fs, root = fsspec.core.url_to_fs(url, **(options or {}))
+        except (ValueError, ImportError, TypeError) as exc:
+            raise UsageError(f"remote {self.label}: {exc}") from None
+        protos = self.fs.protocol if isinstance(self.fs.protocol, (tuple, list)) else (self.fs.protocol,)
+        self.local = bool({"file", "local"} & set(protos))
+        self.atomic_put = bool(ATOMIC_PUT_PROTOCOLS & set(protos))
+        self.root = root.rstrip("/") if root not in ("/", "") else root
+        self._dirs: set[str] = set()
+        if self.local and os.path.exists(self.root) and not os.path.isdir(self.root):
+            raise UsageError(f"{url}: remote is a file, not a cache directory")
+
+    # ------------------------------------------------------------ paths
+
+    def obj(self, digest: str) -> str:
+        return f"{self.root}/objects/{digest[:2]}/{digest[2:]}"
+
+    def rec(self, key: str) -> str:
+        return f"{self.root}/records/{key[:2]}/{key}.json"
+
+    def exists(self) -> bool:
+        try:
+            return bool(self.fs.exists(f"{self.root}/records")) or bool(self.fs.exists(f"{self.root}/objects"))
+        except OSError:
+            return False
+
+    # ------------------------------------------------------------ listing (batched existence)
+
+    def _ls_many(self, dirs: list[str]) -> list[list[dict[str, Any]]]:
+        """``ls(detail=True)`` of several directories: concurrently on async file systems."""
+        if getattr(self.fs, "async_impl", False):
+            import asyncio
+
+            from fsspec.asyn import sync
+
+            async def one(d: str) -> list[dict[str, Any]]:
+                try:
+                    return await self.fs._ls(d, detail=True)
+                except FileNotFoundError:
+                    return []
+
+            async def all_() -> list[list[dict[str, Any]]]:
+                return list(await asyncio.gather(*(one(d) for d in dirs)))
+
+            return sync(self.fs.loop, all_)
+        out = []
+        for d in dirs:
+            try:
+                out.append(self.fs.ls(d, detail=True))
+            except (FileNotFoundError, NotADirectoryError):
+                out.append([])
+        return out
+
+    def _entries(self, area: str, prefixes: Iterable[str] | None) -> list[dict[str, Any]]:
+        self.fs.invalidate_cache()
+        prefixes = None if prefixes is None else sorted(set(prefixes))
+        if prefixes is None or len(prefixes) > LIST_ALL_ABOVE:
+            try:
+                found = self.fs.find(f"{self.root}/{area}", detail=True)
+            except FileNotFoundError:
+                return []
+            return list(found.values())
+        return [e for batch in self._ls_many([f"{self.root}/{area}/{p}" for p in prefixes]) for e in batch]
+
+    def _is_file(self, e: dict[str, Any]) -> bool:
+        return e.get("type") == "file" and not (self.local and e.get("islink"))
+
+    def object_sizes(self, digests: Iterable[str] | None = None) -> dict[str, int]:
+        """digest -> size of the remote's objects (those with these digests' prefixes, or all)."""
+        prefixes = None if digests is None else {d[:2] for d in digests}
+        out = {}
+        for e in self._entries("objects", prefixes):
+            parts = e["name"].rstrip("/").split("/")
+            name = parts[-2] + parts[-1] if len(parts) >= 2 else ""
+            if self._is_file(e) and is_digest(name) and parts[-2] == name[:2]:
+                out[name] = int(e.get("size") or 0)
+        return out
+
+    def record_keys(self, keys: Iterable[str] | None = None) -> set[str]:
+        prefixes = None if keys is None else {k[:2] for k in keys}
+        out = set()
+        for e in self._entries("records", prefixes):
+            base = e["name"].rstrip("/").rsplit("/", 1)[-1]
+            if self._is_file(e) and base.endswith(".json") and is_digest(base[:-5]):
+                out.add(base[:-5])
+        return out
+
+    def other_files(self) -> dict[str, list[str]]:
+        """Files under objects/ and records/ that are no object or record (for fsck)."""
+        bad: dict[str, list[str]] = {"objects": [], "records": []}
+        for area in bad:
+            for e in self._entries(area, None):
+                parts = e["name"].rstrip("/").split("/")
+                ok = (len(parts) >= 2 and self._is_file(e)
+                      and (is_digest(parts[-2] + parts[-1]) and len(parts[-2]) == 2 if area == "objects"
+                           else parts[-1].endswith(".json") and is_digest(parts[-1][:-5])))
+                if not ok:
+                    bad[area].append(e["name"])
+        return bad
+
+    # ------------------------------------------------------------ reads
+
+    def read_many(self, paths: list[str], limits: list[int]) -> list[bytes | None]:
+        """At most ``limit`` bytes of each path (None: absent, unreadable, or longer)."""
+        if not paths:
+            return []
+        if self.local:
+            return [_read_regular(p, lim) for p, lim in zip(paths, limits)]
+        res = self.fs.cat_ranges(paths, [0] * len(paths), [lim + 1 for lim in limits], on_error="return")
+        return [r if isinstance(r, bytes) and len(r) <= lim else None for r, lim in zip(res, limits)]
+
+    # ------------------------------------------------------------ writes
+
+    def _makedirs(self, d: str) -> None:
+        if d not in self._dirs:
+            self.fs.makedirs(d, exist_ok=True)
+            self._dirs.add(d)
+
+    def write_many(self, files: dict[str, bytes]) -> None:
+        """Each file appears whole under its name or not at all (see the module docstring)."""
+        if not files:
+            return
+        if self.atomic_put:
+            self.fs.pipe(files)
+            return
+        tmp_dir = f"{self.root}/tmp"
+        self._makedirs(tmp_dir)
+        for path, data in files.items():
+            tmp = f"{tmp_dir}/{os.getpid()}-{uuid.uuid4().hex}"
+            self.fs.pipe_file(tmp, data)
+            self._makedirs(path.rsplit("/", 1)[0])
+            self.fs.mv(tmp, path)
+
+    def delete(self, paths: list[str]) -> None:
+        for i in range(0, len(paths), 500):
+            try:
+                self.fs.rm(paths[i:i + 500])
+            except FileNotFoundError:
+                pass
+
+    def tmp_files(self) -> list[dict[str, Any]]:
+        return self._entries("tmp", None)
 
 
-def _copy(src: Store, dst: Store, keys: Iterable[str]) -> dict[str, Any]:
-    """Copy records (and their children) with their objects; objects first, then the record,
-    and only when every object arrived whole. Objects are read only as regular files, at most
-    the size the record declares, and re-hashed; a record must hash-match its key."""
-    stats: dict[str, Any] = {"records": 0, "objects": 0, "bytes": 0, "refused": 0, "skipped": 0,
-                             "refused_records": []}
-    refused: set[str] = set()
-    todo = list(keys)
+def open_remote(name_or_url: str | None, remotes_file: str | None = None) -> Remote:
+    from gcvd_flow.engine.remotes_config import resolve
+
+    spec = resolve(name_or_url, remotes_file)
+    return Remote(spec.url, spec.options, spec.label)
+
+
+# ------------------------------------------------------------------------------ upload
+
+
+def _batches(items: list[tuple[str, int]], max_bytes: int = BATCH_BYTES, max_count: int = BATCH_COUNT):
+    batch: list[tuple[str, int]] = []
+    total = 0
+    for it in items:
+        if batch and (total + it[1] > max_bytes or len(batch) >= max_count):
+            yield batch
+            batch, total = [], 0
+        batch.append(it)
+        total += it[1]
+    if batch:
+        yield batch
+
+
+def _local_closure(local: Store, keys: Iterable[str]) -> list[tuple[str, dict[str, Any]]]:
+    """(key, record) of the keys and their children, children before their parent."""
+    out: list[tuple[str, dict[str, Any]]] = []
     seen: set[str] = set()
-    while todo:
-        key = todo.pop()
+    for key in keys:
         if key in seen or not is_digest(key):
             continue
         seen.add(key)
-        rec = _read_record(src, key, stats)
+        rec = local.get_record(key)
         if rec is None:
-            stats["skipped"] += 1
             continue
-        todo.extend(rec.get("children", []))
-        ok = True
-        for digest, size in rec["objects"].items():
-            if dst.object_size(digest) == size:
-                continue
-            if digest in refused:
-                ok = False
-                continue
-            data = _read_regular(src.object_path(digest), size)
-            if data is None or len(data) != size or digest_bytes(data) != digest:  # never trust a name
-                refused.add(digest)
-                stats["refused"] += 1
-                ok = False
-                continue
-            dst.put_bytes(data)
-            stats["objects"] += 1
-            stats["bytes"] += len(data)
-        if ok and dst.get_record(key) is None:
-            dst.sync()
-            dst.put_record(key, rec)
-            stats["records"] += 1
-    stats["refused_objects"] = sorted(refused)
+        for c in rec.get("children", []):
+            if c not in seen:
+                seen.add(c)
+                crec = local.get_record(c)
+                if crec is not None:
+                    out.append((c, crec))
+        out.append((key, rec))
+    return out
+
+
+def upload(local: Store, remote: Remote, keys: Iterable[str], log: Log = _stderr) -> dict[str, Any]:
+    """Push records (with their children) and their objects; objects first, records last."""
+    stats: dict[str, Any] = {"records": 0, "objects": 0, "bytes": 0, "refused": 0, "skipped": 0,
+                             "refused_records": [], "refused_objects": []}
+    recs = _local_closure(local, keys)
+    need: dict[str, int] = {}
+    for _, rec in recs:
+        need.update(rec["objects"])
+    have = remote.object_sizes(need)
+    missing = sorted((d, s) for d, s in need.items() if have.get(d) != s)
+    bad: set[str] = set()
+    for batch in _batches(missing):
+        files = {}
+        for d, _ in batch:
+            try:
+                files[remote.obj(d)] = local.get_bytes(d, verify=True)  # never publish a corrupt object
+            except StoreError as exc:
+                bad.add(d)
+                log(f"warning: not pushing local object {d[:12]}: {exc}")
+        remote.write_many(files)
+        stats["objects"] += len(files)
+        stats["bytes"] += sum(len(v) for v in files.values())
+    present = remote.record_keys(k for k, _ in recs)
+    todo = [(k, r) for k, r in recs if k not in present and not bad & set(r["objects"])]
+    stats["skipped"] = sum(1 for k, _ in recs if k not in present) - len(todo)  # name a corrupt object
+    # children precede parents in ``recs``; a batch is written before the next starts
+    for i in range(0, len(todo), BATCH_COUNT):
+        remote.write_many({remote.rec(k): canonical_json(r) for k, r in todo[i:i + BATCH_COUNT]})
+        stats["records"] += len(todo[i:i + BATCH_COUNT])
+    stats["refused_objects"] = sorted(bad)
     return stats
+
+
+# ------------------------------------------------------------------------------ download
+
+
+class Downloader:
+    """Verified transfers from one remote into one local store. Remembers what it refused, so
+    an object named by several records is fetched (and warned about) once."""
+
+    def __init__(self, local: Store, remote: Remote, log: Log = _stderr):
+        self.local, self.remote, self.log = local, remote, log
+        self.refused_objects: dict[str, str] = {}
+        self.refused_records: dict[str, str] = {}
+        self.stats: dict[str, Any] = {"records": 0, "objects": 0, "bytes": 0}
+
+    def _warn_record(self, key: str, why: str) -> None:
+        if key not in self.refused_records:
+            self.refused_records[key] = why
+            self.log(f"warning: remote {self.remote.label}: record {key[:12]} refused ({why}); not used")
+
+    def _warn_object(self, digest: str, why: str) -> None:
+        if digest not in self.refused_objects:
+            self.refused_objects[digest] = why
+            self.log(f"warning: remote {self.remote.label}: object {digest[:12]} refused ({why}); not used")
+
+    def fetch_records(self, keys: list[str]) -> dict[str, dict[str, Any]]:
+        """Valid remote records of ``keys`` (absent ones silently missing, bad ones refused)."""
+        out: dict[str, dict[str, Any]] = {}
+        for i in range(0, len(keys), BATCH_COUNT):
+            chunk = keys[i:i + BATCH_COUNT]
+            raws = self.remote.read_many([self.remote.rec(k) for k in chunk], [MAX_RECORD_BYTES] * len(chunk))
+            for k, raw in zip(chunk, raws):
+                if raw is None:
+                    continue
+                try:
+                    rec = json.loads(raw)
+                except (ValueError, UnicodeDecodeError):
+                    rec = None
+                problem = record_problem(k, rec)
+                if problem is not None:
+                    self._warn_record(k, problem)
+                    continue
+                out[k] = rec
+        return out
+
+    def fetch_objects(self, need: dict[str, int]) -> None:
+        """Bring missing objects into the local store, each verified; bad ones refused."""
+        todo = sorted((d, s) for d, s in need.items()
+                      if self.local.object_size(d) != s and d not in self.refused_objects)
+        for batch in _batches(todo):
+            datas = self.remote.read_many([self.remote.obj(d) for d, _ in batch], [s for _, s in batch])
+            for (d, size), data in zip(batch, datas):
+                if data is None:
+                    self._warn_object(d, "missing, unreadable or larger than its record says")
+                elif len(data) != size:
+                    self._warn_object(d, f"{len(data)} bytes, its record says {size}")
+                elif digest_bytes(data) != d:  # never trust a name
+                    self._warn_object(d, "its bytes do not hash to its name")
+                else:
+                    self.local.put_bytes(data)
+                    self.stats["objects"] += 1
+                    self.stats["bytes"] += size
+
+    def download(self, keys: Iterable[str], list_first: bool = False) -> list[str]:
+        """Install the remote records of ``keys`` (with their children and objects) into the
+        local store; returns the keys installed. ``list_first``: learn which records exist by
+        listing (many keys, most probably absent) instead of asking for each."""
+        keys = [k for k in dict.fromkeys(keys) if is_digest(k) and k not in self.refused_records]
+        if list_first and keys:
+            present = self.remote.record_keys(keys)
+            keys = [k for k in keys if k in present]
+        recs = self.fetch_records(keys)
+        kids = sorted({c for r in recs.values() for c in r.get("children", [])
+                       if c not in recs and self.local.read_record(c) is None})
+        child_recs = self.fetch_records(kids)
+        need: dict[str, int] = {}
+        for r in list(recs.values()) + list(child_recs.values()):
+            need.update(r["objects"])
+        self.fetch_objects(need)
+        installed: list[str] = []
+        if recs:
+            self.local.sync()  # objects durable before the records that name them
+        both = {**child_recs, **recs}
+        for k, r in sorted(both.items(), key=lambda kv: bool(kv[1].get("children"))):  # children first
+            if any(self.local.object_size(d) != s for d, s in r["objects"].items()):
+                continue
+            if any(self.local.read_record(c) is None for c in r.get("children", [])):
+                continue
+            if self.local.read_record(k) is None:
+                self.local.put_record(k, r)
+                self.stats["records"] += 1
+            installed.append(k)
+        return installed
+
+    def report(self) -> dict[str, Any]:
+        return {**self.stats, "refused": len(self.refused_objects),
+                "refused_objects": sorted(self.refused_objects),
+                "refused_records": [f"{k[:12]}: {w}" for k, w in sorted(self.refused_records.items())]}
+
+
+# ------------------------------------------------------------------------------ push / pull
 
 
 def _run_keys(out: str | None, store: Store) -> list[str]:
@@ -110,21 +420,153 @@ def _run_keys(out: str | None, store: Store) -> list[str]:
     return [s["key"] for s in stages.values() if s.get("key")]
 
 
-def push(local: Store, remote_dir: str, out: str | None = None) -> dict[str, Any]:
-    """Copy a run's records (or all) with their objects to the remote store."""
-    p = Path(remote_dir)
-    if p.exists() and not p.is_dir():
-        raise UsageError(f"{remote_dir}: remote is a file, not a cache directory")
-    remote = Store(remote_dir, verify=True)
-    with local.lease(), remote.lease():
-        return _copy(local, remote, _run_keys(out, local))
+def _as_remote(remote: str | Remote | None, remotes_file: str | None = None) -> Remote:
+    return remote if isinstance(remote, Remote) else open_remote(remote, remotes_file)
 
 
-def pull(local: Store, remote_dir: str, out: str | None = None) -> dict[str, Any]:
-    """Copy a run's records (or all the remote has) into the local cache, verified."""
-    if not Path(remote_dir).is_dir() or not (Path(remote_dir) / "records").is_dir():
-        raise UsageError(f"{remote_dir}: remote not found (not a gcvd-flow cache directory)")
-    remote = Store(remote_dir, verify=True)
-    keys = _run_keys(out, local) if out else [k for k, _ in remote.iter_records()]
+def push(local: Store, remote: str | Remote | None, out: str | None = None, remotes_file: str | None = None,
+         log: Log = _stderr) -> dict[str, Any]:
+    """Copy a run's records (or all) with their objects to the remote."""
+    r = _as_remote(remote, remotes_file)
     with local.lease():
-        return _copy(remote, local, keys)
+        return upload(local, r, _run_keys(out, local), log)
+
+
+def pull(local: Store, remote: str | Remote | None, out: str | None = None, remotes_file: str | None = None,
+         log: Log = _stderr) -> dict[str, Any]:
+    """Copy a run's records (or all the remote has) into the local cache, verified."""
+    r = _as_remote(remote, remotes_file)
+    if not r.exists():
+        raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
+    with local.lease():
+        keys = _run_keys(out, local) if out else sorted(r.record_keys())
+        d = Downloader(local, r, log)
+        installed = d.download(keys)
+        rep = d.report()
+        rep["skipped"] = len(set(keys) - set(installed))
+        return rep
+
+
+# ------------------------------------------------------------------------------ read-through runs
+
+
+class RemoteRecords:
+    """The runner's record source for ``run --remote`` / ``--push``: the local store first,
+    then the remote (a record found there comes in verified, with its children and objects);
+    ``stage_done`` pushes each finished stage the remote does not hold yet."""
+
+    def __init__(self, store: Store, remote: Remote | None, push: bool = False, log: Log = _stderr):
+        self.store, self.remote, self.push, self.log = store, remote, push, log
+        self._down = Downloader(store, remote, log) if remote is not None else None
+        self._tried: set[str] = set()
+        self.pushed: dict[str, int] = {"records": 0, "objects": 0, "bytes": 0}
+
+    def get_record(self, key: str) -> dict[str, Any] | None:
+        rec = self.store.get_record(key)
+        if rec is None and self._down is not None and self.remote is not None and key not in self._tried:
+            self._tried.add(key)
+            self._down.download([key])
+            rec = self.store.get_record(key)
+        return rec
+
+    def prefetch(self, keys: list[str]) -> None:
+        """Items of a map stage: one batch for all the records this run lacks."""
+        if self._down is None:
+            return
+        missing = [k for k in keys if k not in self._tried and self.store.get_record(k) is None]
+        self._tried.update(missing)
+        if missing:
+            self._down.download(missing, list_first=len(missing) > 8)
+
+    def stage_done(self, key: str | None, executed: int) -> None:
+        if not self.push or key is None or self.remote is None:
+            return
+        if not executed and key in self.remote.record_keys([key]):
+            return
+        st = upload(self.store, self.remote, [key], self.log)
+        for k in self.pushed:
+            self.pushed[k] += st[k]
+
+    def report(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"remote": self.remote.label if self.remote else None}
+        if self._down is not None:
+            out["pulled"] = self._down.report()
+        if self.push:
+            out["pushed"] = dict(self.pushed)
+        return out
+
+
+def record_source(store: Store, remote: str | None, remotes_file: str | None = None, push: bool = False,
+                  log: Log = _stderr) -> RemoteRecords:
+    return RemoteRecords(store, open_remote(remote, remotes_file), push=push, log=log)
+
+
+# ------------------------------------------------------------------------------ fsck --remote
+
+
+def fsck_remote(remote: str | Remote | None, repair: bool = False, remotes_file: str | None = None,
+                log: Log = _stderr) -> dict[str, Any]:
+    """Verify a remote in place: re-hash every object, check every record (preimage, objects
+    present with their sizes, children present). Lists what is bad; deletes it (and stale
+    temporary files) only with ``repair``."""
+    r = _as_remote(remote, remotes_file)
+    if not r.exists():
+        raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
+    sizes = r.object_sizes()
+    bad_objects: dict[str, str] = {}
+    for batch in _batches(sorted(sizes.items())):
+        datas = r.read_many([r.obj(d) for d, _ in batch], [s for _, s in batch])
+        for (d, _), data in zip(batch, datas):
+            if data is None:
+                bad_objects[d] = "unreadable"
+            elif digest_bytes(data) != d:
+                bad_objects[d] = "its bytes do not hash to its name"
+    good = {d: s for d, s in sizes.items() if d not in bad_objects}
+    keys = sorted(r.record_keys())
+    bad_records: dict[str, str] = {}
+    recs = {}
+    for i in range(0, len(keys), BATCH_COUNT):
+        chunk = keys[i:i + BATCH_COUNT]
+        for k, raw in zip(chunk, r.read_many([r.rec(k) for k in chunk], [MAX_RECORD_BYTES] * len(chunk))):
+            try:
+                rec = json.loads(raw) if raw is not None else None
+            except (ValueError, UnicodeDecodeError):
+                rec = None
+            problem = "unreadable" if raw is None else record_problem(k, rec)
+            if problem is None:
+                lost = [d for d, s in rec["objects"].items() if good.get(d) != s]
+                problem = f"names {len(lost)} missing or bad object(s), e.g. {lost[0][:12]}" if lost else None
+            if problem is not None:
+                bad_records[k] = problem
+            else:
+                recs[k] = rec
+    for k, rec in recs.items():
+        lost = [c for c in rec.get("children", []) if c not in recs]
+        if lost:
+            bad_records[k] = f"{len(lost)} child record(s) missing or bad, e.g. {lost[0][:12]}"
+    others = r.other_files()
+    now = time.time()
+    tmp = r.tmp_files()
+    stale = [e["name"] for e in tmp if now - _mtime(e, now) > STALE_TMP_S]
+    rep = {"remote": r.label, "objects": len(sizes), "bytes": sum(sizes.values()), "records": len(keys),
+           "bad_objects": [f"{d}: {w}" for d, w in sorted(bad_objects.items())],
+           "bad_records": [f"{k}: {w}" for k, w in sorted(bad_records.items())],
+           "stray_files": others["objects"] + others["records"], "tmp_files": len(tmp),
+           "clean": not bad_objects and not bad_records and not others["objects"] + others["records"],
+           "repaired": False}
+    if repair:
+        r.delete(sorted(r.rec(k) for k in bad_records))  # records first: never one naming a deleted object
+        r.delete(sorted(r.obj(d) for d in bad_objects) + others["objects"] + others["records"] + stale)
+        rep["repaired"] = True
+        rep["tmp_removed"] = len(stale)
+    return rep
+
+
+def _mtime(entry: dict[str, Any], default: float) -> float:
+    for k in ("mtime", "LastModified", "created", "time"):
+        v = entry.get(k)
+        if isinstance(v, (int, float)):
+            return float(v)
+        if hasattr(v, "timestamp"):
+            return float(v.timestamp())
+    return default

@@ -210,6 +210,15 @@ class _View:
 
 
 class Runner:
+    # Set by the API before run(): where records are looked up besides the store (a remote for
+    # `run --remote`: remote.RemoteRecords with get_record / prefetch / stage_done), which item
+    # executor ("process" or "dask", and the Dask scheduler address) and an executor shared by
+    # several runs (run-many), closed by its owner.
+    records: Any = None
+    executor_kind: str = "process"
+    scheduler: str | None = None
+    shared_executor: Any = None
+
     def __init__(self, pipeline: Pipeline, store: Store, config: Any, source: Any = None,
                  jobs: int = 1, json_mode: bool = False, seed: int = 0,
                  log: Callable[[str], None] | None = None):
@@ -386,12 +395,16 @@ class Runner:
     # ---------------------------------------------------------------- execution
 
     def run(self, target: str | None = None) -> list[StageReport]:
-        executor = make_executor(self.jobs, self.pipeline.worker_init)
+        executor = self.shared_executor or make_executor(self.jobs, self.pipeline.worker_init,
+                                                         self.executor_kind, self.scheduler)
         try:
             for stage in self.pipeline.upto(target):
-                self.reports[stage.name] = self._run_stage(stage, executor)
+                self.reports[stage.name] = rep = self._run_stage(stage, executor)
+                if self.records is not None:  # write-through (`run --push`)
+                    self.records.stage_done(rep.key, rep.executed)
         finally:
-            executor.close()
+            if executor is not self.shared_executor:
+                executor.close()
         return [self.reports[s.name] for s in self.pipeline.upto(target)]
 
     def _run_stage(self, stage: Stage, executor) -> StageReport:
@@ -401,7 +414,8 @@ class Runner:
         f = self._key_fields(stage, ins)
         key = self._key("stage", stage, f)
         rep = StageReport(stage.name, key=key, fields=f)
-        rec = self.store.get_record(key)
+        # read-through (`run --remote`): a record missing here is looked up in the remote
+        rec = self.store.get_record(key) if self.records is None else self.records.get_record(key)
         if rec is not None:
             self._outputs[stage.name] = rec["outputs"]
             if stage.is_map:
@@ -469,6 +483,8 @@ class Runner:
         outputs: list[str | None] = [None] * len(tasks)
         objects: dict[str, int] = {}
         prog = Progress(stage.name, len(tasks), progress_enabled(self.json_mode))
+        if self.records is not None:  # read-through: the items this store lacks, in one batch
+            self.records.prefetch([t.key for t in tasks])
         # cached items are resolved here without a round trip through a worker process
         todo = []
         for t in tasks:

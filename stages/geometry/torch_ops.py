@@ -1,9 +1,9 @@
 """Differentiable camera geometry in torch (SE(3), back-projection, projection, point sampling).
 
 Conventions (docs/contributing.md): pixel (u, v) = (column, row), the centre of the top-left pixel
-is (0, 0); poses are camera-to-world 4x4 in OpenCV axes; depth is z-depth. A relative pose
-``T_ab`` (4, 4) maps camera-a coordinates to camera-b coordinates: ``T_ab = inv(P_b) @ P_a``
-(same as ``stages.geometry_np.relative_pose``).
+is (0, 0); poses are T_w_c (camera-to-world 4x4, OpenCV axes); depth is z-depth. A relative
+pose ``T_b_a`` (4, 4) maps camera-a coordinates to camera-b coordinates:
+``T_b_a = inv(T_w_b) @ T_w_a`` (``relative_pose(T_w_a, T_w_b)``).
 
 The 6-vector pose parameterisation used by the optimiser is ``(r, t)``: axis-angle rotation
 ``r`` (rad) and translation ``t`` (scene units), ``T = [[R(r), t], [0, 1]]``. Proper SE(3)
@@ -122,11 +122,12 @@ def rt_from_pose(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([so3_log(T[..., :3, :3]), T[..., :3, 3]], -1)
 
 
-def relative_pose(pose_a: torch.Tensor, pose_b: torch.Tensor) -> torch.Tensor:
-    """T_ab = inv(P_b) @ P_a for camera-to-world poses (..., 4, 4); rigid inverse (no solve)."""
-    Rb, tb = pose_b[..., :3, :3], pose_b[..., :3, 3:4]
+def relative_pose(T_w_a: torch.Tensor, T_w_b: torch.Tensor) -> torch.Tensor:
+    """T_b_a = inv(T_w_b) @ T_w_a (..., 4, 4): maps camera-a coordinates to camera-b coordinates,
+    for camera-to-world poses T_w_a, T_w_b (..., 4, 4); rigid inverse (no solve)."""
+    Rb, tb = T_w_b[..., :3, :3], T_w_b[..., :3, 3:4]
     Rbt = Rb.transpose(-1, -2)
-    Ra, ta = pose_a[..., :3, :3], pose_a[..., :3, 3:4]
+    Ra, ta = T_w_a[..., :3, :3], T_w_a[..., :3, 3:4]
     return _assemble(Rbt @ Ra, (Rbt @ (ta - tb))[..., 0])
 
 
@@ -160,11 +161,12 @@ def project(X: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return torch.stack([u, v], -1), z
 
 
-def rigid_flow(depth_a: torch.Tensor, K: torch.Tensor, T_ab: torch.Tensor) -> torch.Tensor:
-    """Flow (B, H, W, 2) px induced on a static scene by depth_a (B, H, W) and T_ab (B, 4, 4)."""
+def rigid_flow(depth_a: torch.Tensor, K: torch.Tensor, T_b_a: torch.Tensor) -> torch.Tensor:
+    """Flow a -> b (B, H, W, 2) px induced on a static scene by depth_a (B, H, W) and the relative
+    pose T_b_a (B, 4, 4) (camera a -> camera b coordinates)."""
     b, h, w = depth_a.shape
     K = K.to(depth_a.dtype)
-    X = transform(T_ab.to(depth_a.dtype), backproject(depth_a, K))
+    X = transform(T_b_a.to(depth_a.dtype), backproject(depth_a, K))
     uv, _ = project(X, K)
     v, u = torch.meshgrid(
         torch.arange(h, dtype=depth_a.dtype), torch.arange(w, dtype=depth_a.dtype), indexing="ij"

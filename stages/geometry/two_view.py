@@ -5,6 +5,9 @@ the small baselines of adjacent video frames (2 cm at 2 m is 100 baselines) it c
 no points and may return any of the four decompositions of E, including the 180-degree
 "twisted pair". We decompose E ourselves and pick the solution that puts most points in front
 of both cameras, with no distance limit.
+
+Convention: (R, t) with x_b = R x_a + t is the relative pose T_b_a = [R | t] = inv(T_w_b) @ T_w_a
+(camera-a coordinates -> camera-b coordinates) of camera-to-world poses T_w_a, T_w_b.
 """
 
 from __future__ import annotations
@@ -49,7 +52,8 @@ def pose_from_essential(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.nda
 
 def relative_pose(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, threshold: float = 1.0,
                   seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Essential matrix by MAGSAC++ (OpenCV USAC) + cheirality: (R, t unit, inlier mask) or None.
+    """Essential matrix by MAGSAC++ (OpenCV USAC) + cheirality: (R, t unit, inlier mask) or None,
+    with T_b_a = [R | t] (x_b = R x_a + t) for correspondences pa (frame a), pb (frame b) (N, 2) px.
 
     MAGSAC++ rather than plain RANSAC: on 8-frame DIS flows of the synthetic loop it cut the
     translation-direction error enough to bring the prior's AbsRel from 0.124 to 0.100, the

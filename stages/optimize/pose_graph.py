@@ -1,7 +1,8 @@
 """Keyframe pose-graph optimisation with gtsam Levenberg-Marquardt (DESIGN §5.9).
 
-Nodes are keyframe camera-to-world poses. Each edge (a, b) carries a measured relative pose
-``T_ab = inv(pose_a) @ pose_b`` (frame b expressed in camera a) and an information weight:
+Nodes are keyframe poses T_w_k (camera-to-world). Each edge (a, b) carries a measured relative
+pose ``T_a_b = inv(T_w_a) @ T_w_b`` (camera-b coordinates -> camera-a coordinates, i.e. camera b
+expressed in camera a; gtsam's ``between(a, b)``) and an information weight:
 sequential edges at distance tau have weight 1/tau, verified non-sequential (loop) edges 1.
 The information matrix of an edge is ``weight * I`` (noise sigma = 1/sqrt(weight)) over the
 tangent space (6-D for SE(3), 7-D for Sim(3)). The ``fixed`` keyframe gets a tight prior so
@@ -9,9 +10,9 @@ the gauge (and, for Sim(3), the global scale) is pinned.
 
 Sim(3) convention. Node k is the similarity S_k = [s_k R_k | t_k] mapping camera-k coordinates
 in the *local* depth units of keyframe k to world: x_w = s_k R_k x_c + t_k. The relative
-measurement S_ab = inv(S_a) @ S_b = [(s_b/s_a) R_ab | t_ab] has its translation in a's local
-units and scale ratio s_ab = s_b/s_a; edges produced inside one optimisation window share one
-scale (s_ab = 1, the default) while a loop edge may report the scale ratio it observed. Monocular
+measurement S_a_b = inv(S_a) @ S_b = [(s_b/s_a) R_a_b | t_a_b] has its translation in a's local
+units and scale ratio s_a_b = s_b/s_a; edges produced inside one optimisation window share one
+scale (s_a_b = 1, the default) while a loop edge may report the scale ratio it observed. Monocular
 scale drift then shows up as an inconsistency that only Sim(3) nodes can absorb. The returned
 ``poses`` are rigid (R_k, t_k) and ``scales`` holds s_k (all 1 for SE(3)).
 
@@ -34,7 +35,7 @@ PRIOR_SIGMA: float = 1e-6
 
 
 class PoseGraphResult(TypedDict):
-    poses: np.ndarray  # (K, 4, 4) float64 c2w, rigid
+    poses: np.ndarray  # (K, 4, 4) float64 T_w_k (camera-to-world), rigid
     scales: np.ndarray  # (K,) float64, Sim(3) node scales (1 for SE(3))
     initial_error: float
     final_error: float
@@ -65,17 +66,18 @@ def _matrix_from_sim3(s3: gtsam.Similarity3) -> tuple[np.ndarray, float]:
 
 
 def _pose3(m: np.ndarray) -> gtsam.Pose3:
+    """Rigid 4x4 -> gtsam.Pose3 (rotation re-orthonormalised)."""
     m = np.asarray(m, dtype=np.float64)
     u, _, vt = np.linalg.svd(m[:3, :3])
     return gtsam.Pose3(gtsam.Rot3(u @ vt), m[:3, 3].copy())
 
 
-def edge_measurement(pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
-    """T_ab = inv(pose_a) @ pose_b (4, 4) for c2w poses: the edge measurement of this module.
-
-    Note: the inverse of ``stages.geometry_np.relative_pose(pose_a, pose_b)`` (= T_b<-a).
+def edge_measurement(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
+    """T_a_b = inv(T_w_a) @ T_w_b (4, 4) for camera-to-world poses: the edge measurement
+    ``T_a_b`` of this module (the inverse of ``stages.geometry.torch_ops.relative_pose``, which
+    gives T_b_a).
     """
-    return np.linalg.inv(np.asarray(pose_a, np.float64)) @ np.asarray(pose_b, np.float64)
+    return np.linalg.inv(np.asarray(T_w_a, np.float64)) @ np.asarray(T_w_b, np.float64)
 
 
 def optimize_pose_graph(
@@ -88,20 +90,20 @@ def optimize_pose_graph(
     """Optimise keyframe poses.
 
     Args:
-        init_poses: (K, 4, 4) float64 c2w initial keyframe poses.
-        edges: dicts with ``a``, ``b`` (node indices 0..K-1), ``T_ab`` (4, 4) measured
-            relative pose inv(pose_a) @ pose_b, ``weight`` (information multiplier), and for
-            ``kind="sim3"`` optionally ``s_ab`` (scale ratio s_b/s_a, default 1). Instead of
-            ``T_ab`` an edge may carry ``T_b_from_a`` = inv(pose_b) @ pose_a, the convention of
-            ``stages.optimize`` (``rel_poses[*]["T"]``, ``optimize_edge(...)["T_ab"]``) and
-            ``stages.geometry_np.relative_pose``; it is inverted here so glue code cannot mix
-            the two up silently.
+        init_poses: (K, 4, 4) float64 T_w_k (camera-to-world) initial keyframe poses.
+        edges: dicts with ``a``, ``b`` (node indices 0..K-1), ``T_a_b`` (4, 4) measured
+            relative pose inv(T_w_a) @ T_w_b, ``weight`` (information multiplier), and for
+            ``kind="sim3"`` optionally ``s_a_b`` (scale ratio s_b/s_a, default 1). Instead of
+            ``T_a_b`` an edge may carry ``T_b_a`` = inv(T_w_b) @ T_w_a (camera a -> camera b),
+            the convention of ``stages.optimize`` (``rel_poses[*]["T_b_a"]``,
+            ``optimize_edge(...)["T_b_a"]``) and ``stages.geometry.torch_ops.relative_pose``;
+            it is inverted here.
         kind: "se3" (paper) or "sim3" (absorbs monocular scale drift).
         fixed: node pinned by a tight prior at its initial pose (and scale 1).
         max_iterations: LM iteration cap (paper/DESIGN: 100).
 
     Returns:
-        dict(poses (K, 4, 4) c2w, scales (K,), initial_error, final_error, iterations), errors
+        dict(poses (K, 4, 4) T_w_k, scales (K,), initial_error, final_error, iterations), errors
         being gtsam's total factor-graph error 0.5 * sum of squared whitened residuals.
     """
     init = np.asarray(init_poses, dtype=np.float64)
@@ -113,45 +115,7 @@ def optimize_pose_graph(
     if kind not in ("se3", "sim3"):
         raise ValueError(f"kind must be 'se3' or 'sim3', got {kind!r}")
     sim = kind == "sim3"
-    dim = 7 if sim else 6
-
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    for k in range(n):
-        if sim:
-            values.insert(k, _sim3_from_matrix(init[k]))
-        else:
-            values.insert(k, _pose3(init[k]))
-
-    prior_noise = gtsam.noiseModel.Isotropic.Sigma(dim, PRIOR_SIGMA)
-    if sim:
-        graph.add(gtsam.PriorFactorSimilarity3(fixed, _sim3_from_matrix(init[fixed]), prior_noise))
-    else:
-        graph.add(gtsam.PriorFactorPose3(fixed, _pose3(init[fixed]), prior_noise))
-
-    for e in edges:
-        a, b = int(e["a"]), int(e["b"])
-        if not (0 <= a < n and 0 <= b < n) or a == b:
-            raise ValueError(f"bad edge ({a}, {b}) for {n} nodes")
-        weight = float(e.get("weight", 1.0))
-        if not weight > 0:
-            raise ValueError(f"edge ({a}, {b}) weight must be > 0, got {weight}")
-        noise = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / np.sqrt(weight))
-        if ("T_ab" in e) == ("T_b_from_a" in e):
-            raise ValueError(f"edge ({a}, {b}) needs exactly one of T_ab, T_b_from_a")
-        if "T_ab" in e:
-            t_ab = np.asarray(e["T_ab"], dtype=np.float64)
-        else:
-            # stages.optimize / geometry_np convention: inv(P_b) @ P_a, the inverse of ours.
-            t_ab = np.linalg.inv(np.asarray(e["T_b_from_a"], dtype=np.float64))
-        if sim:
-            s_ab = float(e.get("s_ab", 1.0))
-            m = t_ab.copy()
-            u, _, vt = np.linalg.svd(m[:3, :3])
-            m[:3, :3] = s_ab * (u @ vt)
-            graph.add(gtsam.BetweenFactorSimilarity3(a, b, _sim3_from_matrix(m), noise))
-        else:
-            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t_ab), noise))
+    graph, values = _build_graph(init, edges, sim, fixed)
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(int(max_iterations))
@@ -180,3 +144,53 @@ def optimize_pose_graph(
         final_error=final_error,
         iterations=int(optimizer.iterations()),
     )
+
+
+def _build_graph(
+    init: np.ndarray, edges: list[dict[str, Any]], sim: bool, fixed: int
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """Factor graph (prior on ``fixed`` + one between factor per edge) and initial values from
+    T_w_k (K, 4, 4); Sim(3) nodes if ``sim``, else SE(3)."""
+    n = init.shape[0]
+    dim = 7 if sim else 6
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k in range(n):
+        if sim:
+            values.insert(k, _sim3_from_matrix(init[k]))
+        else:
+            values.insert(k, _pose3(init[k]))
+
+    prior_noise = gtsam.noiseModel.Isotropic.Sigma(dim, PRIOR_SIGMA)
+    if sim:
+        graph.add(gtsam.PriorFactorSimilarity3(fixed, _sim3_from_matrix(init[fixed]), prior_noise))
+    else:
+        graph.add(gtsam.PriorFactorPose3(fixed, _pose3(init[fixed]), prior_noise))
+
+    for e in edges:
+        a, b = int(e["a"]), int(e["b"])
+        if not (0 <= a < n and 0 <= b < n) or a == b:
+            raise ValueError(f"bad edge ({a}, {b}) for {n} nodes")
+        weight = float(e.get("weight", 1.0))
+        if not weight > 0:
+            raise ValueError(f"edge ({a}, {b}) weight must be > 0, got {weight}")
+        noise = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / np.sqrt(weight))
+        T_a_b = _edge_T_a_b(e, a, b)
+        if sim:
+            s_a_b = float(e.get("s_a_b", 1.0))
+            m = T_a_b.copy()
+            u, _, vt = np.linalg.svd(m[:3, :3])
+            m[:3, :3] = s_a_b * (u @ vt)
+            graph.add(gtsam.BetweenFactorSimilarity3(a, b, _sim3_from_matrix(m), noise))
+        else:
+            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(T_a_b), noise))
+    return graph, values
+
+
+def _edge_T_a_b(e: dict[str, Any], a: int, b: int) -> np.ndarray:
+    """The edge's measurement T_a_b (4, 4) float64, from ``T_a_b`` or by inverting ``T_b_a``."""
+    if ("T_a_b" in e) == ("T_b_a" in e):
+        raise ValueError(f"edge ({a}, {b}) needs exactly one of T_a_b, T_b_a")
+    if "T_a_b" in e:
+        return np.asarray(e["T_a_b"], dtype=np.float64)
+    return np.linalg.inv(np.asarray(e["T_b_a"], dtype=np.float64))

@@ -1,0 +1,354 @@
+"""Initial poses and depths of the optimisations (two-view geometry, PnP, depth transfer).
+
+Poses are T_w_c (camera-to-world, 4x4 float64, OpenCV axes); a relative pose mapping camera-a
+coordinates into camera-b coordinates is T_b_a = inv(T_w_b) @ T_w_a. Pixels (M, 2) are (u, v),
+the centre of the top-left pixel is (0, 0); depth is z-depth.
+
+The initialisation decides the result (DESIGN §9):
+- keyframes: ``essential_chain``: MAGSAC++ essential matrix per consecutive keyframe pair (about
+  5x smaller translation-direction error than RANSAC on DIS flow), scale propagated by
+  triangulating each keyframe from both of its pairs on the same pixel grid;
+- loop edges: ``two_view_pose`` on the edge's own flow (the chain's drift is not inherited);
+- non-keyframes: ``pnp_init``: PnP of flow-tracked keyframe points lifted with the keyframe depth
+  (correct scale, well conditioned at tiny baselines); their depth model starts from the
+  keyframe depths reprojected into them (``transfer_depths``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import cv2
+import numpy as np
+
+from stages.geometry.two_view import pose_from_essential, rotation_from_homography
+from stages.optimize.frames import normalised_prior
+
+__all__ = [
+    "rays",
+    "two_view_pose",
+    "triangulate",
+    "sample_np",
+    "essential_chain",
+    "interp_pose",
+    "pnp_init",
+    "splat_depth",
+    "fill_small_holes",
+    "transfer_depths",
+]
+
+
+def rays(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixels uv (M, 2) -> camera rays (M, 3) float64 with z = 1."""
+    return np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
+
+
+def two_view_pose(
+    fwd: np.ndarray, valid: np.ndarray, K: np.ndarray, n_pts: int = 3000, min_parallax: float = 0.5
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """Relative pose T_b_a (4, 4) float64 (camera a -> camera b coordinates) with unit
+    translation (zero if rotation-only / unreliable) from the forward flow a -> b (H, W, 2) px and
+    a usable-pixel mask (H, W) of frame a; also the correspondences (uv_a (M, 2), uv_b (M, 2)) px
+    of the RANSAC inliers, or None."""
+    h, w = valid.shape
+    ys, xs = np.nonzero(valid)
+    T_b_a = np.eye(4)
+    if len(xs) < 50:
+        return T_b_a, None
+    step = max(1, len(xs) // n_pts)
+    xs, ys = xs[::step], ys[::step]
+    uv_a = np.stack([xs, ys], 1).astype(np.float64)
+    uv_b = uv_a + fwd[ys, xs].astype(np.float64)
+    f = float(K[0, 0])
+    # Rotation-only (or no) motion first: E is then degenerate and its decomposition arbitrary
+    # (identical frames gave a ~176-degree rotation).
+    R_h = rotation_from_homography(uv_a, uv_b, K)
+    if R_h is not None:
+        T_b_a[:3, :3] = R_h
+        return T_b_a, None
+    # MAGSAC++ (USAC): ~5x smaller translation-direction error than plain RANSAC on DIS flow
+    E, inl = cv2.findEssentialMat(uv_a, uv_b, K, method=cv2.USAC_MAGSAC, prob=0.999, threshold=max(0.5, f / 500))
+    if E is None or E.shape[0] < 3:
+        return T_b_a, None
+    E = E[:3]
+    if E.shape != (3, 3):
+        return T_b_a, None
+    # Own cheirality test: cv2.recoverPose ignores points beyond 50 baselines, so on video
+    # baselines it may return the 180-degree "twisted pair" (stages.two_view).
+    m = inl[:, 0] > 0
+    R, t_unit, _ = pose_from_essential(E, uv_a[m], uv_b[m], K)
+    t = t_unit.reshape(3, 1)
+    T_b_a[:3, :3] = R
+    # rotation-only test: residual flow after removing the rotation (infinite homography)
+    ra = rays(uv_a[m], K) @ R.T
+    pa = ra[:, :2] / ra[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    parallax = np.median(np.linalg.norm(pa - uv_b[m], axis=1))
+    if parallax < min_parallax:
+        # (near) no translation: E is degenerate, the rotation is that of the infinite homography
+        Hm, _ = cv2.findHomography(uv_a, uv_b, cv2.RANSAC, 1.0)
+        if Hm is not None:
+            U, _, Vt = np.linalg.svd(np.linalg.inv(K) @ Hm @ K)
+            T_b_a[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        return T_b_a, None
+    T_b_a[:3, 3] = t[:, 0]
+    return T_b_a, (uv_a[m], uv_b[m])
+
+
+def triangulate(
+    uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, T_b_a: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares z-depths (d_a (M,), d_b (M,)) of correspondences uv_a, uv_b (M, 2) px with
+    d_a R x_a + t = d_b x_b for T_b_a = [R | t] (camera a -> camera b), and a usable mask (M,)
+    (positive depths, triangulation angle above 0.2 degrees)."""
+    r = rays(uv_a, K) @ T_b_a[:3, :3].T
+    x = rays(uv_b, K)
+    t = T_b_a[:3, 3]
+    rr, xx, rx = (r * r).sum(1), (x * x).sum(1), (r * x).sum(1)
+    rt, xt = r @ t, x @ t
+    det = rr * xx - rx * rx
+    ok = det > 1e-10
+    det = np.where(ok, det, 1.0)
+    da = (-rt * xx + rx * xt) / det
+    db = (rr * xt - rx * rt) / det
+    cosang = rx / np.sqrt(rr * xx)
+    ok &= (da > 0) & (db > 0) & (cosang < math.cos(math.radians(0.2)))
+    return da, db, ok
+
+
+def sample_np(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of img (H, W) at pixel points uv (M, 2) (clamped) -> (M,)."""
+    h, w = img.shape
+    u = np.clip(uv[:, 0], 0, w - 1.001)
+    v = np.clip(uv[:, 1], 0, h - 1.001)
+    u0, v0 = np.floor(u).astype(int), np.floor(v).astype(int)
+    fu, fv = u - u0, v - v0
+    return (
+        img[v0, u0] * (1 - fu) * (1 - fv) + img[v0, u0 + 1] * fu * (1 - fv)
+        + img[v0 + 1, u0] * (1 - fu) * fv + img[v0 + 1, u0 + 1] * fu * fv
+    )
+
+
+def _grid_depths(
+    flow: np.ndarray, valid: np.ndarray, K: np.ndarray, T_o_s: np.ndarray, stride: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulated depth (gh, gw) of the source frame s on a regular pixel grid (NaN = unusable)
+    from a flow field (H, W, 2) px s -> o, its mask (H, W) and the relative pose T_o_s (camera s ->
+    camera o coordinates); also the grid's pixels (gh * gw, 2)."""
+    h, w = valid.shape
+    ys, xs = np.mgrid[stride // 2 : h : stride, stride // 2 : w : stride]
+    uv = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+    uv2 = uv + flow[ys.ravel(), xs.ravel()].astype(np.float64)
+    d, _, ok = triangulate(uv, uv2, K, T_o_s)
+    ok &= valid[ys.ravel(), xs.ravel()]
+    return np.where(ok, d, np.nan).reshape(ys.shape), uv
+
+
+def essential_chain(
+    flows: Sequence[Mapping[str, np.ndarray]],
+    static_masks: np.ndarray,
+    ref_depths: np.ndarray,
+    K: np.ndarray,
+    stride: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Chain of two-view poses with consistent scale.
+
+    flows[k]: flow dict of pair (k, k+1); static_masks (N, H, W); ref_depths (N, H, W): the
+    network's initial depth (prior-shaped, scale-ambiguous per frame); K (3, 3).
+    Returns (poses (N, 4, 4) float64 T_w_c (camera-to-world) with T_w_0 = I, log_scale (N,)):
+    frame k's depth is ~ ref_depths[k] * exp(log_scale[k]) in the chain's units.
+
+    Scale propagation without the prior: frame k is triangulated on the *same* pixel grid by
+    pair (k-1, k) (through the backward flow) and by pair (k, k+1) (forward flow); the median
+    ratio of the two depth maps rescales pair (k, k+1)'s unit translation. Frame 0 keeps the
+    prior's scale. Rotation-only pairs get a zero translation and pass the scale through.
+    """
+    n = len(flows) + 1
+    sm = np.asarray(static_masks) > 0
+    T_next_cur: list[np.ndarray] = []  # T_{k+1}_k: camera k -> camera k+1, unit translation
+    d_fwd: list[np.ndarray | None] = []  # depth of frame k from pair (k, k+1), unit baseline
+    d_bwd: list[np.ndarray | None] = []  # depth of frame k+1 from pair (k, k+1), unit baseline
+    grid_uv = None
+    for k in range(n - 1):
+        fl = flows[k]
+        fv = np.asarray(fl["fwd_valid"], bool) & sm[k]
+        bv = np.asarray(fl["bwd_valid"], bool) & sm[k + 1]
+        T_k1_k, corr = two_view_pose(np.asarray(fl["fwd"], np.float32), fv, K)
+        T_next_cur.append(T_k1_k)
+        if corr is None:
+            d_fwd.append(None)
+            d_bwd.append(None)
+            continue
+        da, grid_uv = _grid_depths(np.asarray(fl["fwd"]), fv, K, T_k1_k, stride)
+        db, _ = _grid_depths(np.asarray(fl["bwd"]), bv, K, np.linalg.inv(T_k1_k), stride)
+        d_fwd.append(da if np.isfinite(da).sum() >= 20 else None)
+        d_bwd.append(db if np.isfinite(db).sum() >= 20 else None)
+        if d_fwd[-1] is None or d_bwd[-1] is None:
+            d_fwd[-1] = d_bwd[-1] = None
+            T_next_cur[-1][:3, 3] = 0.0
+
+    def ref_ratio(k: int, d: np.ndarray) -> float:
+        m = np.isfinite(d).ravel()
+        r = d.ravel()[m] / sample_np(ref_depths[k], grid_uv[m])  # type: ignore[index]
+        return float(np.median(r))
+
+    log_m = np.zeros(n)  # log depth scale of frame k relative to ref_depths[k]
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    known = False  # whether log_m[k] is anchored by a triangulation
+    for k in range(n - 1):
+        T_k1_k = T_next_cur[k].copy()
+        if d_fwd[k] is not None:
+            if k > 0 and d_bwd[k - 1] is not None and known:
+                # same-pixel ratio: depth of frame k (previous pair, already scaled) / (this pair)
+                prev = d_bwd[k - 1] * prev_scale
+                both = np.isfinite(prev) & np.isfinite(d_fwd[k])
+                if both.sum() >= 20:
+                    s = float(np.median(prev[both] / d_fwd[k][both]))
+                else:
+                    s = math.exp(log_m[k]) / ref_ratio(k, d_fwd[k])
+            else:
+                s = math.exp(log_m[k]) / ref_ratio(k, d_fwd[k])
+            T_k1_k[:3, 3] *= s
+            prev_scale = s
+            log_m[k + 1] = math.log(s * ref_ratio(k + 1, d_bwd[k]))
+            known = True
+        else:
+            log_m[k + 1] = log_m[k]
+            known = False
+        poses[k + 1] = poses[k] @ np.linalg.inv(T_k1_k)  # T_w_{k+1} = T_w_k @ T_k_{k+1}
+    return poses, log_m
+
+
+def interp_pose(T_w_a: np.ndarray, T_w_b: np.ndarray, s: float) -> np.ndarray:
+    """Geodesic interpolation between two camera-to-world poses (4, 4), s in [0, 1] -> (4, 4)."""
+    T_a_b = np.linalg.inv(T_w_a) @ T_w_b
+    r = cv2.Rodrigues(T_a_b[:3, :3])[0][:, 0]
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(r * s)[0]
+    out[:3, 3] = T_a_b[:3, 3] * s
+    return T_w_a @ out
+
+
+def pnp_init(
+    adjacent_flows: Sequence[Mapping[str, np.ndarray]],
+    kf_frame: int,
+    T_w_kf: np.ndarray,
+    kf_depth: np.ndarray,
+    targets: Sequence[int],
+    K: np.ndarray,
+    stride: int = 4,
+) -> dict[int, np.ndarray]:
+    """Camera-to-world poses {frame: T_w_c (4, 4)} of frames ``targets`` (all on one side of
+    keyframe ``kf_frame``, pose T_w_kf, depth kf_depth (H, W)) by PnP: grid points of the keyframe,
+    lifted with its (already optimised, correctly scaled) depth, are tracked through the adjacent
+    flows (adjacent_flows[i]: flow dict of pair (i, i+1)) and registered in each target frame.
+    Well conditioned even for tiny baselines, unlike two-view geometry; frames with too few tracks
+    are omitted."""
+    from stages.frontend.flow import warp_sample
+
+    h, w = kf_depth.shape
+    ys, xs = np.mgrid[stride // 2 : h : stride, stride // 2 : w : stride]
+    uv0 = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+    d = kf_depth[ys.ravel(), xs.ravel()].astype(np.float64)
+    X = rays(uv0, K) * d[:, None]
+    alive = d > 0
+    uv = uv0.copy()
+    out: dict[int, np.ndarray] = {}
+    fwd = targets[0] > kf_frame
+    order = sorted(targets) if fwd else sorted(targets, reverse=True)
+    cur = kf_frame
+    for t in order:
+        while cur != t:
+            if fwd:
+                fl, key, vk, nxt = adjacent_flows[cur], "fwd", "fwd_valid", cur + 1
+            else:
+                fl, key, vk, nxt = adjacent_flows[cur - 1], "bwd", "bwd_valid", cur - 1
+            uv_prev = uv
+            uv = uv + warp_sample(np.asarray(fl[key], np.float32), uv).astype(np.float64)
+            # validity of the link is read at the point's position in the link's source frame
+            v_ok = warp_sample(np.asarray(fl[vk], np.float32), uv_prev) > 0.5
+            alive &= v_ok & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+            cur = nxt
+        if alive.sum() < 12:
+            continue
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X[alive], uv[alive], K, None, reprojectionError=1.0, iterationsCount=200, flags=cv2.SOLVEPNP_EPNP
+        )
+        if not ok or inl is None or len(inl) < 12:
+            continue
+        idx = inl[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(X[alive][idx], uv[alive][idx], K, None, rvec, tvec)
+        T_t_kf = np.eye(4)  # keyframe camera -> target camera
+        T_t_kf[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T_t_kf[:3, 3] = tvec[:, 0]
+        out[t] = T_w_kf @ np.linalg.inv(T_t_kf)
+    return out
+
+
+def splat_depth(depth_k: np.ndarray, K: np.ndarray, T_i_k: np.ndarray) -> np.ndarray:
+    """Forward-warp a depth map (H, W) of frame k into frame i (T_i_k: camera k -> camera i
+    coordinates) with a z-buffer at the nearest pixel; 0 where nothing lands. -> (H, W) float32
+    z-depth in frame i."""
+    h, w = depth_k.shape
+    v, u = np.mgrid[0:h, 0:w]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    d = depth_k.ravel().astype(np.float64)
+    X = rays(uv, K) * d[:, None]
+    Y = X @ T_i_k[:3, :3].T + T_i_k[:3, 3]
+    z = Y[:, 2]
+    ok = (d > 0) & (z > 1e-6)
+    ui = np.round(K[0, 0] * Y[ok, 0] / z[ok] + K[0, 2]).astype(np.int64)
+    vi = np.round(K[1, 1] * Y[ok, 1] / z[ok] + K[1, 2]).astype(np.int64)
+    zin = z[ok]
+    inb = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    out = np.full(h * w, np.inf)
+    np.minimum.at(out, vi[inb] * w + ui[inb], zin[inb])
+    out[~np.isfinite(out)] = 0.0
+    return out.reshape(h, w).astype(np.float32)
+
+
+def fill_small_holes(depth: np.ndarray, sigma: float = 1.0, min_density: float = 0.3) -> np.ndarray:
+    """Close splatting cracks by normalised convolution in log depth (0 = hole stays a hole
+    where too few neighbours are valid)."""
+    m = (depth > 0).astype(np.float32)
+    ld = np.where(depth > 0, np.log(np.maximum(depth, 1e-9)), 0).astype(np.float32)
+    num = cv2.GaussianBlur(ld * m, (0, 0), sigma)
+    den = cv2.GaussianBlur(m, (0, 0), sigma)
+    fill = (m == 0) & (den > min_density)
+    out = depth.copy()
+    out[fill] = np.exp(num[fill] / den[fill])
+    return out
+
+
+def transfer_depths(
+    init: np.ndarray, kf: Sequence[int], kpos: np.ndarray, kd: np.ndarray, priors: np.ndarray, K: np.ndarray,
+    frames: Sequence[int],
+) -> np.ndarray:
+    """Depth targets (len(frames), H, W) float32 for the segment stage: keyframe depth at
+    keyframes; for the other frames the z-buffered reprojection of the two bracketing keyframes
+    (nearer one first), with the frame's own prior (scaled to agree) in the remaining holes.
+    init (N, 4, 4) initial T_w_c of all frames; kf (Kf,) keyframe indices, kpos (Kf, 4, 4) their
+    T_w_c, kd (Kf, H, W) their depths; priors (len(frames), H, W) those frames' priors."""
+    out = np.zeros((len(frames),) + kd.shape[1:], np.float32)
+    pri = normalised_prior(priors)
+    for n, i in enumerate(frames):
+        j = int(np.searchsorted(kf, i, side="right")) - 1
+        if j >= 0 and kf[j] == i:
+            d = kd[j].copy()
+        else:
+            cand = [c for c in (j, j + 1) if 0 <= c < len(kf)]
+            cand.sort(key=lambda c: abs(kf[c] - i))
+            d = np.zeros(kd.shape[1:], np.float32)
+            for c in cand:
+                T_i_c = np.linalg.inv(init[i]) @ kpos[c]  # keyframe c's camera -> camera i
+                sp = fill_small_holes(splat_depth(kd[c], K, T_i_c))
+                d = np.where(d > 0, d, sp)
+        hole = ~(d > 0)
+        if hole.any():
+            own = 1.0 / pri[n]
+            good = ~hole
+            s = float(np.median(d[good] / own[good])) if good.sum() > 20 else float(np.median(kd[max(j, 0)][kd[max(j, 0)] > 0]) / np.median(own))
+            d = np.where(hole, own * s, d)
+        out[n] = d
+    return out
+

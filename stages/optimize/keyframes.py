@@ -1,0 +1,244 @@
+"""Keyframe optimisation: sliding-window test-time training of keyframe poses and depths.
+
+Windows of ``window`` keyframes overlap by ``overlap``; the overlap's poses are held fixed (the
+gauge), the new frames are chained onto the optimised overlap from the initial essential-matrix
+chain (rigid re-anchoring + the overlap's scale change). Pairs (i, i + tau), tau in ``taus``, both
+directions, weighted 1/tau; the flow loss only for tau in ``flow_taus``.
+
+Poses are T_w_c (camera-to-world); the relative poses returned are T_b_a = inv(T_w_b) @ T_w_a
+(camera a -> camera b coordinates).
+
+Resume: a ``checkpointer`` receives every ``checkpoint_every`` steps the full state (global
+arrays, window parameters, Adam moments, generator state) and at each window boundary the shared
+weights; a restarted call resumes from it bit-exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from stages.models.depth_net import DepthNet, Encoded, mesh_shape
+from stages.models.pose_net import PoseNet
+from stages.optimize.frames import (
+    FlowPair, Frames, chained_flow, flow_at_loss_res, full_depth, init_depth_full, loss_size, prepare_frames,
+)
+from stages.optimize.init import essential_chain
+from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
+from stages.optimize.solver import (
+    Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads,
+)
+
+log = logging.getLogger(__name__)
+
+__all__ = ["optimize_keyframes"]
+
+_STAGE = "keyframes"  # checkpoint meta["stage"]
+
+
+def optimize_keyframes(
+    images: np.ndarray,
+    priors: np.ndarray,
+    static_masks: np.ndarray,
+    K: np.ndarray,
+    pair_flows: Mapping[tuple[int, int], Mapping[str, np.ndarray]],
+    depth: DepthModel = DepthModel(),
+    losses: LossWeights = LossWeights(),
+    kf: KeyframeSettings = KeyframeSettings(),
+    seed: int = 0,
+    checkpointer: Checkpointer | None = None,
+) -> dict[str, Any]:
+    """Sliding-window test-time training over keyframes.
+
+    images (K, H, W, 3) uint8; priors (K, H, W) relative inverse depth; static_masks (K, H, W)
+    uint8 1 = static; K (3, 3); pair_flows[(k, k+1)] flow dicts of consecutive keyframes (indices
+    into this keyframe list). Returns dict(poses (K, 4, 4) float64 T_w_c with T_w_0 = I,
+    depths (K, H, W) float32 (scale of the poses), rel_poses [dict(a, b, tau, T_b_a (4, 4)
+    float64 = inv(T_w_b) @ T_w_a)] for every (k, k + tau), tau in taus, state {name: array}:
+    trained head weights ``head.*`` and the per-frame meshes ``mesh`` (K, gh, gw)).
+    """
+    images = np.asarray(images)
+    nk, H, W = images.shape[:3]
+    K = np.asarray(K, np.float64)
+    gshape = mesh_shape(*loss_size(H, W, kf.loss_scale)[:2], depth.mesh_vertices)
+    with torch_threads(kf.threads):
+        with deterministic(seed) as gen:
+            net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
+            posenet = PoseNet(seed=seed) if kf.pose_param == "net" else None
+            fr = prepare_frames(net, images, priors, static_masks, K, kf.loss_scale, gshape)
+            h, w = fr.imgs.shape[-2:]
+            # initialisation: essential-matrix chain (global, deterministic, recomputed on resume)
+            flows = [pair_flows[(k, k + 1)] for k in range(nk - 1)]
+            init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
+            codes = posenet.encode(fr.imgs, torch.arange(nk)) if posenet is not None else None
+            flows_lr = {k: (flow_at_loss_res(flows[k], "fwd", h, w, fr.f), flow_at_loss_res(flows[k], "bwd", h, w, fr.f))
+                        for k in range(nk - 1)}
+            run = _Progress.start(init, mesh_init, checkpointer, gen)
+            starts = list(range(0, max(nk - kf.overlap, 1), max(1, kf.window - kf.overlap)))
+            for wi in range(run.w_start, len(starts)):
+                fr_idx = list(range(starts[wi], min(starts[wi] + kf.window, nk)))
+                win = _keyframe_window(wi, fr_idx, fr, codes, flows_lr, init, mesh_init, run, kf)
+                if win is None:
+                    break
+                solver = Solver(win, net, posenet, kf.lr, depth, losses, kf)
+                loss = _optimise_window(solver, wi, len(starts), run, gen, kf.steps, checkpointer)
+                log.debug("keyframe window %d/%d loss %.4f", wi + 1, len(starts), loss)
+                with torch.no_grad():
+                    run.g_base[fr_idx] = solver.poses().detach()
+                    run.g_mesh[fr_idx] = solver.meshes().detach().clone()
+                if checkpointer is not None and wi + 1 < len(starts):
+                    _save_boundary(checkpointer, run, gen, solver, wi + 1)
+            poses = run.g_base.numpy().astype(np.float64)
+            depths = full_depth(net, images, priors, run.g_mesh, depth.mesh, fr.enc)
+        return _results(poses, depths, run.g_mesh, net, posenet, kf.taus)
+
+
+@dataclass
+class _Progress:
+    """The optimisation's global state: the optimised poses / meshes of all keyframes (those of
+    unfinished windows at their initial values) and where a resumed run continues."""
+
+    g_base: torch.Tensor  # (K, 4, 4) float64 T_w_c of finished windows
+    g_mesh: torch.Tensor  # (K, gh, gw) float32 log-scale meshes
+    w_start: int = 0  # first window to run
+    s_start: int = 0  # its first step
+    resume: dict[str, torch.Tensor] | None = None  # checkpointed tensors, until consumed
+
+    @classmethod
+    def start(cls, init: torch.Tensor, mesh_init: torch.Tensor, checkpointer: Checkpointer | None,
+              gen: torch.Generator) -> "_Progress":
+        """Fresh from the initial solution, or from the checkpointer's last keyframe state
+        (which also restores the generator)."""
+        run = cls(init.clone(), mesh_init.clone())
+        if checkpointer is not None:
+            ck = load_checkpoint(checkpointer)
+            if ck is not None and ck[1].get("stage") == _STAGE:
+                t, meta = ck
+                run = cls(t["g_base"].clone(), t["g_mesh"].clone(), int(meta["window"]), int(meta["step"]), t)
+                gen.set_state(t["rng"].clone())
+        return run
+
+    def checkpoint(self, gen: torch.Generator) -> dict[str, torch.Tensor]:
+        return {"g_base": self.g_base.clone(), "g_mesh": self.g_mesh.clone(), "rng": gen.get_state()}
+
+
+def _initial_solution(
+    net: DepthNet, images: np.ndarray, priors: np.ndarray, static_masks: np.ndarray, K: np.ndarray,
+    flows: list[Mapping[str, np.ndarray]], init: str, gshape: tuple[int, int],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Initial poses (K, 4, 4) float64 T_w_c and log-scale meshes (K, gh, gw) float32 (one
+    value per frame): the essential-matrix chain, or identity poses / zero meshes."""
+    nk = len(images)
+    if init == "essential" and nk > 1:
+        ref = init_depth_full(net, images, priors)
+        init_np, log_m = essential_chain(flows, np.asarray(static_masks), ref, K)
+    else:
+        init_np, log_m = np.tile(np.eye(4), (nk, 1, 1)), np.zeros(nk)
+    mesh_init = torch.as_tensor(log_m, dtype=torch.float32)[:, None, None].expand(nk, *gshape).clone()
+    return torch.as_tensor(init_np), mesh_init
+
+
+def _keyframe_window(
+    wi: int, fr_idx: list[int], fr: Frames, codes: torch.Tensor | None, flows_lr: Mapping[int, FlowPair],
+    init: torch.Tensor, mesh_init: torch.Tensor, run: _Progress, kf: KeyframeSettings,
+) -> Window | None:
+    """Window ``wi`` over keyframes ``fr_idx`` (consecutive), or None if it has no pair.
+
+    Its first frame (window 0) or its overlap with the previous window keeps the optimised pose
+    (fixed: the gauge); the new frames are chained from the optimised overlap by the initial
+    relative poses, scaled by the overlap's mean scale change, their meshes shifted likewise."""
+    n = len(fr_idx)
+    s0 = fr_idx[0]
+    n_old = 0 if wi == 0 else min(kf.overlap, n)
+    base = run.g_base[fr_idx].clone()
+    mesh0 = run.g_mesh[fr_idx].clone()
+    if wi > 0:
+        # chain new frames from the optimised overlap (rigid re-anchoring + scale change)
+        anc = s0 + n_old - 1
+        sig = float(torch.exp((run.g_mesh[s0 : s0 + n_old] - mesh_init[s0 : s0 + n_old]).mean()))
+        for j in range(n_old, n):
+            T_anc_j = torch.linalg.inv(init[anc]) @ init[fr_idx[j]]  # camera j -> anchor camera
+            T_anc_j[:3, 3] *= sig
+            base[j] = run.g_base[anc] @ T_anc_j
+            mesh0[j] = mesh_init[fr_idx[j]] + math.log(sig)
+    pose_train = torch.ones(n, dtype=torch.float64)
+    pose_train[: max(n_old, 1)] = 0  # gauge: first frame / overlap poses fixed
+    pairs = _keyframe_pairs(fr_idx, flows_lr, kf)
+    if not pairs:
+        return None
+    sl = slice(fr_idx[0], fr_idx[-1] + 1)
+    return Window(
+        fr.imgs[sl], Encoded(fr.enc.feat[sl], fr.enc.log_prior[sl]), fr.static[sl], fr.dyn_mesh[sl],
+        fr.K, pairs, base, pose_train, mesh0, torch.ones(n), codes[sl] if codes is not None else None,
+    )
+
+
+def _keyframe_pairs(fr_idx: list[int], flows_lr: Mapping[int, FlowPair], kf: KeyframeSettings) -> list[Pair]:
+    """Pairs (i, i + tau) and (i + tau, i) of a window (window-local indices), weight 1/tau,
+    with loss-resolution flows where tau is in flow_taus."""
+    n = len(fr_idx)
+    pairs = []
+    for tau in kf.taus:
+        for i in range(n - tau):
+            ga = fr_idx[i]
+            f1 = chained_flow(flows_lr, ga, tau) if tau in kf.flow_taus else None
+            pairs.append(Pair(i, i + tau, tau, 1.0 / tau, *(f1[0] if f1 else (None, None))))
+            pairs.append(Pair(i + tau, i, tau, 1.0 / tau, *(f1[1] if f1 else (None, None))))
+    return pairs
+
+
+def _optimise_window(
+    solver: Solver, wi: int, n_windows: int, run: _Progress, gen: torch.Generator, steps: int,
+    checkpointer: Checkpointer | None,
+) -> float:
+    """Run window ``wi``'s Adam steps (from a checkpoint when resuming); returns the last loss."""
+    start = 0
+    if run.resume is not None:
+        if run.s_start > 0:
+            solver.load(run.resume)
+            start = run.s_start
+        else:  # saved at a window boundary: only the shared weights carry over
+            solver.net.load_trainable_state(dict(run.resume))
+            if solver.posenet is not None:
+                solver.posenet.decoder.load_state_dict(
+                    {k[8:]: v for k, v in run.resume.items() if k.startswith("posenet.")})
+        run.resume = None
+
+    def save(step_done: int) -> None:
+        t = run.checkpoint(gen)
+        t.update(solver.state())
+        checkpointer.save(t, {"stage": _STAGE, "window": wi, "step": step_done})  # type: ignore[union-attr]
+
+    return run_solver(solver, gen, steps, start, save if checkpointer is not None else None)
+
+
+def _save_boundary(checkpointer: Checkpointer, run: _Progress, gen: torch.Generator, solver: Solver,
+                   next_window: int) -> None:
+    """Checkpoint at a window boundary: global state and the shared weights (no window state)."""
+    t = run.checkpoint(gen)
+    t.update({k: v for k, v in solver.state().items() if not k.startswith(("adam.", "win."))})
+    checkpointer.save(t, {"stage": _STAGE, "window": next_window, "step": 0})
+
+
+def _results(
+    poses: np.ndarray, depths: np.ndarray, g_mesh: torch.Tensor, net: DepthNet, posenet: PoseNet | None,
+    taus: tuple[int, ...],
+) -> dict[str, Any]:
+    """The stage's output dict (see ``optimize_keyframes``) from poses (K, 4, 4) T_w_c, depths
+    (K, H, W) and meshes (K, gh, gw)."""
+    nk = len(poses)
+    rel = []
+    for tau in taus:
+        for a in range(nk - tau):
+            b = a + tau
+            rel.append({"a": a, "b": b, "tau": tau, "T_b_a": np.linalg.inv(poses[b]) @ poses[a]})
+    state = {k: v.numpy() for k, v in net.trainable_state().items()}
+    state["mesh"] = g_mesh.numpy()
+    if posenet is not None:
+        state.update({f"posenet.{k}": v.detach().numpy() for k, v in posenet.decoder.state_dict().items()})
+    return {"poses": poses, "depths": depths, "rel_poses": rel, "state": state}

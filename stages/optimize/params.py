@@ -1,0 +1,103 @@
+"""Parameters of the three optimisations, declared once (plain dataclasses, one per concern).
+
+The pipeline derives its config sections from these classes (``gcvd_flow.pipeline``:
+``depth``, ``losses``, ``optimize_keyframes``, ``optimize_edges``, ``optimize_segments``), so a
+field's name, default, description and constraint are written here only. ``metadata`` holds the
+``description`` and the numeric constraints (``ge``, ``gt``, ...) the config section enforces.
+The stage functions read the fields as attributes, so they accept these dataclasses and the
+pipeline's pydantic sections alike.
+
+Units: learning rates per Adam step; ``loss_scale`` = fraction of the working resolution at which
+the losses are evaluated; ``points`` = samples per ordered frame pair per step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+__all__ = ["DepthModel", "LossWeights", "KeyframeSettings", "EdgeSettings", "SegmentSettings"]
+
+
+def _f(default: Any, description: str = "", **constraints: Any) -> Any:
+    """A dataclass field with a config description and pydantic-style constraints."""
+    md: dict[str, Any] = dict(constraints)
+    if description:
+        md["description"] = description
+    return field(default=default, metadata=md)
+
+
+@dataclass(frozen=True)
+class DepthModel:
+    """The depth model (stages.models.depth_net.DepthNet) of all three optimisations."""
+
+    layer_norm: bool = _f(True, "per-frame non-affine LayerNorm of the log inverse depth")
+    mesh: bool = _f(True, "per-frame log-scale deformation mesh")
+    mesh_vertices: int = _f(17, "mesh vertices on the long side")
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Loss weights of all three optimisations (stages.optimize.losses)."""
+
+    grad: bool = _f(True, "use the depth-gradient orientation loss")
+    w_photo: float = 1.0
+    w_flow: float = 10.0
+    w_depth: float = 0.5
+    w_grad: float = 0.1
+    w_mesh: float = 0.5
+
+
+@dataclass(frozen=True)
+class KeyframeSettings:
+    """Keyframe windows, and the solver settings all three optimisations share (pose_lr,
+    mesh_lr_mult, mesh_shape_lr_frac, points, taus, flow_taus, checkpoint_every, threads;
+    the edge optimisation also uses loss_scale)."""
+
+    window: int = _f(40, "keyframes per optimisation window")
+    overlap: int = _f(8, "keyframes shared by consecutive windows (their poses are held fixed)")
+    steps: int = _f(150, "Adam steps per window")
+    lr: float = _f(2e-4, "depth head lr (paper); mesh lr = lr * mesh_lr_mult")
+    pose_lr: float = _f(5e-4, "lr of the pose corrections (5e-4 holds, 3e-3 drifts)")
+    mesh_lr_mult: float = _f(100.0, "per-frame log-scale lr = lr * mesh_lr_mult")
+    loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution (also edges)")
+    points: int = _f(128, "sampled points per ordered pair per step")
+    pose_param: Literal["direct", "net"] = _f("direct", "per-frame pose corrections or a pose network")
+    init: Literal["essential", "identity"] = _f("essential", "initial keyframe poses: essential-matrix "
+                                                "chain or identity")
+    checkpoint_every: int = _f(50, "steps between checkpoints")
+    threads: int = _f(2, "torch threads of the optimisation stages (results are bit-identical only "
+                      "for the same count)", ge=1)
+    taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)")
+    flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
+                                    "from the tau = 1 flows (the authors use tau = 1 only)")
+    mesh_shape_lr_frac: float = _f(0.1, "spatial mesh vertex lr = lr * mesh_lr_mult * this: on point-sampled "
+                                   "losses a fast spatial mesh bends the depth along flow noise, while poses "
+                                   "need a fast per-frame scale")
+
+
+@dataclass(frozen=True)
+class EdgeSettings:
+    """Non-sequential (loop) edge optimisation."""
+
+    steps: int = _f(100, "Adam steps per edge")
+    lr: float = _f(1e-4, "depth head lr")
+    essential_init: bool = _f(True, "re-estimate the edge's rotation / translation direction by two-view "
+                              "geometry on its flow (the keyframe-chain init carries the chain's drift); "
+                              "|t| is kept")
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Segment optimisation: all frames, keyframe poses frozen."""
+
+    steps: int = _f(60, "Adam steps per window")
+    lr: float = _f(1e-4, "depth head lr")
+    loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution")
+    pair_power: float = _f(0.5, "pair weight tau ** pair_power")
+    grad_mult: float = _f(5.0, "multiplier of the gradient loss weight")
+    window: int = _f(40, "frames per window (windows are cut at keyframes)")
+    init: Literal["pnp", "interp"] = _f("pnp", "non-keyframe pose init: keyframe depth + flow tracks + PnP, "
+                                        "or geodesic interpolation")
+    prior: Literal["transfer", "prior"] = _f("transfer", "depth model input: keyframe depths reprojected "
+                                             "into the frames (own prior only in holes), or the priors")
