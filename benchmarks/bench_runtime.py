@@ -6,6 +6,12 @@ optimize_segments) and post-processing (depth_fusion, depth_filter). Each clip r
 in its own process; peak memory is that process's max RSS.
 
     make bench-runtime         # or: .venv/bin/python benchmarks/bench_runtime.py --frames 50 200
+
+``--side-by-side N``: load collapse. An N-frame clip runs alone (cold cache), then two copies
+start at the same moment (separate caches and run dirs); the ratio is the slower of the two
+against the run alone, with OpenMP's idle threads sleeping (the default since this change:
+``OMP_WAIT_POLICY=PASSIVE``) and with OpenMP's own default (``OMP_WAIT_POLICY=`` empty: spin,
+then sleep) as the peer, median of ``--repeat`` rounds.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -24,13 +31,60 @@ MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "optimize_segments
 POST = ("depth_fusion", "depth_filter")
 
 
+def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str) -> list[float]:
+    """Wall seconds of ``copies`` cold runs of ``clip`` started together."""
+    import time
+
+    env = dict(os.environ, CI="1", OMP_WAIT_POLICY=policy)
+    procs, t0 = [], time.perf_counter()
+    for c in range(copies):
+        d = tmp / f"{tag}-{c}"
+        shutil.rmtree(d, ignore_errors=True)
+        cmd = [sys.executable, "-m", "gcvd_flow", "run", str(clip), "--out", str(d / "run"), "--cache",
+               str(d / "cache"), "--json"]
+        procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
+    ends = []
+    for p in procs:
+        _, err = p.communicate()
+        if p.returncode != 0:
+            raise SystemExit(err.decode()[-3000:])
+        ends.append(time.perf_counter() - t0)
+    return ends
+
+
+def side_by_side(frames: int, size: str, trajectory: str, repeat: int) -> dict:
+    import statistics
+
+    with tempfile.TemporaryDirectory(prefix="bench-sbs-") as tmp_s:
+        tmp = Path(tmp_s)
+        clip = tmp / "clip"
+        subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(clip), "--frames", str(frames),
+                        "--trajectory", trajectory, "--size", size], cwd=ROOT, check=True, capture_output=True)
+        out = {"frames": frames, "size": size, "repeat": repeat}
+        for name, policy in (("passive", "PASSIVE"), ("openmp_default", "")):
+            alone = [_timed_runs(tmp, clip, "alone", 1, policy)[0] for _ in range(repeat)]
+            pair = [max(_timed_runs(tmp, clip, "pair", 2, policy)) for _ in range(repeat)]
+            a, b = statistics.median(alone), statistics.median(pair)
+            out[name] = {"alone_s": a, "side_by_side_s": b, "ratio": b / a, "alone_all": alone, "pair_all": pair}
+            print(f"{name:>15}: alone {a:7.1f} s, two side by side {b:7.1f} s (slower of the two): "
+                  f"ratio {b / a:.2f}", file=sys.stderr, flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--side-by-side", type=int, metavar="FRAMES", default=0,
+                    help="measure two runs started together vs one alone (load collapse) instead")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds for --side-by-side (median)")
     ap.add_argument("--frames", type=int, nargs="+", default=[50, 200, 500, 1000])
     ap.add_argument("--size", default="256x192")
     ap.add_argument("--trajectory", default="loop")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
+    if a.side_by_side:
+        doc = side_by_side(a.side_by_side, a.size, a.trajectory, a.repeat)
+        print(json.dumps(doc, indent=1) if a.json else "")
+        return
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-rt-") as tmp:
         for n in a.frames:
