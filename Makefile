@@ -17,6 +17,13 @@ sysdeps:
 	  echo "installing Debian package libusb-1.0-0 (needed by open3d)"; \
 	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq libusb-1.0-0 >/dev/null; \
 	fi
+	@# the SFTP remote-cache test starts its own sshd on a 127.0.0.1 port (tests/remote_servers.py);
+	@# note: on a machine with an init system Debian also enables its ssh service when installed
+	@if [ ! -x /usr/sbin/sshd ]; then \
+	  echo "installing Debian package openssh-server (the SFTP remote-cache test runs sshd on loopback)"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq openssh-server >/dev/null || \
+	  echo "openssh-server not installed: the SFTP test will be skipped"; \
+	fi
 
 $(STAMP): requirements.txt requirements-test.txt pyproject.toml | sysdeps
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)

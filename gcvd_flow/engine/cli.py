@@ -216,7 +216,8 @@ def _cmd_run(a: argparse.Namespace) -> int:
     record_paths = res.pop("_record_paths")
     watch = res.pop("_watch")
     if a.out:
-        fastpath.write(a.out, stamp_invocation(a), res["cache"], res, record_paths, watch)
+        noop = {k: v for k, v in res.items() if k != "remote"}  # a no-op replay transfers nothing
+        fastpath.write(a.out, stamp_invocation(a), res["cache"], noop, record_paths, watch)
     _print_run(res, a.json_mode)
     return 0
 
