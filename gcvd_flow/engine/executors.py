@@ -11,6 +11,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import time
+import uuid
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
@@ -260,10 +261,12 @@ class DaskItemExecutor:
             yield res
 
     def _submit(self, task: ItemTask):
-        # pure=False: the item's lock and record re-check decide whether work happens, not Dask's
-        # task-key deduplication; retries: a worker lost mid-item (killed, OOM) is retried elsewhere
-        return self._client.submit(compute_item_on_dask_worker, task, self.worker_init, pure=False,
-                                   retries=2, key=f"{task.stage_name}-{task.index}-{task.key[:16]}")
+        # A unique task key per submission: the item's lock and record re-check decide whether
+        # work happens and who reports it computed (two clients sharing a cluster and a cache see
+        # each item computed once in total), not Dask's deduplication of equal keys.
+        # retries: a task whose worker died (killed, OOM) is retried on another worker.
+        return self._client.submit(compute_item_on_dask_worker, task, self.worker_init, pure=False, retries=2,
+                                   key=f"{task.stage_name}-{task.index}-{task.key[:16]}-{uuid.uuid4().hex[:8]}")
 
     def close(self) -> None:
         self._client.close()
