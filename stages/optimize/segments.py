@@ -94,13 +94,11 @@ def optimize_segments(
         windows = _segment_windows(kfi, N, seg.window)
         is_kf = np.zeros(N, bool)
         is_kf[kfi] = True
+        clip = _Clip(images, window_priors, static_masks, adjacent_flows, is_kf, K, (h, w), gshape)
         # g_pose shares memory with init: later windows' transfer depths see the updated poses
         run = _Progress.start(torch.as_tensor(init), mesh_init.clone(), windows, (H, W), net, checkpointer, gen)
         for wi in range(run.w_start, len(windows)):
-            _optimise_window(
-                wi, run, net, images, window_priors, static_masks, adjacent_flows, is_kf, K, (h, w), gshape,
-                depth, losses, kf, seg, gen, checkpointer,
-            )
+            _optimise_window(wi, run, net, clip, depth, losses, kf, seg, gen, checkpointer)
         poses = run.g_pose.numpy().astype(np.float64)
     return {"poses": poses, "depths": run.out_depth}
 
@@ -217,6 +215,20 @@ def _segment_windows(kfi: list[int], N: int, max_len: int) -> list[tuple[int, in
 
 
 @dataclass
+class _Clip:
+    """The clip's inputs as the windows read them (images, masks, flows may be lazy sequences)."""
+
+    images: Any  # (N, H, W, 3) uint8
+    window_priors: WindowPriors  # depth model prior input of frames a..b
+    static_masks: Any  # (N, H, W) 1 = static
+    adjacent_flows: Sequence[Mapping[str, np.ndarray]]  # [i]: flow dict of pair (i, i+1)
+    is_kf: np.ndarray  # (N,) bool, True = keyframe (pose frozen)
+    K: np.ndarray  # (3, 3) float64 at working resolution
+    loss_hw: tuple[int, int]  # loss resolution (h, w)
+    gshape: tuple[int, int]  # mesh grid (gh, gw)
+
+
+@dataclass
 class _Progress:
     """Global state: all frames' poses, meshes and finished windows' depth; where a resumed run
     continues."""
@@ -280,27 +292,25 @@ def _segment_pairs(
 
 
 def _optimise_window(
-    wi: int, run: _Progress, net: DepthNet, images: Any, window_priors: WindowPriors, static_masks: Any,
-    adjacent_flows: Sequence[Mapping[str, np.ndarray]], is_kf: np.ndarray, K: np.ndarray, hw: tuple[int, int],
-    gshape: tuple[int, int], depth: DepthModel, losses: LossWeights, kf: KeyframeSettings, seg: SegmentSettings,
-    gen: torch.Generator, checkpointer: Checkpointer | None,
+    wi: int, run: _Progress, net: DepthNet, clip: _Clip, depth: DepthModel, losses: LossWeights,
+    kf: KeyframeSettings, seg: SegmentSettings, gen: torch.Generator, checkpointer: Checkpointer | None,
 ) -> None:
     """Optimise window ``wi`` (from a checkpoint when resuming) and store its poses, meshes and
     working-resolution depth in ``run``; checkpoint at its end unless it is the last window."""
     a, b = run.windows[wi]
-    h, w = hw
+    h, w = clip.loss_hw
     n = b - a + 1
-    imgs_w, pri_w = np.asarray(images[a : b + 1]), window_priors(a, b)
-    fr = prepare_frames(net, imgs_w, pri_w, np.asarray(static_masks[a : b + 1]), K, seg.loss_scale, gshape)
-    seg_flows = {
-        k: (flow_at_loss_res(adjacent_flows[k], "fwd", h, w, fr.f), flow_at_loss_res(adjacent_flows[k], "bwd", h, w, fr.f))
-        for k in range(a, b)
-    }
+    imgs_w, pri_w = np.asarray(clip.images[a : b + 1]), clip.window_priors(a, b)
+    fr = prepare_frames(net, imgs_w, pri_w, np.asarray(clip.static_masks[a : b + 1]), clip.K, seg.loss_scale,
+                        clip.gshape)
+    fl = clip.adjacent_flows
+    seg_flows = {k: (flow_at_loss_res(fl[k], "fwd", h, w, fr.f), flow_at_loss_res(fl[k], "bwd", h, w, fr.f))
+                 for k in range(a, b)}
     pairs = _segment_pairs(n, a, seg_flows, kf, seg.pair_power)
     if not pairs:
         run.out_depth[a : b + 1] = full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh)
         return
-    pose_train = torch.as_tensor((~is_kf[a : b + 1]).astype(np.float64))
+    pose_train = torch.as_tensor((~clip.is_kf[a : b + 1]).astype(np.float64))
     win = Window(
         fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, run.g_pose[a : b + 1].clone(), pose_train,
         run.g_mesh[a : b + 1].clone(), torch.ones(n), None, seg.grad_mult,
