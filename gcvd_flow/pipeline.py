@@ -123,6 +123,12 @@ class FlowParams(Section):
     fb_thresh: float = Field(1.0, gt=0, description="forward-backward consistency, px")
     weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="RAFT weights file")
 
+    @model_validator(mode="after")
+    def _needs_weights(self) -> "FlowParams":
+        if self.backend == "raft" and not self.weights:
+            raise ValueError("flow.backend=raft needs flow.weights=FILE (raft-things, .pth or .safetensors)")
+        return self
+
 
 def _flow_items(view, p: FlowParams):
     return [{"a": ItemRef("ingest", i), "b": ItemRef("ingest", i + 1)} for i in range(view.len("ingest") - 1)]
@@ -686,6 +692,17 @@ STAGE_NAMES = PIPELINE.names()
 
 
 def open_source(path: str, config: GCVDConfig) -> Source:
+    import os
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file or directory") from None
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise UsageError(f"{path}: not a video file or a folder (a device, FIFO or socket cannot be an input)")
     src = _open_source(path)
     p = config.ingest
     n_sel = len(range(len(src.items))[p.start:p.end:p.stride])

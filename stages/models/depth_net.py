@@ -11,7 +11,7 @@ construction instead of costing a pre-fit phase on a CPU.
 Why 1x1 head layers: their output at a pixel depends only on that pixel's (frozen, cached)
 features, so a training step costs O(pixels x head) without re-running the backbone. The
 optimiser runs the backbone once per frame at the loss resolution and upsamples the learned
-log-correction of the prior to the working resolution (stages.optimize._full_depth).
+log-correction of the prior to the working resolution (stages.optimize.frames.full_depth).
 
 Weights backend hook: pass ``backbone=<nn.Module>`` (e.g. MiDaS) mapping an image (B, 3, H, W)
 in [0, 1] to inverse depth (B, 1, H, W) or (B, H, W). Its output is used in place of the prior
