@@ -94,3 +94,28 @@ def test_a_worker_killed_mid_stage_costs_a_retry_not_a_result(reference, tmp_pat
     assert st["transform"]["executed"] + st["transform"]["cached"] == 24
     assert _outputs(out) == ref  # byte-identical artifacts despite the lost worker
     assert Store(cache).fsck().corrupt == []
+
+
+def test_run_many_on_one_cluster_reports_a_table_and_counts_failures(reference, tmp_path):
+    from conftest import cli
+
+    inp, ref = reference
+    other = make_toy_input(tmp_path / "other", n=10, seed=3)
+    (tmp_path / "broken").mkdir()  # no .bin files: this input fails, the others run
+    p = cli("run-many", str(inp), str(tmp_path / "broken"), str(other), "--out", str(tmp_path / "runs"),
+            "--cache", str(tmp_path / "cache"), "--pipeline", "toy", "--executor", "dask", "--jobs", "2", "--json")
+    assert p.returncode == 1, p.stderr
+    doc = json.loads(p.stdout)
+    ok = [r for r in doc["runs"] if r["ok"]]
+    assert [r["ok"] for r in doc["runs"]] == [True, False, True] and doc["failed"] == 1
+    assert "no .bin files" in doc["runs"][1]["error"]
+    assert ok[0]["items"] == 24 and ok[1]["items"] == 10 and ok[1]["executed"] == 2 * 10 + 3
+    assert _outputs(tmp_path / "runs" / "input") == ref
+    # again, as a table: every stage of both inputs is a cache hit now
+    p = cli("run-many", str(inp), str(other), "--out", str(tmp_path / "runs"), "--cache", str(tmp_path / "cache"),
+            "--pipeline", "toy")
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert lines[0].split() == ["input", "status", "items", "executed", "cache", "hits", "seconds"]
+    assert lines[2].split()[:5] == ["input", "ok", "24", "0", str(2 * 24 + 3)]
+    assert lines[-1].startswith("2 of 2 inputs ok, 0 failed")

@@ -90,6 +90,23 @@ def _add_scale_args(p: argparse.ArgumentParser) -> None:
                    help="with --executor dask: the cluster's scheduler (default: a local cluster of --jobs workers)")
 
 
+def _add_scale_commands(sub: Any) -> None:
+    p = sub.add_parser("run-many", help="run many inputs through one DAG and one cache; a summary table")
+    p.add_argument("inputs", nargs="+", metavar="INPUT")
+    p.add_argument("--out", required=True, metavar="DIR", help="one run directory per input: DIR/<input name>")
+    _add_config_args(p)
+    p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes / Dask workers")
+    _add_scale_args(p)
+    p.set_defaults(handler=_cmd_run_many)
+
+    p = sub.add_parser("lineage", help="what produced an artifact: stage, parameters, code, libraries, inputs")
+    p.add_argument("target", metavar="RUN_DIR|DIGEST", help="a run directory, or a record key / output / object digest")
+    p.add_argument("stage", nargs="?", metavar="STAGE", help="with RUN_DIR: this stage only (default: all)")
+    p.add_argument("--cache", metavar="DIR", help="default: the run's cache, else $GCVD_FLOW_CACHE / the user cache dir")
+    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.set_defaults(handler=_cmd_lineage)
+
+
 def build_parser(product: Product) -> argparse.ArgumentParser:
     global _PRODUCT
     _PRODUCT = product
@@ -148,6 +165,7 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
         p.add_argument("--cache", metavar="DIR")
         p.add_argument("--json", dest="json_mode", action="store_true")
 
+    _add_scale_commands(sub)
     product.add_commands(sub)
     return ap
 
@@ -350,6 +368,28 @@ def _cmd_fsck_remote(a: argparse.Namespace) -> int:
           + ("; clean" if rep["clean"] else "" if rep["repaired"] else "; run with --repair to delete them"))
     for line in rep["bad_objects"] + rep["bad_records"] + rep["stray_files"]:
         print(f"bad: {line}")
+    return 0
+
+
+def _cmd_run_many(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api, many
+
+    doc = many.run_many(a.inputs, a.out, _invocation(a, input_="", out=a.out), log=api._stderr)
+    if a.json_mode:
+        _print_json(doc)
+    else:
+        print(many.format_table(doc))
+    return many.exit_code(doc)
+
+
+def _cmd_lineage(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import lineage
+
+    doc = lineage.lineage(a.target, a.stage, a.cache)
+    if a.json_mode:
+        _print_json(doc)
+    else:
+        print(lineage.format_text(doc))
     return 0
 
 

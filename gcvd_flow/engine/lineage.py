@@ -1,0 +1,185 @@
+"""`lineage`: what produced an artifact, recursively down to the source.
+
+Everything comes from the records in the cache (no run needs to be repeated, and the producer's
+machine is not needed: a pulled record carries the same facts). A record's ``preimage`` is
+exactly what its key is the digest of — stage name, code fingerprint, parameters, seed, stage
+version, input digests and numeric environment (library versions, device, dtype) — and stage
+records add ``fields`` (which source files the code fingerprint covers). Inputs are followed to
+the records whose output they are; an input no record produced is the source (input files,
+frames) or a constant.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.keys import is_digest
+from gcvd_flow.engine.store import Store
+
+MAX_NODES = 10_000
+
+
+class _Index:
+    """output digest -> record key, and object digest -> record key (built on first need)."""
+
+    def __init__(self, store: Store, known: dict[str, str] | None = None):
+        self.store = store
+        self.outputs: dict[str, str] = dict(known or {})
+        self.objects: dict[str, str] = {}
+        self._full = False
+
+    def _build(self) -> None:
+        if self._full:
+            return
+        self._full = True
+        for key, path in self.store.iter_records():
+            try:
+                rec = json.loads(path.read_bytes())
+            except (OSError, ValueError):
+                continue
+            if not isinstance(rec, dict) or rec.get("record_kind") == "checkpoint":
+                continue
+            if is_digest(rec.get("outputs")):
+                self.outputs.setdefault(rec["outputs"], key)
+            for d in rec.get("objects") or {}:
+                # the smallest producer: an item record rather than its stage record
+                if rec.get("record_kind") == "item" or d not in self.objects:
+                    self.objects[d] = key
+
+    def producer(self, digest: str) -> str | None:
+        if digest not in self.outputs:
+            self._build()
+        return self.outputs.get(digest)
+
+    def containing(self, digest: str) -> str | None:
+        self._build()
+        return self.objects.get(digest)
+
+
+def _node(store: Store, key: str, index: _Index) -> dict[str, Any]:
+    rec = store.read_record(key)
+    if rec is None:
+        return {"key": key, "missing": True}
+    kind, stage, code, keyed, inputs, env = (list(rec["preimage"]) + [None] * 6)[:6]
+    keyed = keyed if isinstance(keyed, dict) else {}
+    node: dict[str, Any] = {"key": key, "record_kind": kind, "stage": stage, "output": rec["outputs"],
+                            "code": code, "version": keyed.get("version"), "seed": keyed.get("seed"),
+                            "params": keyed.get("params"), "env": env, "inputs": {}}
+    fields = rec.get("fields") or {}
+    if fields.get("code_files"):
+        node["code_files"] = fields["code_files"]
+    if rec.get("children"):
+        node["items"] = len(rec["children"])
+    if rec.get("seconds") is not None:
+        node["seconds"] = rec["seconds"]
+    for name, d in sorted((inputs or {}).items()):
+        if not isinstance(d, str):
+            continue
+        src = index.producer(d)
+        node["inputs"][name] = {"digest": d, "from": src} if src else {"digest": d, "from": None, "source": True}
+    return node
+
+
+def trace(store: Store, roots: list[str], known: dict[str, str] | None = None) -> dict[str, dict[str, Any]]:
+    """Nodes (by record key) of every record reachable from ``roots`` through their inputs."""
+    index = _Index(store, known)
+    nodes: dict[str, dict[str, Any]] = {}
+    todo = list(roots)
+    while todo and len(nodes) < MAX_NODES:
+        key = todo.pop(0)
+        if key in nodes:
+            continue
+        nodes[key] = n = _node(store, key, index)
+        todo.extend(i["from"] for i in n.get("inputs", {}).values() if i.get("from"))
+    return nodes
+
+
+def _run_dir_cache(out: Path, cache: str | None) -> Store:
+    from gcvd_flow.engine.paths import default_cache_dir
+
+    if cache:
+        return Store(Path(cache).expanduser())
+    doc = json.loads((out / "run.json").read_text())
+    root = doc.get("cache")
+    return Store(Path(root) if root and Path(root, "records").is_dir() else default_cache_dir())
+
+
+def lineage(target: str, stage: str | None = None, cache: str | None = None) -> dict[str, Any]:
+    """The lineage of a run's stage (all stages without one), or of a digest: a record key, an
+    output digest or an object digest in the cache."""
+    p = Path(target)
+    if (p / "run.json").is_file():
+        try:
+            stages = json.loads((p / "run.json").read_text())["stages"]
+        except (OSError, ValueError, KeyError):
+            raise UsageError(f"{p / 'run.json'}: not a valid run record") from None
+        if stage is not None and stage not in stages:
+            raise UsageError(f"{p / 'run.json'}: no stage {stage!r} (stages: {', '.join(stages)})")
+        store = _run_dir_cache(p, cache)
+        names = [stage] if stage else list(reversed(list(stages)))  # the last stage first: it reaches the rest
+        roots = [stages[n]["key"] for n in names if stages[n].get("key")]
+        known = {s["output"]: s["key"] for s in stages.values() if s.get("output") and s.get("key")}
+        return {"target": str(p), "roots": roots, "nodes": trace(store, roots, known)}
+    if stage is not None:
+        raise UsageError(f"{target}: not a run directory (STAGE goes with RUN_DIR)")
+    if not is_digest(target):
+        raise UsageError(f"{target}: neither a run directory nor a 64-hex digest")
+    from gcvd_flow.engine.paths import default_cache_dir
+
+    store = Store(Path(cache).expanduser() if cache else default_cache_dir())
+    index = _Index(store)
+    root = target if store.read_record(target) is not None else index.producer(target)
+    note = None
+    if root is None:
+        root = index.containing(target)
+        note = f"object {target[:12]} is part of the output of record {root[:12]}" if root else None
+    if root is None:
+        raise UsageError(f"{target[:12]}: no record in {store.root} names this digest (pull it first?)")
+    doc = {"target": target, "roots": [root], "nodes": trace(store, [root])}
+    if note:
+        doc["note"] = note
+    return doc
+
+
+def _short(v: Any) -> str:
+    text = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+    return text if len(text) <= 400 else text[:400] + " ..."  # --json has everything
+
+
+def format_text(doc: dict[str, Any]) -> str:
+    nodes = doc["nodes"]
+    lines = [doc["note"]] if doc.get("note") else []
+    shown: set[str] = set()
+
+    def show(key: str, depth: int) -> None:
+        pad = "  " * depth
+        n = nodes.get(key)
+        if n is None:
+            return
+        if n.get("missing"):
+            lines.append(f"{pad}record {key[:12]}: not in this cache")
+            return
+        what = f"{n['stage']} ({n['record_kind']} {key[:12]})"
+        if key in shown:
+            lines.append(f"{pad}{what}: see above")
+            return
+        shown.add(key)
+        lines.append(f"{pad}{what} -> output {n['output'][:12]}" + (f", {n['items']} items" if n.get("items") else ""))
+        lines.append(f"{pad}  code {str(n['code'])[:12]}  version {n['version']}  seed {n['seed']}")
+        if n.get("code_files"):
+            lines.append(f"{pad}  code files: " + ", ".join(sorted(n["code_files"])))
+        lines.append(f"{pad}  params: {_short(n['params'])}")
+        lines.append(f"{pad}  env: {_short(n['env'])}")
+        for name, i in n["inputs"].items():
+            if i.get("from"):
+                lines.append(f"{pad}  input {name} = {i['digest'][:12]}, produced by:")
+                show(i["from"], depth + 2)
+            else:
+                lines.append(f"{pad}  input {name} = {i['digest'][:12]} (source: not produced by a stage)")
+
+    for r in doc["roots"]:
+        show(r, 0)
+    return "\n".join(lines)
