@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer clean sysdeps peerdeps
+.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps
 
 setup: $(STAMP)
 
@@ -49,6 +49,10 @@ bench-accuracy: $(STAMP)
 
 bench-runtime: $(STAMP)
 	$(BIN)/python benchmarks/bench_runtime.py
+
+# map stages' throughput on 1 vs 2 Dask workers, and a cluster projection (docs/teams.md)
+bench-scale: $(STAMP)
+	$(BIN)/python benchmarks/bench_scale.py $(SCALE_ARGS)
 
 # The peer of bench-peer: Debian's colmap (3.8, CPU), only when it is not on PATH.
 # Not a dependency of setup/test/demo.
