@@ -25,7 +25,7 @@ import typing
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
+from pydantic import ConfigDict, Field, create_model, field_validator, model_validator
 
 import artifacts_schema
 from gcvd_flow.engine.api import PipelineSpec
@@ -51,8 +51,28 @@ from stages.optimize import segments as opt_segments
 
 WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
 
+# What the blocks below declare, in order: the config sections (name -> model) and the stages.
+# GCVDConfig and PIPELINE at the end are assembled from them, so adding a stage is one block.
+_SECTIONS: dict[str, type[Section]] = {}
+_STAGES: list[Stage] = []
+
+
+def config_section(name: str):
+    """Class decorator (or call on a model): ``--set NAME.key=value`` configures this model."""
+    def register(model: type[Section]) -> type[Section]:
+        _SECTIONS[name] = model
+        return model
+    return register
+
+
+def declare(stage: Stage) -> Stage:
+    """Add a stage to the pipeline (stages run in the order they are declared)."""
+    _STAGES.append(stage)
+    return stage
+
 
 # ============================================================================== ingest
+@config_section("ingest")
 class IngestParams(Section):
     start: int = Field(0, ge=0, description="first source frame")
     end: int | None = Field(None, description="one past the last source frame (None: all)")
@@ -108,13 +128,14 @@ def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     return {"image": ingest_mod.prepare_frame(rgb, size)}
 
 
-INGEST = MapStage("ingest", run_ingest, params="ingest", kind="frames", items=_ingest_items,
+INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", items=_ingest_items,
                   summary=_ingest_summary, summary_kind="camera",
                   selection_params=("start", "end", "stride", "intrinsics"),
-                  description="frames at working resolution + camera")
+                  description="frames at working resolution + camera"))
 
 
 # ============================================================================== flow
+@config_section("flow")
 class FlowParams(Section):
     backend: Literal["dis", "raft"] = "dis"
     preset: Literal["ultrafast", "fast", "medium", "fine"] = Field(
@@ -145,11 +166,12 @@ def run_flow(inputs: dict[str, Any], p: FlowParams, ctx: Any) -> dict[str, Any]:
                                   preset=p.preset, fb_thresh=p.fb_thresh, model=model)
 
 
-FLOW = MapStage("flow", run_flow, deps=("ingest",), params="flow", kind="flow", items=_flow_items,
-                resources={"model": _open_raft}, description="forward/backward flow of adjacent pairs + consistency")
+FLOW = declare(MapStage("flow", run_flow, deps=("ingest",), params="flow", kind="flow", items=_flow_items,
+                resources={"model": _open_raft}, description="forward/backward flow of adjacent pairs + consistency"))
 
 
 # ============================================================================== masks
+@config_section("masks")
 class MasksParams(Section):
     backend: Literal["motion", "maskrcnn", "motion+maskrcnn", "none"] = Field(
         "motion", description="motion: flow vs. static geometry; maskrcnn: COCO instances of moving "
@@ -225,11 +247,12 @@ def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any
     return {"static": motion if semantic is None else np.minimum(motion, semantic)}
 
 
-MASKS = MapStage("masks", run_masks, deps=("ingest", "flow"), params="masks", kind="mask",
-                 items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static")
+MASKS = declare(MapStage("masks", run_masks, deps=("ingest", "flow"), params="masks", kind="mask",
+                 items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static"))
 
 
 # ============================================================================== priors
+@config_section("priors")
 class PriorsParams(Section):
     backend: Literal["geometric", "midas"] = "geometric"
     span: int = Field(8, ge=1, description="frames between a frame and its reference for triangulation")
@@ -294,12 +317,13 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = MapStage("priors", run_priors, deps=("ingest",), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=("ingest",), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
-                  description="MiDaS-shaped relative inverse depth")
+                  description="MiDaS-shaped relative inverse depth"))
 
 
 # ============================================================================== keyframes
+@config_section("keyframes")
 class KeyframesParams(Section):
     enabled: bool = True
     delta: float = Field(0.1, gt=0, description="accumulated flow threshold, fraction of min(H, W)")
@@ -323,10 +347,11 @@ def run_keyframes(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
             "enabled": True}
 
 
-KEYFRAMES = Stage("keyframes", run_keyframes, deps=("flow", "masks"), params="keyframes", kind="keyframes")
+KEYFRAMES = declare(Stage("keyframes", run_keyframes, deps=("flow", "masks"), params="keyframes", kind="keyframes"))
 
 
 # ============================================================================== association
+@config_section("association")
 class AssociationParams(Section):
     enabled: bool = True
     backend: Literal["default", "resnet18"] = "default"
@@ -373,8 +398,8 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     return {"graph": graph, "edge_flows": flows_out}
 
 
-ASSOCIATION = Stage("association", run_association, deps=("ingest", "keyframes"), params="association",
-                    kind="graph", resources={"model": _open_resnet})
+ASSOCIATION = declare(Stage("association", run_association, deps=("ingest", "keyframes"), params="association",
+                    kind="graph", resources={"model": _open_resnet}))
 
 
 # ============================================================================== optimisation: shared
@@ -389,11 +414,11 @@ def section_from_dataclass(cls: type, name: str) -> type[Section]:
     return create_model(name, __base__=Section, __module__=__name__, __doc__=cls.__doc__, **fields)
 
 
-DepthParams = section_from_dataclass(opt_params.DepthModel, "DepthParams")
-LossParams = section_from_dataclass(opt_params.LossWeights, "LossParams")
-OptimizeKeyframesParams = section_from_dataclass(opt_params.KeyframeSettings, "OptimizeKeyframesParams")
-OptimizeEdgesParams = section_from_dataclass(opt_params.EdgeSettings, "OptimizeEdgesParams")
-OptimizeSegmentsParams = section_from_dataclass(opt_params.SegmentSettings, "OptimizeSegmentsParams")
+DepthParams = config_section("depth")(section_from_dataclass(opt_params.DepthModel, "DepthParams"))
+LossParams = config_section("losses")(section_from_dataclass(opt_params.LossWeights, "LossParams"))
+OptimizeKeyframesParams = config_section("optimize_keyframes")(section_from_dataclass(opt_params.KeyframeSettings, "OptimizeKeyframesParams"))
+OptimizeEdgesParams = config_section("optimize_edges")(section_from_dataclass(opt_params.EdgeSettings, "OptimizeEdgesParams"))
+OptimizeSegmentsParams = config_section("optimize_segments")(section_from_dataclass(opt_params.SegmentSettings, "OptimizeSegmentsParams"))
 
 # the sections every optimisation stage reads (optimize_keyframes also holds the shared solver
 # settings: pose_lr, mesh_lr_mult, mesh_shape_lr_frac, points, taus, flow_taus, threads, ...)
@@ -438,9 +463,9 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
             "state": {k: np.asarray(v) for k, v in res["state"].items()}}
 
 
-OPTIMIZE_KEYFRAMES = Stage("optimize_keyframes", run_optimize_keyframes,
+OPTIMIZE_KEYFRAMES = declare(Stage("optimize_keyframes", run_optimize_keyframes,
                            deps=("ingest", "priors", "masks", "keyframes", "association"), params=OPT,
-                           kind="keyframe_solution", uses_seed=True)
+                           kind="keyframe_solution", uses_seed=True))
 
 
 # ============================================================================== optimize_edges
@@ -467,12 +492,13 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     return {"edges": edges}
 
 
-OPTIMIZE_EDGES = Stage("optimize_edges", run_optimize_edges,
+OPTIMIZE_EDGES = declare(Stage("optimize_edges", run_optimize_edges,
                        deps=("ingest", "priors", "masks", "association", "optimize_keyframes"),
-                       params=OPT + ("optimize_edges",), kind="edges", uses_seed=True)
+                       params=OPT + ("optimize_edges",), kind="edges", uses_seed=True))
 
 
 # ============================================================================== pose_graph
+@config_section("pose_graph")
 class PoseGraphParams(Section):
     enabled: bool = True
     kind: Literal["se3", "sim3"] = "se3"
@@ -509,8 +535,8 @@ def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
             "final_error": float(res["final_error"]), "rejected_loops": rejected}
 
 
-POSE_GRAPH = Stage("pose_graph", run_pose_graph, deps=("optimize_keyframes", "optimize_edges"),
-                   params="pose_graph", kind="poses")
+POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=("optimize_keyframes", "optimize_edges"),
+                   params="pose_graph", kind="poses"))
 
 
 # ============================================================================== optimize_segments
@@ -545,12 +571,13 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
             "depths": [np.asarray(d, np.float32) for d in res["depths"]]}
 
 
-OPTIMIZE_SEGMENTS = Stage("optimize_segments", run_optimize_segments,
+OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
                           deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "pose_graph"),
-                          params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True)
+                          params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True))
 
 
 # ============================================================================== depth_fusion
+@config_section("depth_fusion")
 class DepthFusionParams(Section):
     enabled: bool = True
     offsets: tuple[int, ...] = Field((-8, 8), description="reference frames (relative "
@@ -590,12 +617,13 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured}
 
 
-DEPTH_FUSION = MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "optimize_segments"),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "optimize_segments"),
                         params="depth_fusion", kind="depth", items=_fusion_items,
-                        description="optimised depth fused with multi-view triangulation at the final poses")
+                        description="optimised depth fused with multi-view triangulation at the final poses"))
 
 
 # ============================================================================== depth_filter
+@config_section("depth_filter")
 class DepthFilterParams(Section):
     enabled: bool = True
     radius: int = Field(4, ge=0)
@@ -625,28 +653,14 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
     return {"depth": np.asarray(out, np.float32)}
 
 
-DEPTH_FILTER = MapStage("depth_filter", run_depth_filter, deps=("flow", "depth_fusion"), params="depth_filter",
-                        kind="depth", items=_filter_items)
+DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=("flow", "depth_fusion"), params="depth_filter",
+                        kind="depth", items=_filter_items))
 
 
 # ============================================================================== the pipeline
-class GCVDConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    seed: int = 0
-    ingest: IngestParams = IngestParams()
-    flow: FlowParams = FlowParams()
-    masks: MasksParams = MasksParams()
-    priors: PriorsParams = PriorsParams()
-    keyframes: KeyframesParams = KeyframesParams()
-    association: AssociationParams = AssociationParams()
-    depth: DepthParams = DepthParams()
-    losses: LossParams = LossParams()
-    optimize_keyframes: OptimizeKeyframesParams = OptimizeKeyframesParams()
-    optimize_edges: OptimizeEdgesParams = OptimizeEdgesParams()
-    pose_graph: PoseGraphParams = PoseGraphParams()
-    optimize_segments: OptimizeSegmentsParams = OptimizeSegmentsParams()
-    depth_fusion: DepthFusionParams = DepthFusionParams()
-    depth_filter: DepthFilterParams = DepthFilterParams()
+# The run's whole configuration: ``seed`` plus one section per declared config section.
+GCVDConfig = create_model("GCVDConfig", __config__=ConfigDict(extra="forbid"), seed=(int, 0),
+                          **{name: (model, model()) for name, model in _SECTIONS.items()})
 
 
 PROFILES: dict[str, dict[str, Any]] = {
@@ -679,8 +693,7 @@ def limit_threads() -> None:
 
 
 PIPELINE = Pipeline(
-    [INGEST, FLOW, MASKS, PRIORS, KEYFRAMES, ASSOCIATION, OPTIMIZE_KEYFRAMES, OPTIMIZE_EDGES, POSE_GRAPH,
-     OPTIMIZE_SEGMENTS, DEPTH_FUSION, DEPTH_FILTER],
+    list(_STAGES),
     packages=("stages", "gcvd_flow.pipeline"),
     numeric_libraries=(("torch", ("torch",)), ("opencv", ("opencv-python-headless", "opencv-python")),
                        ("kornia", ("kornia",)), ("gtsam", ("gtsam",))),
