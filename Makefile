@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps
+.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress
 
 setup: $(STAMP)
 
@@ -25,6 +25,15 @@ sysdeps:
 	  echo "openssh-server not installed: the SFTP test will be skipped"; \
 	fi
 
+# The report test renders the page in headless Chromium (Debian's chromium); installed when
+# missing. If apt-get cannot install it, the test prints why and is skipped.
+testdeps:
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  echo "installing Debian package chromium (headless rendering of gcvd-flow report in the tests)"; \
+	  ( $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null ) \
+	    || echo "could not install chromium: tests/test_report.py will skip its rendering tests"; \
+	fi
+
 $(STAMP): requirements.txt requirements-test.txt pyproject.toml | sysdeps
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --disable-pip-version-check -r requirements.txt -r requirements-test.txt
@@ -34,7 +43,7 @@ $(STAMP): requirements.txt requirements-test.txt pyproject.toml | sysdeps
 demo: $(STAMP)
 	$(BIN)/python -m gcvd_flow demo
 
-test: $(STAMP)
+test: $(STAMP) testdeps
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-fast: $(STAMP)

@@ -24,38 +24,92 @@ def run_sets(a: argparse.Namespace) -> list[str]:
 
 
 def add_commands(sub) -> None:
+    for add in (_add_synth, _add_eval, _add_report, _add_compare, _add_demo, _add_export):
+        add(sub)
+
+
+def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="render a synthetic clip with exact ground truth (generic layout)")
-    p.add_argument("out", metavar="OUT")
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation"], default="orbit")
-    p.add_argument("--moving-object", action="store_true")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--size", default="256x192", metavar="WxH")
+    p.add_argument("out", metavar="OUT", help="folder to write the clip to (frames/, intrinsics.txt, gt/)")
+    p.add_argument("--frames", type=int, default=60, help="number of frames (default 60)")
+    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation"], default="orbit",
+                   help="camera path (default orbit)")
+    p.add_argument("--moving-object", action="store_true", help="add an independently moving object (gt/dynamic/)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
+    p.add_argument("--size", default="256x192", metavar="WxH", help="image size (default 256x192)")
     p.set_defaults(handler=cmd_synth)
 
-    p = sub.add_parser("eval", help="metrics of a run against ground truth (ATE, RPE, depth errors)")
-    p.add_argument("run_dir", metavar="RUN_DIR")
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="metrics of a run against ground truth (ATE, RPE, depth errors); "
+                       "with --baseline, exit 1 when a metric got worse (CI)")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory")
     p.add_argument("--gt", required=True, metavar="GT_DIR",
-                   help="generic layout (poses.txt, depth/), a synth OUT folder, or a Redwood/ICL folder")
-    p.add_argument("--max-depth", type=float, default=10.0)
-    p.add_argument("--json", dest="json_mode", action="store_true")
+                   help="generic layout (gt/poses.txt, gt/depth/), a synth OUT folder, a Redwood/ICL folder "
+                   "(*.log, depth/) or a TUM RGB-D folder (groundtruth.txt, depth.txt; matched by timestamp)")
+    p.add_argument("--max-depth", type=float, default=10.0, metavar="M",
+                   help="ignore ground-truth depth beyond M metres (default 10)")
+    p.add_argument("--baseline", metavar="METRICS_JSON",
+                   help="a metrics.json to compare with: exit 1 with one line per metric that got worse "
+                   "beyond --tolerance")
+    p.add_argument("--tolerance", default="5%", metavar="PCT",
+                   help="relative tolerance of --baseline, e.g. 5%% (default) or 0.05; delta1 is compared "
+                   "as its failing share 1 - delta1")
+    p.add_argument("--no-write", dest="write", action="store_false",
+                   help="do not write RUN_DIR/metrics.json")
+    p.add_argument("--json", dest="json_mode", action="store_true",
+                   help="print the metrics (and regressions) as one JSON object")
     p.set_defaults(handler=cmd_eval)
 
+
+def _add_report(sub) -> None:
+    p = sub.add_parser("report", help="one self-contained HTML page: verdict, trajectory, depth strip, "
+                       "stages, settings")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory")
+    p.add_argument("--gt", metavar="GT_DIR", help="ground truth (as for eval): adds the metrics and aligns "
+                   "the trajectory to it")
+    p.add_argument("--to", metavar="FILE", help="where to write the page (default RUN_DIR/report.html)")
+    p.add_argument("--every", type=int, default=None, metavar="N",
+                   help="frame strip: every N-th frame (default: about 8 frames)")
+    p.add_argument("--cache", metavar="DIR",
+                   help="cache holding the run's stage outputs (default: the one run.json records)")
+    p.add_argument("--json", dest="json_mode", action="store_true", help='print {"report": FILE} as JSON')
+    p.set_defaults(handler=cmd_report)
+
+
+def _add_compare(sub) -> None:
+    p = sub.add_parser("compare", help="per stage: are two runs' outputs identical, and if not, how far apart")
+    p.add_argument("run_a", metavar="RUN_A", help="the reference run directory")
+    p.add_argument("run_b", metavar="RUN_B", help="the run compared with it")
+    p.add_argument("--cache", metavar="DIR",
+                   help="cache holding both runs' outputs (default: the one each run.json records)")
+    p.add_argument("--cache-b", metavar="DIR", help="RUN_B's cache when it differs from RUN_A's")
+    p.add_argument("--max-items", type=int, default=24, metavar="N",
+                   help="per map stage, compare at most N of the differing items, evenly spread (default 24)")
+    p.add_argument("--check", action="store_true", help="exit 1 when any stage output differs (like cmp)")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="print the comparison as one JSON object")
+    p.set_defaults(handler=cmd_compare)
+
+
+def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="render a synthetic loop clip, run GCVD on it, print the metrics")
-    p.add_argument("--out", default="demo-out", metavar="DIR")
-    p.add_argument("--frames", type=int, default=120)
-    p.add_argument("--size", default="256x192", metavar="WxH")
-    p.add_argument("--cache", metavar="DIR")
-    p.add_argument("--profile")
-    p.add_argument("--set", dest="sets", action="append", default=[])
-    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.add_argument("--out", default="demo-out", metavar="DIR", help="output folder (default demo-out)")
+    p.add_argument("--frames", type=int, default=120, help="number of frames (default 120)")
+    p.add_argument("--size", default="256x192", metavar="WxH", help="image size (default 256x192)")
+    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE, else DIR/cache)")
+    p.add_argument("--profile", metavar="NAME", help="named parameter profile (e.g. paper, fast)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one parameter (repeatable)")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.set_defaults(handler=cmd_demo)
 
+
+def _add_export(sub) -> None:
     # The format names live in gcvd_flow.exports.WRITERS (not imported here: the CLI starts light);
     # an unknown name is an error that lists them.
     p = sub.add_parser("export", help="write a finished run as TUM, depth PNGs, COLMAP, PLY, TSDF mesh, "
                        "nerfstudio or MCAP (see gcvd_flow/exports/)")
-    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory")
     p.add_argument("--format", dest="formats", action="append", default=[], metavar="FMT",
                    help="an export format (tum, depth-png, colmap, ply, tsdf, nerfstudio, mcap, ...) or all; "
                    "repeatable or comma-separated")
@@ -76,10 +130,11 @@ def add_commands(sub) -> None:
     p.add_argument("--max-points", type=int, default=20000, metavar="N",
                    help="colmap: about N points in points3D.txt (default 20000)")
     p.add_argument("--cache", metavar="DIR",
-                   help="cache holding the run's frames (default: $GCVD_FLOW_CACHE or the user cache dir, as for run)")
+                   help="cache holding the run's frames (default: the one run.json records, else "
+                   "$GCVD_FLOW_CACHE or the user cache dir)")
     p.add_argument("--no-verify", dest="verify", action="store_false",
                    help="skip re-hashing objects read from the cache")
-    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="print a summary as one JSON object")
     p.set_defaults(handler=cmd_export)
 
 
@@ -113,12 +168,50 @@ def cmd_synth(a: argparse.Namespace) -> int:
 
 
 def cmd_eval(a: argparse.Namespace) -> int:
-    from gcvd_flow.evaluate.run_eval import evaluate, format_metrics, write_metrics
+    from gcvd_flow.evaluate.run_eval import (compare_to_baseline, evaluate, format_metrics, parse_tolerance,
+                                             read_baseline, write_metrics)
 
+    tol = parse_tolerance(a.tolerance)
+    base = read_baseline(a.baseline) if a.baseline else None
     res = evaluate(a.run_dir, a.gt, a.max_depth)
-    write_metrics(a.run_dir, res)
-    print(json.dumps(res, indent=1, sort_keys=True) if a.json_mode else format_metrics(res))
+    if a.write:
+        write_metrics(a.run_dir, res)
+    worse = compare_to_baseline(res, base, tol) if base is not None else []
+    if a.json_mode:
+        doc = dict(res)
+        if base is not None:
+            doc = {"metrics": res, "baseline": a.baseline, "tolerance": tol, "regressions": worse}
+        print(json.dumps(doc, indent=1, sort_keys=True))
+    else:
+        print(format_metrics(res))
+        if base is not None and not worse:
+            print(f"no metric worse than {a.baseline} beyond {tol * 100:g}%")
+    for line in worse:
+        print(f"regression: {line}", file=sys.stderr)
+    return 1 if worse else 0
+
+
+# ------------------------------------------------------------------------------ report / compare
+
+
+def cmd_report(a: argparse.Namespace) -> int:
+    from gcvd_flow.report import write_report
+
+    if a.every is not None and a.every < 1:
+        raise UsageError("--every must be at least 1")
+    out = write_report(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every)
+    print(json.dumps({"report": str(out)}) if a.json_mode else f"wrote {out}")
     return 0
+
+
+def cmd_compare(a: argparse.Namespace) -> int:
+    from gcvd_flow.evaluate.compare import compare_runs, format_comparison
+
+    if a.max_items < 1:
+        raise UsageError("--max-items must be at least 1")
+    res = compare_runs(a.run_a, a.run_b, cache=a.cache, cache_b=a.cache_b, max_items=a.max_items)
+    print(json.dumps(res, indent=1) if a.json_mode else format_comparison(res))
+    return 1 if a.check and not res["identical"] else 0
 
 
 # ------------------------------------------------------------------------------ export

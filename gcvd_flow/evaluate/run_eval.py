@@ -1,19 +1,30 @@
 """`gcvd-flow eval`: a finished run (RUN_DIR) against a ground-truth folder.
 
-Ground truth (``load_gt``): the generic layout's ``gt/`` (a ``gcvd-flow synth`` OUT folder or
-its ``gt/``): ``poses.txt`` (TUM) and ``depth/*.png``; or a Redwood / ICL-NUIM folder: the
-first ``*.log`` and ``depth/*.png``. Depth PNGs are uint16 in 1/``depth_scale`` metres
-(1000, or the number in a ``depth_scale`` file). Poses and depth are matched by *source* frame
-index (the ``t`` column of the run's poses.txt).
+Ground truth (``load_gt``):
+
+* the generic layout's ``gt/`` (a ``gcvd-flow synth`` OUT folder or its ``gt/``): ``poses.txt``
+  (TUM, ``t`` = frame index) and ``depth/*.png``;
+* a Redwood / ICL-NUIM folder: the first ``*.log`` and ``depth/*.png``;
+* a TUM RGB-D folder: ``groundtruth.txt`` (TUM, ``t`` = seconds) and ``depth.txt`` (depth PNGs
+  in 1/5000 m, stamped).
+
+Depth PNGs are uint16 in 1/``depth_scale`` metres (1000, TUM RGB-D 5000, or the number in a
+``depth_scale`` file). Generic and Redwood ground truth is matched by *source frame index*
+(``frame_indices`` of the run's cameras.json); TUM RGB-D ground truth by *timestamp*, as evo
+does: each of the run's stamps (the ``t`` column of its poses.txt, the ``rgb.txt`` stamps) takes
+the nearest ground-truth stamp within 0.02 s; frames without one are left out.
 
 Metrics (``gcvd_flow.evaluate.metrics``): ATE RMSE after Sim(3) Umeyama alignment, RPE
 trans / rot over consecutive frames, depth AbsRel / SqRel / RMSE / delta < 1.25 with per-frame
 median scaling at the run's working resolution.
+
+``compare_to_baseline`` is the CI check of ``gcvd-flow eval --baseline``.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,27 +32,37 @@ import numpy as np
 
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.evaluate import metrics
-from gcvd_flow.io.formats import read_depth_png, read_redwood_log, read_tum_poses
+from gcvd_flow.io.formats import read_depth_png, read_redwood_log, read_tum_poses, read_tum_stamped_files
 from gcvd_flow.io.sources import natural_key
+
+MAX_STAMP_DIFF = 0.02  # s, evo's default for associating TUM trajectories
+TUM_DEPTH_SCALE = 5000.0  # TUM RGB-D depth PNGs: 5000 units per metre
 
 
 def load_gt(gt: str | Path) -> dict[str, Any]:
-    """Ground truth of a dataset folder: {poses (M, 4, 4) T_w_c by source frame, depth_files
-    (sorted PNG paths, possibly empty), depth_scale (stored units per metre)}."""
+    """Ground truth of a dataset folder: {poses (M, 4, 4) T_w_c, stamps (M,) seconds or None
+    (None: ``poses[i]`` is source frame i), depth_files (PNG paths, possibly empty; by frame
+    index, or stamped by ``depth_stamps``), depth_stamps (None or (D,)), depth_scale (stored
+    units per metre)}."""
     gt = Path(gt)
     if not gt.exists():
         raise UsageError(f"{gt}: no such directory")
     if (gt / "gt").is_dir():  # a synth OUT folder
         gt = gt / "gt"
-    out: dict[str, Any] = {"depth_files": [], "depth_scale": 1000.0}
-    if (gt / "poses.txt").exists():
+    out: dict[str, Any] = {"depth_files": [], "depth_scale": 1000.0, "stamps": None, "depth_stamps": None}
+    if (gt / "groundtruth.txt").exists():  # TUM RGB-D
+        out["stamps"], out["poses"] = read_tum_poses(gt / "groundtruth.txt")
+        out["depth_scale"] = TUM_DEPTH_SCALE
+        if (gt / "depth.txt").exists():
+            out["depth_stamps"], out["depth_files"] = read_tum_stamped_files(gt / "depth.txt")
+    elif (gt / "poses.txt").exists():
         _, out["poses"] = read_tum_poses(gt / "poses.txt")
     else:
         logs = sorted(gt.glob("*.log"))
         if not logs:
-            raise UsageError(f"{gt}: no poses.txt (TUM) or *.log (Redwood) ground truth")
+            raise UsageError(f"{gt}: no poses.txt (TUM), groundtruth.txt (TUM RGB-D) or *.log (Redwood) ground truth")
         out["poses"] = read_redwood_log(logs[0])
-    if (gt / "depth").is_dir():
+    if out["depth_stamps"] is None and (gt / "depth").is_dir():
         out["depth_files"] = sorted((p for p in (gt / "depth").iterdir() if p.suffix.lower() == ".png"),
                                     key=lambda p: natural_key(p.name))
     if (gt / "depth_scale").exists():
@@ -54,6 +75,82 @@ def load_gt(gt: str | Path) -> dict[str, Any]:
     return out
 
 
+def associate(stamps: np.ndarray, ref_stamps: np.ndarray, max_diff: float = MAX_STAMP_DIFF) -> np.ndarray:
+    """For each of ``stamps`` the index of the nearest of ``ref_stamps`` if within ``max_diff``
+    seconds, else -1 (evo's ``associate_trajectories``: nearest stamp, |dt| <= max_diff)."""
+    stamps = np.asarray(stamps, np.float64)
+    ref = np.asarray(ref_stamps, np.float64)
+    if not len(ref):
+        return np.full(len(stamps), -1)
+    order = np.argsort(ref, kind="stable")
+    rs = ref[order]
+    pos = np.clip(np.searchsorted(rs, stamps), 1, max(len(rs) - 1, 1))
+    lo = np.clip(pos - 1, 0, len(rs) - 1)
+    hi = np.clip(pos, 0, len(rs) - 1)
+    best = np.where(np.abs(rs[lo] - stamps) <= np.abs(rs[hi] - stamps), lo, hi)
+    ok = np.abs(rs[best] - stamps) <= max_diff
+    return np.where(ok, order[best], -1)
+
+
+@dataclass
+class Matched:
+    """A run's frames paired with ground truth: ``est[m]`` (T_w_c, pose units) and ``gt[m]``
+    (metres) are frame ``frame_indices[m]`` (position ``run_pos[m]`` in the run);
+    ``depth_files[m]`` its ground-truth depth PNG or None."""
+
+    est: np.ndarray
+    gt: np.ndarray
+    run_pos: list[int]
+    frame_indices: list[int]
+    depth_files: list[Path | None]
+    depth_scale: float
+    association: str  # "frame index" | "timestamp"
+    run_frames: int
+
+
+def _run_frames(run: Path) -> tuple[np.ndarray, np.ndarray, list[int], dict[str, Any]]:
+    if not (run / "poses.txt").exists():
+        raise UsageError(f"{run / 'poses.txt'}: missing (is {run} a finished run?)")
+    try:
+        cams = json.loads((run / "cameras.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"{run / 'cameras.json'}: missing or not valid JSON ({exc})") from None
+    stamps, est = read_tum_poses(run / "poses.txt")
+    idx = cams.get("frame_indices")
+    if not isinstance(idx, list) or len(idx) != len(est):
+        idx = [int(round(t)) for t in stamps]  # a run dir written before cameras.json had them
+    return stamps, est, [int(i) for i in idx], cams
+
+
+def match_gt(run_dir: str | Path, gt_dir: str | Path) -> Matched:
+    """Pair the run's poses (and depth files) with a ground-truth folder's (see the module doc)."""
+    run = Path(run_dir)
+    stamps, est, idx, _ = _run_frames(run)
+    gt = load_gt(gt_dir)
+    poses = np.asarray(gt["poses"])
+    if gt["stamps"] is not None:
+        hit = associate(stamps, gt["stamps"])
+        pos = [k for k in range(len(est)) if hit[k] >= 0]
+        if len(pos) < 3:
+            raise UsageError(f"{gt_dir}: only {len(pos)} of the run's {len(est)} timestamps have a ground-truth "
+                             f"pose within {MAX_STAMP_DIFF} s (is poses.txt's t the rgb.txt stamp?)")
+        gt_sel = poses[hit[pos]]
+        dfiles: list[Path | None] = [None] * len(pos)
+        if gt["depth_stamps"] is not None:
+            dh = associate(stamps[pos], gt["depth_stamps"])
+            dfiles = [Path(gt["depth_files"][j]) if j >= 0 else None for j in dh]
+        assoc = "timestamp"
+    else:
+        if max(idx) >= len(poses):
+            raise UsageError(f"{gt_dir}: ground truth has {len(poses)} poses, the run uses frame {max(idx)}")
+        pos = list(range(len(est)))
+        gt_sel = poses[idx]
+        files = gt["depth_files"]
+        dfiles = [Path(files[i]) if i < len(files) else None for i in idx]
+        assoc = "frame index"
+    return Matched(est[pos], gt_sel, pos, [idx[k] for k in pos], dfiles, float(gt["depth_scale"]), assoc, len(est))
+
+
 def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     """ATE (Sim(3)-aligned), RPE (delta 1) and path length of est vs gt, both (N, 4, 4) T_w_c."""
     res: dict[str, float] = {}
@@ -64,18 +161,18 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     return res
 
 
-def depth_errors(run: Path, idx: list[int], gt: dict[str, Any], max_depth: float) -> dict[str, Any]:
+def depth_errors(run: Path, m: Matched, max_depth: float) -> dict[str, Any]:
     """Aggregated depth metrics of run/depth/NNNNNN.npy against the ground-truth PNGs (frames
     without either are skipped); {} when no frame has both."""
     import cv2
 
     per_frame = []
-    for i in idx:
+    for i, gpath in zip(m.frame_indices, m.depth_files):
         pred_path = run / "depth" / f"{i:06d}.npy"
-        if not pred_path.exists() or i >= len(gt["depth_files"]):
+        if gpath is None or not pred_path.exists():
             continue
         pred = np.load(pred_path, allow_pickle=False)
-        g = read_depth_png(gt["depth_files"][i], gt["depth_scale"])  # DatasetError names the file
+        g = read_depth_png(gpath, m.depth_scale)  # DatasetError names the file
         if g.shape != pred.shape:  # compare at the run's working resolution
             g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
         per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))
@@ -87,22 +184,19 @@ def depth_errors(run: Path, idx: list[int], gt: dict[str, Any], max_depth: float
 def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -> dict[str, Any]:
     """ATE / RPE of poses.txt and depth errors of depth/*.npy against a ground-truth folder."""
     run = Path(run_dir)
-    if not (run / "poses.txt").exists():
-        raise UsageError(f"{run / 'poses.txt'}: missing (is {run} a finished run?)")
-    try:
-        cams = json.loads((run / "cameras.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"{run / 'cameras.json'}: missing or not valid JSON ({exc})") from None
-    stamps, est = read_tum_poses(run / "poses.txt")
-    idx = [int(round(t)) for t in stamps]
-    gt = load_gt(gt_dir)
-    if max(idx) >= len(gt["poses"]):
-        raise UsageError(f"{gt_dir}: ground truth has {len(gt['poses'])} poses, the run uses frame {max(idx)}")
-    res: dict[str, Any] = {"frames": len(idx)}
-    res.update(trajectory_metrics(est, np.asarray(gt["poses"])[idx]))
-    if gt["depth_files"]:
-        res.update(depth_errors(run, idx, gt, max_depth))
+    m = match_gt(run, gt_dir)
+    cams = json.loads((run / "cameras.json").read_text())
+    res: dict[str, Any] = {"frames": len(m.run_pos)}
+    if len(m.run_pos) != m.run_frames:
+        res["run_frames"] = m.run_frames
+    res.update(trajectory_metrics(m.est, m.gt))
+    if any(f is not None for f in m.depth_files):
+        res.update(depth_errors(run, m, max_depth))
     res["width"], res["height"] = cams.get("width"), cams.get("height")
+    kf = cams.get("keyframes")
+    if isinstance(kf, list):
+        res["keyframes"] = len(kf)
+    res["association"] = m.association
     return res
 
 
@@ -113,6 +207,8 @@ def format_metrics(res: dict[str, Any]) -> str:
             ("SqRel", "sq_rel", ""), ("RMSE", "rmse", "m"), ("delta<1.25", "delta1", "")]
     lines = [f"{label:<12} {res[k]:10.4f} {unit}" for label, k, unit in rows if k in res]
     lines.append(f"{'frames':<12} {res['frames']:10d}")
+    if "keyframes" in res:
+        lines.append(f"{'keyframes':<12} {res['keyframes']:10d}")
     return "\n".join(lines)
 
 
@@ -121,3 +217,66 @@ def write_metrics(run_dir: str | Path, res: dict[str, Any]) -> Path:
     path = Path(run_dir) / "metrics.json"
     path.write_text(json.dumps(res, indent=1, sort_keys=True))
     return path
+
+
+# ------------------------------------------------------------------------------ CI: --baseline
+
+# lower is better; delta1 is compared as its complement (the share of pixels failing delta < 1.25)
+LOWER_IS_BETTER = ("ate_rmse", "ate_mean", "ate_median", "ate_percent_of_path", "rpe_trans", "rpe_rot",
+                   "abs_rel", "sq_rel", "rmse")
+HIGHER_IS_BETTER = ("delta1",)
+
+
+def parse_tolerance(text: str) -> float:
+    """'5%' or '0.05' -> 0.05 (a relative tolerance)."""
+    t = str(text).strip()
+    try:
+        v = float(t[:-1]) / 100.0 if t.endswith("%") else float(t)
+    except ValueError:
+        raise UsageError(f"--tolerance {text!r}: expected a percentage such as 5% (or a fraction such as 0.05)") from None
+    if not (np.isfinite(v) and v >= 0):
+        raise UsageError(f"--tolerance {text!r}: must be >= 0")
+    return v
+
+
+def read_baseline(path: str | Path) -> dict[str, Any]:
+    """A metrics.json (what `gcvd-flow eval` writes) or {"metrics": {...}, ...}."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{p}: baseline file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UsageError(f"{p}: not a JSON metrics file ({exc})") from None
+    if isinstance(doc, dict) and isinstance(doc.get("metrics"), dict):
+        doc = doc["metrics"]
+    if not isinstance(doc, dict) or not any(k in doc for k in LOWER_IS_BETTER + HIGHER_IS_BETTER):
+        raise UsageError(f"{p}: no metrics (expected the metrics.json of `gcvd-flow eval`)")
+    return doc
+
+
+def compare_to_baseline(res: dict[str, Any], base: dict[str, Any], tolerance: float) -> list[str]:
+    """One line per metric of ``res`` worse than ``base`` by more than ``tolerance`` (relative);
+    a metric that is 0 in the baseline may grow by 1e-9 (rounding). Also a line when the frame
+    count differs (the metrics would not be comparable)."""
+    lines = []
+    if "frames" in base and res.get("frames") != base["frames"]:
+        lines.append(f"frames: {base['frames']} -> {res.get('frames')} (the run covers other frames than the baseline)")
+    for k in LOWER_IS_BETTER + HIGHER_IS_BETTER:
+        if k not in base or not isinstance(base[k], (int, float)):
+            continue
+        new = res.get(k)
+        if not isinstance(new, (int, float)) or not np.isfinite(new):
+            if np.isfinite(base[k]):
+                lines.append(f"{k}: {base[k]:.6g} -> {new} (missing or not finite)")
+            continue
+        b, n = float(base[k]), float(new)
+        if k in HIGHER_IS_BETTER:  # compare the failing share 1 - delta1
+            b, n = 1.0 - b, 1.0 - n
+        limit = b * (1.0 + tolerance) + 1e-9
+        if n > limit:
+            rel = (n - b) / b * 100 if b > 0 else float("inf")
+            what = f"1-{k}" if k in HIGHER_IS_BETTER else k
+            lines.append(f"{k}: {float(base[k]):.6g} -> {float(new):.6g} ({what} {rel:+.1f}%, tolerance "
+                         f"{tolerance * 100:g}%)")
+    return lines

@@ -137,6 +137,33 @@ def write_tum_poses(path: PathLike, timestamps: np.ndarray, poses: np.ndarray) -
     path.write_text("\n".join(lines) + "\n")
 
 
+def read_tum_stamped_files(path: PathLike) -> tuple[np.ndarray, list[Path]]:
+    """Read a TUM RGB-D file list (``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line,
+    ``#`` comments) -> (timestamps float64 (N,) seconds, paths relative to the list's folder)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(path, "file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise DatasetError(path, f"cannot read: {e}") from None
+    stamps, files = [], []
+    for ln, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split()
+        try:
+            t = float(parts[0])
+        except ValueError:
+            raise DatasetError(path, f"line {ln}: expected 'timestamp filename', got {s[:80]!r}") from None
+        if len(parts) < 2 or not np.isfinite(t):
+            raise DatasetError(path, f"line {ln}: expected 'timestamp filename', got {s[:80]!r}")
+        stamps.append(t)
+        files.append(path.parent / parts[1])
+    return np.asarray(stamps, np.float64), files
+
+
 def read_redwood_log(path: PathLike) -> np.ndarray:
     """Read an Open3D / Redwood ``.log`` trajectory -> camera-to-world float64 (N, 4, 4).
 

@@ -1,0 +1,178 @@
+"""`gcvd-flow report`: one self-contained HTML page, rendered by headless Chromium.
+
+One small synthetic run (16 frames, 96x72, a moving object, a loop) for the module. The page
+must reference nothing outside itself, render with scripts disabled, and show a non-blank
+trajectory plot and depth images (checked on Chromium screenshots: hiding those images must
+change many, colourful pixels).
+"""
+
+from __future__ import annotations
+
+import html.parser
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import cli, cli_json
+
+N_FRAMES, W, H = 16, 96, 72
+QUICK = ["--set", "optimize_keyframes.steps=2", "--set", "optimize_edges.steps=2",
+         "--set", "optimize_segments.steps=2", "--set", "depth_fusion.enabled=false"]
+# Chromium's own background requests (sign-in, updates, dictionaries) are not the page's
+CHROME_SERVICE_HOSTS = ("google.com", "googleapis.com", "gvt1.com", "gstatic.com", "googleusercontent.com")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("report")
+    clip, run_dir, cache = base / "clip", base / "run", base / "cache"
+    cli("synth", str(clip), "--frames", str(N_FRAMES), "--trajectory", "loop", "--size", f"{W}x{H}",
+        "--moving-object", check=True)
+    cli("run", str(clip), "--out", str(run_dir), "--cache", str(cache), *QUICK, check=True)
+    return {"clip": clip, "run": run_dir, "cache": cache, "base": base}
+
+
+@pytest.fixture(scope="module")
+def report(run) -> Path:
+    out = run["base"] / "page" / "report.html"
+    doc = cli_json("report", str(run["run"]), "--gt", str(run["clip"]), "--to", str(out))
+    assert doc == {"report": str(out)}
+    return out
+
+
+class _Refs(html.parser.HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.refs: list[tuple[str, str, str]] = []
+        self.tags: list[str] = []
+        self.ids: set[str] = set()
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        for k, v in attrs:
+            if k in ("src", "href", "srcset", "poster", "data", "action", "background") and v is not None:
+                self.refs.append((tag, k, v))
+            if k == "id":
+                self.ids.add(v)
+
+
+def test_page_is_self_contained(report):
+    text = report.read_text()
+    p = _Refs()
+    p.feed(text)
+    assert "script" not in p.tags and "iframe" not in p.tags and "link" not in p.tags
+    assert not re.search(r"\bon[a-z]+\s*=", text), "inline event handlers need JavaScript"
+    assert p.refs and all(v.startswith("data:image/png;base64,") for _, _, v in p.refs), \
+        [r[:2] + (r[2][:40],) for r in p.refs if not r[2].startswith("data:")]
+    assert not re.search(r"url\(|@import|https?://", text.split("<body")[0]), "CSS must not load anything"
+    # and the page forbids scripts and non-inline loads itself (Content-Security-Policy)
+    assert "content=\"default-src 'none'; img-src data:;" in text
+    assert {"verdict", "metrics", "signals", "trajectory", "strip", "stages", "settings", "versions"} <= p.ids
+    imgs = [t for t, k, _ in p.refs if t == "img"]
+    assert len(imgs) >= 1 + 3 * 4  # trajectory + (rgb, depth, mask) per strip frame
+
+
+def test_verdict_metrics_stages_and_settings(run, report):
+    from gcvd_flow.evaluate.run_eval import evaluate
+
+    text = report.read_text()
+    m = evaluate(run["run"], run["clip"])
+    verdict = text[text.index('id="verdict"'):text.index("<h2>Trajectory")]
+    assert f"{m['ate_rmse'] * 100:.2f} cm" in verdict and f"{m['abs_rel']:.4f}" in verdict
+    assert f"{N_FRAMES} / " in verdict and "flow consistency" in verdict and "loop edges" in verdict
+    stages = text[text.index("id='stages'"):]
+    for name in ("ingest", "flow", "masks", "keyframes", "pose_graph", "depth_filter"):
+        assert f"<td>{name}</td>" in stages
+    import json
+
+    doc = json.loads((run["run"] / "run.json").read_text())
+    assert f"<code>{doc['stages']['depth_filter']['output'][:12]}</code>" in stages
+    # the --set values differ from the defaults and are highlighted, the rest is not
+    diff = text[text.index("id='settings-diff'"):text.index("</table>", text.index("id='settings-diff'"))]
+    assert "optimize_keyframes.steps" in diff and "depth_fusion.enabled" in diff
+    assert "flow.preset" not in diff and "torch" in text[text.index("id='versions'"):]
+
+
+def test_report_without_gt_and_without_cache(run, tmp_path):
+    out = tmp_path / "r.html"
+    cli("report", str(run["run"]), "--to", str(out), check=True)  # the cache run.json records
+    text = out.read_text()
+    assert "No ground truth given" in text and "flow consistency" in text and 'class="rgb"' in text
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    p = cli("report", str(run["run"]), "--to", str(tmp_path / "r2.html"), "--cache", str(empty))
+    assert p.returncode == 0, p.stderr
+    text2 = (tmp_path / "r2.html").read_text()
+    assert "not available" in text2 and 'class="depth"' in text2 and 'class="rgb"' not in text2
+    bad = cli("report", str(tmp_path / "nope"))
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "nope" in bad.stderr
+
+
+# ------------------------------------------------------------------------------ Chromium
+
+
+def _chromium() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.skip("Debian chromium is not installed and could not be installed here "
+                    "(`make testdeps` installs it with apt-get)")
+    return exe
+
+
+def _shot(exe: str, page: Path, png: Path, tmp: Path, size: str = "1200,2600") -> str:
+    """Screenshot ``page`` with scripts disabled; returns Chromium's verbose log."""
+    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+           "--disable-component-update", "--no-first-run", "--disable-sync", "--hide-scrollbars",
+           f"--user-data-dir={tmp / 'profile'}", "--enable-logging=stderr", "--v=1",
+           "--disable-javascript", f"--screenshot={png}", f"--window-size={size}",
+           page.resolve().as_uri()]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert png.is_file(), p.stderr[-2000:]
+    return p.stderr
+
+
+def _page_loads(log: str, page: Path) -> list[str]:
+    """URLs the page asked for beyond itself (network requests and file loads)."""
+    urls = re.findall(r"NotifyBeforeURLRequest: (\S+)", log) + re.findall(r"FileURLLoader::Start: (\S+)", log)
+    return [u for u in urls if u != page.resolve().as_uri()
+            and not any(re.match(rf"https?://([^/]*\.)?{re.escape(h)}(/|$)", u) for h in CHROME_SERVICE_HOSTS)]
+
+
+def _read_png(path: Path) -> np.ndarray:
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1]
+
+
+def test_failed_load_detection_works(tmp_path):
+    """The check of the next test sees a page's external and missing resources."""
+    exe = _chromium()
+    page = tmp_path / "bad.html"
+    page.write_text('<html><body><img src="http://127.0.0.1:9/x.png"><img src="missing.png"></body></html>')
+    loads = _page_loads(_shot(exe, page, tmp_path / "bad.png", tmp_path, "400,300"), page)
+    assert "http://127.0.0.1:9/x.png" in loads and any(u.endswith("/missing.png") for u in loads)
+
+
+def test_renders_in_headless_chromium(report, tmp_path):
+    exe = _chromium()
+    full = tmp_path / "full.png"
+    log = _shot(exe, report, full, tmp_path)
+    assert _page_loads(log, report) == []
+    assert "net::ERR" not in "\n".join(ln for ln in log.splitlines() if "gaia" not in ln)
+    img = _read_png(full)
+    assert img.std() > 20  # a rendered page, not a blank one
+    text = report.read_text()
+    for cls, min_px in (("traj", 10_000), ("depth", 4 * 100 * 70)):
+        hidden = tmp_path / f"no-{cls}.html"
+        hidden.write_text(text.replace("</style>", f"img.{cls}{{visibility:hidden}}</style>"))
+        _shot(exe, hidden, tmp_path / f"no-{cls}.png", tmp_path)
+        other = _read_png(tmp_path / f"no-{cls}.png")
+        changed = np.any(np.abs(img.astype(int) - other) > 8, axis=-1)
+        assert changed.sum() > min_px, f"{cls}: only {changed.sum()} pixels drawn"
+        drawn = img[changed].astype(float)
+        sat = drawn.max(1) - drawn.min(1)  # colour, not grey: plot lines / colormap
+        assert np.count_nonzero(sat > 60) > (2_000 if cls == "traj" else 0.5 * min_px), cls
