@@ -65,7 +65,8 @@ def test_texture_has_contrast_everywhere(orbit_clip):
 
 @pytest.mark.parametrize("kind", TRAJECTORIES)
 def test_trajectory_speed(kind):
-    P = make_trajectory(kind, 60)
+    # a hand-held pace at 60 frames; the 3 m walk is made for 300 (its pace there is the same)
+    P = make_trajectory(kind, 60 if kind != "walk" else 300)
     step = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1)
     rel = np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])
     ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
@@ -73,7 +74,7 @@ def test_trajectory_speed(kind):
     if kind != "rotation":
         assert step.mean() > 0.01
     # Same total motion at twice the frame rate.
-    P2 = make_trajectory(kind, 119)
+    P2 = make_trajectory(kind, 2 * len(P) - 1)
     np.testing.assert_allclose(P2[::2], P, atol=1e-12)
 
 
@@ -140,3 +141,39 @@ def test_moving_object_is_marked_dynamic():
     # It moves independently: its image position changes beyond the camera's motion.
     cols = [np.nonzero(m.any(axis=0))[0].mean() for m in c.dynamic]
     assert cols[-1] - cols[0] > 20
+
+
+# ----------------------------------------------------------------------------- hard clips
+
+
+def test_walk_is_long_and_never_revisits():
+    from gcvd_flow.evaluate.metrics import path_length
+    from gcvd_flow.evaluate.synth import make_trajectory
+
+    P = make_trajectory("walk", 300)
+    assert 2.8 < path_length(P) < 3.3
+    c = P[:, :3, 3]
+    d = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    far_in_time = np.abs(np.arange(300)[:, None] - np.arange(300)[None]) > 100  # > 1 m of path apart
+    assert d[far_in_time].min() > 0.3  # never back where it was: no loop closure opportunity
+
+
+def test_impairments_change_pixels_not_ground_truth():
+    import cv2
+
+    base = render_clip(n_frames=6, trajectory="orbit", size=(96, 72), seed=3)
+    hard = render_clip(n_frames=6, trajectory="orbit", size=(96, 72), seed=3, noise=4.0, blur=1.0, exposure=0.25)
+    np.testing.assert_array_equal(hard.depth, base.depth)
+    np.testing.assert_array_equal(hard.poses, base.poses)
+    diff = np.abs(hard.frames.astype(np.int16) - base.frames)
+    assert diff.mean() > 3.0
+    gains = hard.frames.reshape(6, -1).mean(1) / base.frames.reshape(6, -1).mean(1)
+    assert gains.max() - gains.min() > 0.1  # exposure changes between frames
+    again = render_clip(n_frames=6, trajectory="orbit", size=(96, 72), seed=3, noise=4.0, blur=1.0, exposure=0.25)
+    np.testing.assert_array_equal(again.frames, hard.frames)  # deterministic
+
+    def grad(f):
+        return float(np.mean(np.abs(cv2.Sobel(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), cv2.CV_32F, 1, 0))))
+
+    flat = render_clip(n_frames=2, trajectory="orbit", size=(96, 72), seed=3, texture=0.2)
+    assert grad(flat.frames[0]) < 0.5 * grad(base.frames[0])

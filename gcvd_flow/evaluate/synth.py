@@ -5,7 +5,15 @@ Usage:
     clip = render_clip(n_frames=60, trajectory="loop", size=(256, 192), moving_object=False, seed=0)
     clip.frames (N,H,W,3) uint8 RGB | clip.depth (N,H,W) float32 z-depth [m] | clip.K (3,3)
     clip.poses (N,4,4) float64 camera-to-world, OpenCV axes | clip.dynamic (N,H,W) bool or None
-    trajectories: "orbit", "loop" (last pose == first pose), "forward", "rotation" (no translation).
+    trajectories: "orbit", "loop" (last pose == first pose), "forward", "rotation" (no translation),
+    "walk" (a 3 m S-shaped walk that never revisits a place: drift without loops).
+
+Hard clips (real footage's troubles, each switchable, deterministic for a seed): sensor noise
+(``noise``, std in 8-bit levels), motion blur along each frame's image motion (``blur``, fraction
+of the exposure the shutter is open), exposure changes (``exposure``: relative gain swing
+between frames, breaks brightness constancy), low texture (``texture`` < 1 flattens the
+surface detail), and an independently moving object. Ground truth is unaffected. A clip where
+most frames become keyframes: few frames over a long path (``--trajectory walk --frames 60``).
 
 The scene is a 6 x 3 x 6 m room (world frame: y points DOWN, i.e. gravity is +y, so a level
 OpenCV camera has an identity rotation; floor at y = +1.5, ceiling at y = -1.5) with
@@ -30,7 +38,7 @@ import open3d as o3d
 
 log = logging.getLogger(__name__)
 
-TRAJECTORIES = ("orbit", "loop", "forward", "rotation")
+TRAJECTORIES = ("orbit", "loop", "forward", "rotation", "walk")
 
 # Room extents in metres (world frame, y down).
 ROOM_MIN = np.array([-3.0, -1.5, -3.0])
@@ -163,6 +171,16 @@ def make_trajectory(kind: str, n_frames: int) -> np.ndarray:
             R = _yaw_pitch(-0.05 + 0.04 * np.sin(np.pi * si), 0.2)
             poses[i] = np.eye(4)
             poses[i, :3, :3], poses[i, :3, 3] = R, eye
+    elif kind == "walk":
+        # S-shaped 3 m walk through the free part of the room, looking along the path (yaw
+        # follows the tangent); never revisits a place, so only odometry holds it together.
+        for i, si in enumerate(s):
+            x, z = 0.9 * np.sin(np.pi * (2 * si - 1) * 0.75), -2.6 + 1.7 * si
+            dx = 0.9 * np.cos(np.pi * (2 * si - 1) * 0.75) * np.pi * 1.5
+            eye = np.array([x, -0.05 + 0.015 * np.sin(6 * np.pi * si), z])
+            R = _yaw_pitch(0.35 * np.arctan2(dx, 1.7), 0.2)
+            poses[i] = np.eye(4)
+            poses[i, :3, :3], poses[i, :3, 3] = R, eye
     else:  # rotation: pan 40 deg with a small tilt, camera centre fixed exactly
         eye = np.array([0.0, -0.05, -1.6])
         for i, si in enumerate(s):
@@ -276,13 +294,15 @@ def _shade(
     n_world: np.ndarray,
     geom: np.ndarray,
     footprint: np.ndarray,
+    texture: float = 1.0,
 ) -> np.ndarray:
     """RGB float32 (M, 3) in [0, 1].
 
     p_tex (M,3): texture-space hit points [m] (object-local for the moving object);
     n_tex (M,3): normals in texture space (picks the face's base colour);
     n_world (M,3): world normals (lighting); geom (M,) palette index;
-    footprint (M,): metres per pixel on the surface (for octave fading).
+    footprint (M,): metres per pixel on the surface (for octave fading);
+    texture: contrast of the surface detail (1 = full, 0 = flat faces).
     """
     # Luminance: fBm whose octaves fade to their mean (0.5) where a cell spans < ~1.5-3 px.
     acc = np.zeros(len(p_tex), np.float32)
@@ -292,12 +312,12 @@ def _shade(
         acc += np.float32(amp) * (0.5 + fade * (_value_noise(tex, p_tex, k, fr) - 0.5))
     lum = acc / np.float32(sum(_LUM_AMPS))
     # Sum of octaves squeezes contrast towards 0.5; stretch it back.
-    lum = np.clip(0.6 + 2.2 * (lum - 0.5), 0.1, 1.0)
+    lum = np.clip(0.6 + 2.2 * np.float32(texture) * (lum - 0.5), 0.1, 1.0)
     # Colour blobs: per-channel low-frequency noise, sharpened into soft-edged patches,
     # mixing the face's two base colours.
     k0 = len(_LUM_FREQS)
     blob = np.stack([_value_noise(tex, p_tex, k0 + c, _BLOB_FREQ) for c in range(3)], axis=1)
-    blob = np.clip((blob - 0.5) * 4.0 + 0.5, 0.0, 1.0)
+    blob = np.clip((blob - 0.5) * 4.0 * np.float32(texture) + 0.5, 0.0, 1.0)
     face = np.argmax(np.abs(n_tex), axis=1) * 2 + (np.take_along_axis(n_tex, np.argmax(np.abs(n_tex), axis=1)[:, None], 1)[:, 0] > 0)
     cols = tex.palette[geom, face]  # (M, 2, 3)
     base = cols[:, 0] + blob * (cols[:, 1] - cols[:, 0])
@@ -333,12 +353,17 @@ def render_clip(
     size: tuple[int, int] = (256, 192),
     moving_object: bool = False,
     seed: int = 0,
+    noise: float = 0.0,
+    blur: float = 0.0,
+    exposure: float = 0.0,
+    texture: float = 1.0,
 ) -> SynthClip:
     """Render a synthetic clip of the textured room.
 
     n_frames: number of frames N (>= 2); trajectory: one of ``TRAJECTORIES``;
     size: (W, H) in pixels; moving_object: add one independently moving textured cube and
-    return its per-pixel mask in ``dynamic``; seed: texture/colour seed.
+    return its per-pixel mask in ``dynamic``; seed: texture/colour seed; noise, blur, exposure,
+    texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera).
     Returns a ``SynthClip`` (see its docstring for shapes and units).
     """
     w, h = int(size[0]), int(size[1])
@@ -385,8 +410,55 @@ def render_clip(
         d_unit = d / np.linalg.norm(d, axis=1, keepdims=True)
         cos = np.abs(np.sum(d_unit * n_world, axis=1)).astype(np.float32)
         footprint = t / f / np.maximum(cos, 0.25)
-        rgb = _shade(tex, p_tex, n_tex, n_world, geom, footprint)
-        frames[i] = np.round(rgb * 255.0).astype(np.uint8).reshape(h, w, 3)
+        rgb = _shade(tex, p_tex, n_tex, n_world, geom, footprint, texture)
         depth[i] = t.reshape(h, w)
+        frames[i] = np.round(rgb * 255.0).astype(np.uint8).reshape(h, w, 3)
+    if noise or blur or exposure:
+        frames = impair(frames, depth, poses, K, noise=noise, blur=blur, exposure=exposure, seed=seed)
     log.debug("rendered %d frames (%s, %dx%d, moving_object=%s)", n, trajectory, w, h, moving_object)
     return SynthClip(frames=frames, depth=depth, poses=poses, K=K, dynamic=dynamic, trajectory=trajectory, seed=int(seed))
+
+
+# ----------------------------------------------------------------------------- camera impairments
+
+
+def _image_motion(depth: np.ndarray, T_w_a: np.ndarray, T_w_b: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Median image motion (dx, dy) px of frame a's pixels in frame b (exact, from depth)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h:8, 0:w:8]
+    z = depth[v, u].astype(np.float64)
+    X = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1).reshape(-1, 3)
+    T_b_a = np.linalg.inv(T_w_b) @ T_w_a
+    Y = X @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    ok = Y[:, 2] > 1e-3
+    uv = np.stack([K[0, 0] * Y[ok, 0] / Y[ok, 2] + K[0, 2], K[1, 1] * Y[ok, 1] / Y[ok, 2] + K[1, 2]], -1)
+    return np.median(uv - np.stack([u.reshape(-1)[ok], v.reshape(-1)[ok]], -1), axis=0)
+
+
+def impair(frames: np.ndarray, depth: np.ndarray, poses: np.ndarray, K: np.ndarray, noise: float = 0.0,
+           blur: float = 0.0, exposure: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Camera impairments on rendered frames uint8 (N, H, W, 3): motion blur (a line kernel along
+    each frame's image motion to the next frame, ``blur`` x its length), exposure gain
+    (a smooth random walk of +-``exposure``), Gaussian sensor noise (std ``noise`` levels)."""
+    import cv2
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xCA3E]))
+    n = len(frames)
+    gain = 1.0 + exposure * np.sin(np.cumsum(rng.uniform(0.2, 0.9, n)))  # smooth swings, seeded
+    out = np.empty_like(frames)
+    for i in range(n):
+        img = frames[i].astype(np.float32)
+        if blur > 0:
+            j = i + 1 if i + 1 < n else i - 1
+            dx, dy = _image_motion(depth[i], poses[i], poses[j], K) * blur
+            length = int(np.ceil(np.hypot(dx, dy)))
+            if length >= 2:
+                ker = np.zeros((2 * length + 1, 2 * length + 1), np.float32)
+                for s in np.linspace(-0.5, 0.5, 4 * length + 1):
+                    ker[int(round(length + s * dy)), int(round(length + s * dx))] += 1.0
+                img = cv2.filter2D(img, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)
+        img = img * np.float32(gain[i])
+        if noise > 0:
+            img = img + rng.normal(0.0, noise, img.shape).astype(np.float32)
+        out[i] = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    return out
