@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress
+.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress regress-baseline
 
 setup: $(STAMP)
 
@@ -74,6 +74,27 @@ peerdeps:
 # gcvd-flow vs COLMAP on the ICL-NUIM frames; e.g. make bench-peer PEER_ARGS="--frames 30 --json"
 bench-peer: $(STAMP) peerdeps
 	$(BIN)/python benchmarks/bench_peer.py $(PEER_ARGS)
+
+# CI regression check: GCVD on the shared ICL-NUIM frames at a small size (60 frames, 128 px,
+# about a minute on 2 cores), metrics compared with benchmarks/regress_baseline.json: exit 1 with
+# one line per metric worse by more than REGRESS_TOL. `make regress-baseline` rewrites the
+# baseline from the current code (commit it with the change that moved the numbers).
+ICL ?= ../shared/data/icl_livingroom1_micro
+REGRESS_DIR ?= build/regress
+REGRESS_TOL ?= 5%
+REGRESS_ARGS := --set ingest.end=60 --set ingest.long_side=128
+regress: $(STAMP)
+	@test -d $(ICL) || { echo "make regress: needs the ICL frames in $(ICL) (see its README)"; exit 2; }
+	$(BIN)/gcvd-flow run $(ICL) --out $(REGRESS_DIR)/run --cache $(REGRESS_DIR)/cache $(REGRESS_ARGS)
+	$(BIN)/gcvd-flow eval $(REGRESS_DIR)/run --gt $(ICL) --baseline benchmarks/regress_baseline.json --tolerance $(REGRESS_TOL)
+
+regress-baseline: $(STAMP)
+	$(BIN)/gcvd-flow run $(ICL) --out $(REGRESS_DIR)/run --cache $(REGRESS_DIR)/cache $(REGRESS_ARGS)
+	$(BIN)/gcvd-flow eval $(REGRESS_DIR)/run --gt $(ICL) --no-write --json > $(REGRESS_DIR)/metrics.json
+	$(BIN)/python -c "import json, sys; m = json.load(open('$(REGRESS_DIR)/metrics.json')); \
+	  json.dump({'what': 'make regress: gcvd-flow run $(ICL) $(REGRESS_ARGS); gcvd-flow eval --gt $(ICL)', \
+	             'metrics': m}, open('benchmarks/regress_baseline.json', 'w'), indent=1, sort_keys=True)"
+	@echo "wrote benchmarks/regress_baseline.json"
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
