@@ -148,3 +148,18 @@ def test_unknown_remote_name_and_missing_bucket_are_one_line_errors(s3, machine_
     assert p.returncode == 2 and "unknown remote 'teem'" in p.stderr and len(p.stderr.splitlines()) == 1
     p = cli("pull", "--remote", "s3://no-such-bucket/x", "--cache", str(tmp_path / "c"), env=s3["env"])
     assert p.returncode == 2 and "remote not found" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_an_unreachable_remote_is_one_warning_and_the_run_goes_on(tmp_path):
+    inp = make_toy_input(tmp_path / "input", n=4)
+    env = {**DUMMY_AWS, "AWS_ENDPOINT_URL": "http://127.0.0.1:9", "AWS_MAX_ATTEMPTS": "1"}  # nothing listens
+    p = cli("run", str(inp), "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--pipeline", "toy",
+            "--remote", "s3://team/cache", "--push", "--json", env=env)
+    assert p.returncode == 0, p.stderr
+    warnings = [ln for ln in p.stderr.splitlines() if ln.startswith("warning:")]
+    assert len(warnings) == 1 and "going on without the remote" in warnings[0], p.stderr
+    doc = json.loads(p.stdout)
+    assert by_stage(doc)["transform"]["executed"] == 4 and doc["remote"]["failed"]
+    p = cli("push", "--remote", "s3://team/cache", "--cache", str(tmp_path / "cache"), env=env)
+    assert p.returncode == 2 and p.stderr.startswith("gcvd-flow: error: remote s3://team/cache: ")
+    assert len(p.stderr.splitlines()) == 1

@@ -196,6 +196,9 @@ class Remote:
         if self.local:
             return [_read_regular(p, lim) for p, lim in zip(paths, limits)]
         res = self.fs.cat_ranges(paths, [0] * len(paths), [lim + 1 for lim in limits], on_error="return")
+        for r in res:  # absent is an answer; anything else (network, credentials) is an error
+            if isinstance(r, BaseException) and not isinstance(r, (FileNotFoundError, IsADirectoryError)):
+                raise r
         return [r if isinstance(r, bytes) and len(r) <= lim else None for r, lim in zip(res, limits)]
 
     # ------------------------------------------------------------ writes
@@ -424,11 +427,32 @@ def _as_remote(remote: str | Remote | None, remotes_file: str | None = None) -> 
     return remote if isinstance(remote, Remote) else open_remote(remote, remotes_file)
 
 
+_BUGS = (TypeError, AttributeError, NameError, KeyError, IndexError, AssertionError)
+
+
+class _RemoteErrors:
+    """A backend's error (network, credentials, a missing bucket) as one line naming the remote."""
+
+    def __init__(self, r: Remote):
+        self.r = r
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, typ, exc, tb) -> bool:
+        if exc is None or isinstance(exc, (UsageError, StoreError)) or not isinstance(exc, Exception):
+            return False
+        if isinstance(exc, _BUGS):  # our bug, not the remote's state: keep the traceback
+            return False
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UsageError(f"remote {self.r.label}: {text}") from exc
+
+
 def push(local: Store, remote: str | Remote | None, out: str | None = None, remotes_file: str | None = None,
          log: Log = _stderr) -> dict[str, Any]:
     """Copy a run's records (or all) with their objects to the remote."""
     r = _as_remote(remote, remotes_file)
-    with local.lease():
+    with local.lease(), _RemoteErrors(r):
         return upload(local, r, _run_keys(out, local), log)
 
 
@@ -438,7 +462,7 @@ def pull(local: Store, remote: str | Remote | None, out: str | None = None, remo
     r = _as_remote(remote, remotes_file)
     if not r.exists():
         raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
-    with local.lease():
+    with local.lease(), _RemoteErrors(r):
         keys = _run_keys(out, local) if out else sorted(r.record_keys())
         d = Downloader(local, r, log)
         installed = d.download(keys)
@@ -453,39 +477,61 @@ def pull(local: Store, remote: str | Remote | None, out: str | None = None, remo
 class RemoteRecords:
     """The runner's record source for ``run --remote`` / ``--push``: the local store first,
     then the remote (a record found there comes in verified, with its children and objects);
-    ``stage_done`` pushes each finished stage the remote does not hold yet."""
+    ``stage_done`` pushes each finished stage the remote does not hold yet.
+
+    As with Bazel's remote cache, the remote is an accelerator, not a dependency: if it cannot
+    be reached (network, credentials, a missing bucket), one warning line says so and the run
+    goes on with the local cache alone (nothing half-downloaded is ever installed)."""
 
     def __init__(self, store: Store, remote: Remote | None, push: bool = False, log: Log = _stderr):
         self.store, self.remote, self.push, self.log = store, remote, push, log
         self._down = Downloader(store, remote, log) if remote is not None else None
         self._tried: set[str] = set()
         self.pushed: dict[str, int] = {"records": 0, "objects": 0, "bytes": 0}
+        self.failed: str | None = None
+
+    def _guard(self, what: str, fn: Callable[[], Any]) -> None:
+        if self.failed is not None or self.remote is None:
+            return
+        try:
+            fn()
+        except (StoreError, UsageError, *_BUGS):
+            raise
+        except Exception as exc:  # noqa: BLE001 - any backend's error: network, auth, bucket
+            self.failed = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+            self.log(f"warning: remote {self.remote.label}: {what} failed ({self.failed}); "
+                     f"going on without the remote")
 
     def get_record(self, key: str) -> dict[str, Any] | None:
         rec = self.store.get_record(key)
-        if rec is None and self._down is not None and self.remote is not None and key not in self._tried:
+        if rec is None and self._down is not None and key not in self._tried:
             self._tried.add(key)
-            self._down.download([key])
+            self._guard("read-through", lambda: self._down.download([key]))
             rec = self.store.get_record(key)
         return rec
 
     def prefetch(self, keys: list[str]) -> None:
-        """Items of a map stage: one batch for all the records this run lacks."""
+        """Items of a map stage: the records this store lacks, fetched in concurrent batches
+        (one request per record: the cost follows the run's size, not the remote's)."""
         if self._down is None:
             return
         missing = [k for k in keys if k not in self._tried and self.store.get_record(k) is None]
         self._tried.update(missing)
         if missing:
-            self._down.download(missing, list_first=len(missing) > 8)
+            self._guard("read-through", lambda: self._down.download(missing))
 
     def stage_done(self, key: str | None, executed: int) -> None:
         if not self.push or key is None or self.remote is None:
             return
-        if not executed and key in self.remote.record_keys([key]):
-            return
-        st = upload(self.store, self.remote, [key], self.log)
-        for k in self.pushed:
-            self.pushed[k] += st[k]
+
+        def push_stage() -> None:
+            if not executed and key in self.remote.record_keys([key]):
+                return
+            st = upload(self.store, self.remote, [key], self.log)
+            for k in self.pushed:
+                self.pushed[k] += st[k]
+
+        self._guard("push", push_stage)
 
     def report(self) -> dict[str, Any]:
         out: dict[str, Any] = {"remote": self.remote.label if self.remote else None}
@@ -493,6 +539,8 @@ class RemoteRecords:
             out["pulled"] = self._down.report()
         if self.push:
             out["pushed"] = dict(self.pushed)
+        if self.failed:
+            out["failed"] = self.failed
         return out
 
 
@@ -512,6 +560,11 @@ def fsck_remote(remote: str | Remote | None, repair: bool = False, remotes_file:
     r = _as_remote(remote, remotes_file)
     if not r.exists():
         raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
+    with _RemoteErrors(r):
+        return _fsck_remote(r, repair)
+
+
+def _fsck_remote(r: Remote, repair: bool) -> dict[str, Any]:
     sizes = r.object_sizes()
     bad_objects: dict[str, str] = {}
     for batch in _batches(sorted(sizes.items())):
