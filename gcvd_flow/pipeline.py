@@ -604,17 +604,17 @@ def _fusion_items(view, p: DepthFusionParams):
 
 def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
     """Frame i's optimised depth fused with its multi-view triangulation -> {depth float32 (H, W),
-    measured float (fraction of pixels triangulated)}."""
+    measured float (fraction of pixels triangulated), confidence float32 (H, W) in [0, 1]}."""
     depth = np.asarray(inputs["depth"], np.float32)
     if not p.enabled:
-        return {"depth": depth, "measured": 0.0}
+        return {"depth": depth, "measured": 0.0, "confidence": np.zeros_like(depth)}
     poses = np.asarray(inputs["poses"], np.float64)
     i = int(inputs["index"])
     refs = [(ref["image"], poses[int(j)]) for ref, j in zip(inputs["refs"], inputs["ref_indices"])]
-    fused, measured = depth_fusion.fuse_depth(
+    fused, measured, confidence = depth_fusion.fuse_depth(
         inputs["image"]["image"], depth, poses[i], refs, np.asarray(inputs["K"]), preset=p.preset,
         fb_thresh=p.fb_thresh, min_angle_deg=p.min_angle_deg, max_log_dev=p.max_log_dev)
-    return {"depth": fused, "measured": measured}
+    return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
 DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "optimize_segments"),
@@ -642,15 +642,18 @@ def _filter_items(view, p: DepthFilterParams):
 
 
 def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> dict[str, Any]:
-    """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W)}."""
+    """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W),
+    confidence float32 (H, W): depth_fusion's, zero where the filter invalidated the depth}."""
     depths = np.stack([np.asarray(d["depth"]) for d in inputs["depths"]])
     center = int(inputs["center"])
+    conf = np.asarray(inputs["depths"][center].get("confidence", np.zeros_like(depths[center])), np.float32)
     if not p.enabled or len(depths) == 1:
-        return {"depth": depths[center].astype(np.float32)}
+        return {"depth": depths[center].astype(np.float32), "confidence": conf}
     fwd = np.stack([fl["fwd"] for fl in inputs["flows"]])
     bwd = np.stack([fl["bwd"] for fl in inputs["flows"]])
-    out = depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border)
-    return {"depth": np.asarray(out, np.float32)}
+    out = np.asarray(depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border),
+                     np.float32)
+    return {"depth": out, "confidence": np.where(out > 0, conf, 0.0).astype(np.float32)}
 
 
 DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=("flow", "depth_fusion"), params="depth_filter",

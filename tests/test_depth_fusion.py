@@ -22,7 +22,7 @@ def test_fusion_corrects_a_distorted_depth_at_pose_scale():
     # a wrong depth: 15 % low-frequency distortion, and at twice the poses' scale
     wrong = (2.0 * gt * (1 + 0.15 * np.sin(u / 40.0) * np.cos(v / 30.0))).astype(np.float32)
     refs = [(clip.frames[j], clip.poses[j]) for j in (i - 2, i + 2)]  # 30 frames: +-2 ~ +-8 of the 120-frame clip
-    fused, measured = fuse_depth(clip.frames[i], wrong, clip.poses[i], refs, clip.K)
+    fused, measured, conf = fuse_depth(clip.frames[i], wrong, clip.poses[i], refs, clip.K)
     assert fused.dtype == np.float32 and fused.shape == gt.shape and measured > 0.6
     before, after = _absrel(wrong, gt), _absrel(fused, gt)
     print(f"fusion AbsRel {before:.3f} -> {after:.3f}, measured {measured:.2f}")
@@ -30,16 +30,23 @@ def test_fusion_corrects_a_distorted_depth_at_pose_scale():
     # the result is at the poses' scale (triangulation), not at the input depth's
     assert abs(float(np.median(fused / gt)) - 1.0) < 0.03
     # deterministic
-    again, _ = fuse_depth(clip.frames[i], wrong, clip.poses[i], refs, clip.K)
-    assert np.array_equal(fused, again)
+    again, _, conf2 = fuse_depth(clip.frames[i], wrong, clip.poses[i], refs, clip.K)
+    assert np.array_equal(fused, again) and np.array_equal(conf, conf2)
+    # confidence: in [0, 1], zero where nothing was measured, and it ranks the pixels: the
+    # most confident half is more accurate than the least confident measured half
+    assert conf.dtype == np.float32 and conf.min() >= 0 and conf.max() <= 1 and (conf > 0).mean() > 0.5
+    err = np.abs(fused * np.median(gt / fused) - gt) / gt
+    measured_px = conf > 0
+    hi = conf >= np.median(conf[measured_px])
+    assert err[measured_px & hi].mean() < err[measured_px & ~hi].mean()
 
 
 def test_fusion_without_baseline_keeps_the_depth():
     clip = render_clip(6, "rotation", size=(128, 96), seed=0)
     d = clip.depth[2].astype(np.float32)
-    out, measured = fuse_depth(clip.frames[2], d, clip.poses[2], [(clip.frames[4], clip.poses[4])], clip.K)
-    assert measured == 0.0 and np.array_equal(out, d)
-    out, measured = fuse_depth(clip.frames[2], d, clip.poses[2], [], clip.K)
+    out, measured, conf = fuse_depth(clip.frames[2], d, clip.poses[2], [(clip.frames[4], clip.poses[4])], clip.K)
+    assert measured == 0.0 and np.array_equal(out, d) and not conf.any()
+    out, measured, _ = fuse_depth(clip.frames[2], d, clip.poses[2], [], clip.K)
     assert measured == 0.0 and np.array_equal(out, d)
 
 
@@ -50,5 +57,5 @@ def test_fusion_with_every_triangulation_rejected_keeps_the_depth():
     d = clip.depth[2].astype(np.float32)
     near = clip.poses[2].copy()
     near[:3, 3] += 1e-4  # 0.1 mm: triangulation angles far below min_angle_deg
-    out, measured = fuse_depth(clip.frames[2], d, clip.poses[2], [(clip.frames[2], near)], clip.K)
+    out, measured, _ = fuse_depth(clip.frames[2], d, clip.poses[2], [(clip.frames[2], near)], clip.K)
     assert measured == 0.0 and np.isfinite(out).all() and np.array_equal(out, d)

@@ -15,6 +15,11 @@ as confidence. Measurements that disagree with the optimised depth by more than
 objects, textureless areas); the rest are fused in inverse depth with weights = angle^2
 (inverse-depth noise ~ 1 / angle). Pixels without a measurement keep the optimised depth.
 
+Confidence per pixel, in [0, 1] (what NeRF / Gaussian-splatting users weight or mask with):
+agreement x coverage x angle = (measurements kept / measurements made at the pixel) x
+(measurements kept / references) x (1 - exp(-rms angle / ``ANGLE_SCALE_DEG``)); 0 where no
+reference gave a forward-backward-consistent, triangulable measurement.
+
 Shapes: images uint8 (H, W, 3) RGB; depth float32 (H, W) metres (pose scale); K (3, 3);
 poses (4, 4) camera-to-world.
 """
@@ -30,6 +35,7 @@ from stages.frontend import flow as flow_mod
 from stages.geometry.two_view import triangulate_depths
 
 MIN_MEASUREMENTS = 30  # per reference: fewer triangulated pixels say nothing about the scale
+ANGLE_SCALE_DEG = 1.0  # a 1 deg triangulation angle gives confidence 0.63 (x agreement, coverage)
 
 
 def _angles_deg(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -51,8 +57,9 @@ def fuse_depth(
     fb_thresh: float = 1.0,
     min_angle_deg: float = 0.2,
     max_log_dev: float = 0.3,
-) -> tuple[np.ndarray, float]:
-    """Fused depth float32 (H, W) of one frame and the fraction of pixels measured.
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Fused depth float32 (H, W) of one frame, the fraction of pixels measured, and the
+    per-pixel confidence float32 (H, W) in [0, 1] (module docstring).
 
     refs: [(image_j uint8 (H, W, 3), pose_j (4, 4) camera-to-world), ...].
     """
@@ -79,17 +86,23 @@ def fuse_depth(
     if not meas:
         # nothing triangulated (no baseline, too small an angle, no consistent flow): keep the
         # optimised depth rather than a scale estimated from nothing
-        return depth.astype(np.float32), 0.0
+        return depth.astype(np.float32), 0.0, np.zeros((h, w), np.float32)
     log_ratio = np.concatenate([np.log(z / depth[v, u]) for v, u, z, _ in meas])
     shift = float(np.median(log_ratio))  # the optimised depth's scale vs the poses' scale
     num = np.zeros((h, w))
     den = np.zeros((h, w))
+    made = np.zeros((h, w))
+    kept = np.zeros((h, w))
     for v, u, z, wgt in meas:
         keep = np.abs(np.log(z / depth[v, u]) - shift) < max_log_dev
         np.add.at(num, (v[keep], u[keep]), wgt[keep] / z[keep])
         np.add.at(den, (v[keep], u[keep]), wgt[keep])
+        np.add.at(made, (v, u), 1.0)
+        np.add.at(kept, (v[keep], u[keep]), 1.0)
     have = den > 0
     fused = np.where(have, den / np.maximum(num, 1e-12), depth * np.exp(shift))
     # 3x3 median: per-pixel flow noise, and seams between measured and kept pixels
     fused = cv2.medianBlur(fused.astype(np.float32), 3)
-    return fused, float(have.mean())
+    rms_angle = np.sqrt(den / np.maximum(kept, 1.0))  # den sums angle^2 of the kept measurements
+    confidence = (kept / np.maximum(made, 1.0)) * (kept / max(len(refs), 1)) * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG))
+    return fused, float(have.mean()), confidence.astype(np.float32)
