@@ -123,3 +123,16 @@ def test_compare_to_baseline_rules():
     out = compare_to_baseline(worse, base, 0.05)
     assert [ln.split(":")[0] for ln in out] == ["frames", "ate_rmse", "rpe_rot", "delta1"]
     assert compare_to_baseline({**ok, "abs_rel": float("nan")}, base, 0.05)[0].startswith("abs_rel")
+
+
+def test_status_uses_the_cache_the_run_recorded(runs, tmp_path):
+    """`status --out RUN_DIR` without --cache: run.json's "cache", not $GCVD_FLOW_CACHE / the default."""
+    doc = json.loads((runs["a"] / "run.json").read_text())
+    assert Path(doc["cache"]) == runs["cache"].resolve()
+    elsewhere = tmp_path / "other-cache"
+    p = cli("status", "--out", str(runs["a"]), "--json", env={"GCVD_FLOW_CACHE": str(elsewhere)})
+    assert p.returncode == 0, p.stderr
+    assert {s["name"]: s["action"] for s in json.loads(p.stdout)["stages"]}["depth_filter"] == "cached"
+    assert all(s["action"] == "cached" for s in json.loads(p.stdout)["stages"])
+    p = cli("status", "--out", str(runs["a"]), "--json", "--cache", str(elsewhere))  # --cache still wins
+    assert any(s["action"] == "run" for s in json.loads(p.stdout)["stages"])

@@ -308,6 +308,8 @@ def _invocation_from_run(out: str, extra: Invocation | None) -> Invocation:
         if extra.profile:
             inv.profile = extra.profile
         inv.sets += list(extra.sets)
+    if inv.cache is None and isinstance(doc.get("cache"), str) and Path(doc["cache"]).is_dir():
+        inv.cache = doc["cache"]  # the cache the run recorded, when no --cache is given
     return inv
 
 
