@@ -282,4 +282,8 @@ def make_executor(jobs: int, worker_init: Callable[[], None] | None = None, kind
     """``process``: in this process (jobs <= 1) or a local process pool; ``dask``: a Dask cluster."""
     if kind == "dask":
         return DaskItemExecutor(jobs, worker_init, scheduler)
+    if scheduler:
+        from gcvd_flow.engine.errors import UsageError
+
+        raise UsageError("--scheduler needs --executor dask")
     return InProcessExecutor() if jobs <= 1 else ProcessPoolItemExecutor(jobs, worker_init)
