@@ -231,7 +231,13 @@ class DaskItemExecutor:
         self.worker_init = worker_init
         self._cluster = None
         if scheduler:
-            self._client = Client(scheduler, timeout="30s")
+            try:
+                self._client = Client(scheduler, timeout="15s")
+            except (OSError, ValueError, TypeError) as exc:
+                from gcvd_flow.engine.errors import UsageError
+
+                why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise UsageError(f"cannot reach the Dask scheduler at {scheduler}: {why}") from None
         else:
             self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
                                          dashboard_address=None, silence_logs=logging.ERROR,
