@@ -119,3 +119,22 @@ def test_run_many_on_one_cluster_reports_a_table_and_counts_failures(reference, 
     assert lines[0].split() == ["input", "status", "items", "executed", "cache", "hits", "seconds"]
     assert lines[2].split()[:5] == ["input", "ok", "24", "0", str(2 * 24 + 3)]
     assert lines[-1].startswith("2 of 2 inputs ok, 0 failed")
+
+
+def test_ctrl_c_with_dask_exits_130_cleanly_and_a_rerun_completes(reference, tmp_path):
+    inp, ref = reference
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    cmd = [sys.executable, "-m", "gcvd_flow", "run", str(inp), "--out", str(out), "--cache", str(cache), "--pipeline",
+           "toy", "--executor", "dask", "--jobs", "2"]
+    # SIGINT back to its default in the child (a suite started in the background inherits it ignored)
+    p = subprocess.Popen(cmd + ["--set", "transform.sleep=0.2"], cwd=ROOT, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    time.sleep(4.0)  # the cluster is up, items are running (or, on a slow machine, it is starting)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err, err
+    assert Store(cache).fsck().corrupt == []
+    cli_json("run", str(inp), "--out", str(out), "--cache", str(cache), "--pipeline", "toy", "--executor", "dask",
+             "--jobs", "2")
+    assert _outputs(out) == ref

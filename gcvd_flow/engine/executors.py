@@ -239,10 +239,18 @@ class DaskItemExecutor:
                 why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 raise UsageError(f"cannot reach the Dask scheduler at {scheduler}: {why}") from None
         else:
-            self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
-                                         dashboard_address=None, silence_logs=logging.ERROR,
-                                         env={"OMP_NUM_THREADS": "1"})
-            self._client = Client(self._cluster)
+            from distributed.deploy.spec import SpecCluster
+
+            before = set(SpecCluster._instances)
+            try:
+                self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
+                                             dashboard_address=None, silence_logs=logging.ERROR,
+                                             env={"OMP_NUM_THREADS": "1"})
+                self._client = Client(self._cluster)
+            except BaseException:  # e.g. Ctrl-C while the workers start: no half-made cluster at exit
+                for c in set(SpecCluster._instances) - before:
+                    c.shutdown_on_close = False
+                raise
         self.jobs = max(1, len(self._client.scheduler_info().get("workers", {})) or jobs)
 
     def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
@@ -275,9 +283,15 @@ class DaskItemExecutor:
                                    key=f"{task.stage_name}-{task.index}-{task.key[:16]}-{uuid.uuid4().hex[:8]}")
 
     def close(self) -> None:
-        self._client.close()
+        try:
+            self._client.close()
+        except Exception:  # noqa: BLE001 - closing after Ctrl-C or a lost scheduler
+            pass
         if self._cluster is not None:
-            self._cluster.close()
+            try:
+                self._cluster.close()
+            except Exception:  # noqa: BLE001 - workers already gone (Ctrl-C reaches them too):
+                self._cluster.shutdown_on_close = False  # no second attempt (and traceback) at exit
 
 
 EXECUTORS = ("process", "dask")
