@@ -1,13 +1,25 @@
-"""The gcvd-flow Python API: the CLI's verbs, with the GCVD pipeline as the default.
+"""The gcvd-flow Python API: the CLI's verbs, with the GCVD pipeline as the default, and the
+results loaded back.
 
     from gcvd_flow import api
     res = api.run(api.Invocation(input="walk.mp4", out="runs/walk", sets=["keyframes.delta=0.15"]))
     plan = api.plan(api.Invocation(input="walk.mp4", out="runs/walk"))
+
+    r = api.load("runs/walk")        # r.poses (N, 4, 4) T_w_c, r.depth[k] (read when indexed),
+                                     # r.cameras (cameras.json), r.K, r.timestamps, r.frame_indices
+    m = api.eval("runs/loop", gt="clips/loop")          # the metrics dict (also RUN_DIR/metrics.json)
+    page = api.report("runs/loop", gt="clips/loop")     # RUN_DIR/report.html
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from gcvd_flow.engine import api as _engine
 from gcvd_flow.engine.api import (fsck, gc, open_store, plan, read_run_dir, recorded_output, run, status,
@@ -21,5 +33,71 @@ class Invocation(_engine.Invocation):
     pipeline: str = PIPELINE
 
 
-__all__ = ["Invocation", "run", "plan", "why", "status", "recorded_output", "fsck", "gc", "open_store",
-           "read_run_dir"]
+@dataclass
+class Result:
+    """A finished run loaded from RUN_DIR. ``depth[k]`` reads depth/NNNNNN.npy of frame k when
+    indexed (float32 (H, W), one global scale with the poses, 0 = invalid)."""
+
+    run_dir: Path
+    poses: np.ndarray  # (N, 4, 4) float64 camera-to-world, OpenCV axes
+    timestamps: np.ndarray  # (N,) poses.txt's t: seconds where the input has them, else frame index
+    frame_indices: list[int]  # source frame index of each frame
+    K: np.ndarray  # (3, 3) at working resolution
+    width: int
+    height: int
+    cameras: dict[str, Any]  # cameras.json as written
+    depth: Sequence[np.ndarray]
+    keyframes: list[int] = field(default_factory=list)  # source frame indices
+    metrics: dict[str, Any] | None = None  # metrics.json of `gcvd-flow eval`, if any
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+def load(run_dir: str | Path) -> Result:
+    """Load a finished run (poses, lazy depth, cameras); one-line UsageError naming a bad file."""
+    from gcvd_flow.io.formats import read_tum_poses
+    from gcvd_flow.io.run_dir import load_run
+
+    data = load_run(run_dir)
+    root = Path(run_dir)
+    cams = json.loads((root / "cameras.json").read_text())
+    stamps, _ = read_tum_poses(root / "poses.txt")
+    metrics = None
+    if (root / "metrics.json").is_file():
+        try:
+            metrics = json.loads((root / "metrics.json").read_text())
+        except ValueError:
+            metrics = None
+    return Result(root, data.poses, stamps, list(data.frame_indices), data.K, data.width, data.height, cams,
+                  data.depths, [int(i) for i in cams.get("keyframes") or []], metrics)
+
+
+def eval(run_dir: str | Path, gt: str | Path, max_depth: float = 10.0, write: bool = True) -> dict[str, Any]:  # noqa: A001
+    """`gcvd-flow eval`: ATE / RPE / depth errors against a ground-truth folder; writes
+    RUN_DIR/metrics.json unless ``write=False``."""
+    from gcvd_flow.evaluate.run_eval import evaluate, write_metrics
+
+    res = evaluate(run_dir, gt, max_depth)
+    if write:
+        write_metrics(run_dir, res)
+    return res
+
+
+def report(run_dir: str | Path, gt: str | Path | None = None, to: str | Path | None = None,
+           cache: str | None = None, every: int | None = None) -> Path:
+    """`gcvd-flow report`: write the self-contained HTML page (default RUN_DIR/report.html)."""
+    from gcvd_flow.report import write_report
+
+    return write_report(run_dir, to=to, gt=gt, cache=cache, every=every)
+
+
+def compare(run_a: str | Path, run_b: str | Path, cache: str | None = None) -> dict[str, Any]:
+    """`gcvd-flow compare`: per stage, equal outputs or how far apart (B against A)."""
+    from gcvd_flow.evaluate.compare import compare_runs
+
+    return compare_runs(run_a, run_b, cache=cache)
+
+
+__all__ = ["Invocation", "Result", "run", "plan", "why", "status", "recorded_output", "fsck", "gc", "open_store",
+           "read_run_dir", "load", "eval", "report", "compare"]

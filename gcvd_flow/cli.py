@@ -128,7 +128,15 @@ def _add_export(sub) -> None:
     p.add_argument("--mcap-images", default="png", metavar="png|jpeg|raw",
                    help="mcap: RGB as foxglove.CompressedImage png (default) / jpeg, or foxglove.RawImage rgb8")
     p.add_argument("--max-points", type=int, default=20000, metavar="N",
-                   help="colmap: about N points in points3D.txt (default 20000)")
+                   help="colmap: about N 3D points, sampled on every --every-th frame's depth (default 20000)")
+    p.add_argument("--max-track", type=int, default=32, metavar="N",
+                   help="colmap: observations per 3D point at most, evenly spread over the frames that see it "
+                   "(default 32)")
+    p.add_argument("--colmap-binary", action="store_true",
+                   help="colmap: write cameras.bin, images.bin, points3D.bin instead of the text model")
+    p.add_argument("--full-res", action=argparse.BooleanOptionalAction, default=None,
+                   help="colmap / nerfstudio: images at the source resolution (read from the run's input, "
+                   "intrinsics scaled); default on; --no-full-res: the working resolution")
     p.add_argument("--cache", metavar="DIR",
                    help="cache holding the run's frames (default: the one run.json records, else "
                    "$GCVD_FLOW_CACHE or the user cache dir)")

@@ -216,3 +216,97 @@ def test_sources_read_intrinsics_with_the_formats_reader(tmp_path):
     src = open_source(str(tmp_path))
     assert src.intrinsics == (30.0, 31.0, 15.5, 11.5) and src.intrinsics_origin == "intrinsics.txt"
     np.testing.assert_array_equal(src.items[1].loader(), clip.frames[1])  # frames read by formats.read_rgb
+
+
+# ------------------------------------------------------------------------------ TUM timestamps
+
+N_TUM, T0, RATE = 14, 1305031102.175304, 30.0
+TUM_QUICK = ["--set", "optimize_keyframes.steps=2", "--set", "optimize_edges.steps=2",
+             "--set", "optimize_segments.steps=2", "--set", "depth_fusion.enabled=false"]
+
+
+def _tum_folder(root: Path, clip) -> Path:
+    """A TUM RGB-D folder of a synthetic clip: rgb.txt / depth.txt (depth stamped 4 ms later, in
+    1/5000 m) and a groundtruth.txt that also has decoy poses between the frames."""
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rgb, dep, gt = ["# color images"], ["# depth maps"], ["# timestamp tx ty tz qx qy qz qw"]
+    q = ds.rotmat_to_quat(clip.poses[:, :3, :3])
+    for i in range(len(clip.frames)):
+        t = T0 + i / RATE
+        ds.write_rgb_png(root / "rgb" / f"{t:.6f}.png", clip.frames[i])
+        ds.write_depth_png(root / "depth" / f"{t + 0.004:.6f}.png", clip.depth[i], scale=5000.0)
+        rgb.append(f"{t:.6f} rgb/{t:.6f}.png")
+        dep.append(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png")
+        gt.append(f"{t + 0.003:.4f} " + " ".join(f"{v:.9f}" for v in (*clip.poses[i, :3, 3], *q[i])))
+        gt.append(f"{t + 0.5 / RATE:.4f} 9 9 9 0 0 0 1")  # 16.7 ms away: never the nearest
+    for name, lines in (("rgb.txt", rgb), ("depth.txt", dep), ("groundtruth.txt", gt)):
+        (root / name).write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_tum_rgbd_stamps_in_poses_txt_and_eval_by_timestamp(tmp_path):
+    """poses.txt carries rgb.txt's stamps (evo associates it with groundtruth.txt out of the box),
+    cameras.json the frame indices; eval matches TUM ground truth by nearest stamp (<= 0.02 s)."""
+    import json
+
+    from conftest import cli, cli_json
+    from evo.core import sync
+    from evo.tools import file_interface
+
+    from gcvd_flow.evaluate.run_eval import evaluate
+    from gcvd_flow.io.formats import write_generic_layout
+
+    clip = render_clip(n_frames=N_TUM, trajectory="loop", size=(96, 72), seed=0)
+    tum = _tum_folder(tmp_path / "tum", clip)
+    K = clip.K
+    run = tmp_path / "run"
+    cli("run", str(tum), "--out", str(run), "--cache", str(tmp_path / "cache"), *TUM_QUICK,
+        "--intrinsics", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", check=True)
+    stamps, _ = ds.read_tum_poses(run / "poses.txt")
+    np.testing.assert_allclose(stamps, T0 + np.arange(N_TUM) / RATE, atol=2e-6)
+    cams = json.loads((run / "cameras.json").read_text())
+    assert cams["frame_indices"] == list(range(N_TUM)) and cams["timestamp_kind"] == "seconds"
+    ref = file_interface.read_tum_trajectory_file(str(tum / "groundtruth.txt"))
+    est = file_interface.read_tum_trajectory_file(str(run / "poses.txt"))
+    ref_a, _ = sync.associate_trajectories(ref, est, max_diff=0.02)
+    assert ref_a.num_poses == N_TUM and np.all(ref_a.positions_xyz < 5)  # no decoy matched
+    res = cli_json("eval", str(run), "--gt", str(tum))
+    assert res["association"] == "timestamp" and res["frames"] == N_TUM and res["depth_frames"] == N_TUM
+    write_generic_layout(tmp_path / "generic", clip)  # the same ground truth, matched by index
+    by_index = evaluate(run, tmp_path / "generic")
+    assert by_index["association"] == "frame index"
+    assert res["ate_rmse"] == pytest.approx(by_index["ate_rmse"], rel=1e-6)
+    assert res["abs_rel"] == pytest.approx(by_index["abs_rel"], abs=2e-3)  # 0.2 vs 1 mm quantisation
+
+
+def test_associate_is_nearest_within_max_diff():
+    from gcvd_flow.evaluate.run_eval import associate
+
+    ref = np.array([10.0, 10.03, 10.05, 10.2, 9.99])
+    got = associate(np.array([10.0, 10.021, 10.1, 10.19, 9.5]), ref)
+    assert got.tolist() == [0, 1, -1, 3, -1]
+    assert associate(np.array([1.0]), np.zeros(0)).tolist() == [-1]
+
+
+def test_video_poses_are_stamped_index_over_fps(tmp_path):
+    import cv2
+    import json
+
+    from conftest import cli
+
+    clip = render_clip(n_frames=12, trajectory="orbit", size=(96, 72), seed=1)
+    video = tmp_path / "clip.mp4"
+    wr = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (96, 72))
+    if not wr.isOpened():
+        pytest.skip("this OpenCV build cannot write mp4")
+    for f in clip.frames:
+        wr.write(np.ascontiguousarray(f[..., ::-1]))
+    wr.release()
+    run = tmp_path / "run"
+    cli("run", str(video), "--out", str(run), "--cache", str(tmp_path / "cache"), *TUM_QUICK,
+        "--set", "ingest.start=2", "--set", "ingest.stride=2", check=True)
+    stamps, _ = ds.read_tum_poses(run / "poses.txt")
+    cams = json.loads((run / "cameras.json").read_text())
+    assert cams["frame_indices"] == [2, 4, 6, 8, 10] and cams["fps"] == pytest.approx(10.0)
+    np.testing.assert_allclose(stamps, np.array([2, 4, 6, 8, 10]) / 10.0, atol=1e-6)

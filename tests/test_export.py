@@ -72,47 +72,125 @@ def test_tum_is_a_copy(run, exported):
     assert (exported["out"] / "poses.txt").read_bytes() == (run["run"] / "poses.txt").read_bytes()
 
 
+def _colmap_text(d: Path) -> tuple[list[str], list[str], dict[int, tuple[np.ndarray, list[tuple[int, int]]]]]:
+    """(image header lines, POINTS2D lines, {point id: (xyz, track [(image id, point2D idx)])})."""
+    lines = [ln for ln in (d / "images.txt").read_text().split("\n") if not ln.startswith("#")]
+    pts = {}
+    for ln in (d / "points3D.txt").read_text().splitlines():
+        if not ln.startswith("#"):
+            v = ln.split()
+            tr = [int(x) for x in v[8:]]
+            pts[int(v[0])] = (np.array([float(x) for x in v[1:4]]), list(zip(tr[0::2], tr[1::2])))
+    return lines[0::2][:N_FRAMES], lines[1::2][:N_FRAMES], pts
+
+
 def test_colmap_model_inverts_to_the_run_poses_and_reprojects(run, exported):
     from gcvd_flow.exports.colmap import colmap_to_c2w
 
     cams, K, poses, depths = _run_data(run["run"])
-    d = exported["out"] / "colmap"
+    d = exported["out"] / "colmap" / "sparse" / "0"
     cam_line = [ln for ln in (d / "cameras.txt").read_text().splitlines() if not ln.startswith("#")]
     assert len(cam_line) == 1
     cid, model, w, h, fx, fy, cx, cy = cam_line[0].split()
     assert (model, int(w), int(h)) == ("PINHOLE", W, H)
     np.testing.assert_allclose([float(fx), float(fy), float(cx), float(cy)],
                                [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5])
-    lines = [ln for ln in (d / "images.txt").read_text().split("\n") if not ln.startswith("#")]
-    heads, obs = lines[0::2][:N_FRAMES], lines[1::2][:N_FRAMES]
+    heads, obs, pts = _colmap_text(d)
     assert len(heads) == N_FRAMES
     q = np.array([[float(v) for v in ln.split()[1:5]] for ln in heads])
     t = np.array([[float(v) for v in ln.split()[5:8]] for ln in heads])
     names = [ln.split()[9] for ln in heads]
     assert names == [f"{i:06d}.png" for i in cams["frame_indices"]]
-    assert all((exported["out"] / "images" / n).is_file() for n in names)
+    assert all((exported["out"] / "colmap" / "images" / n).is_file() for n in names)
     np.testing.assert_allclose(colmap_to_c2w(q, t), poses, atol=1e-6)
-    # points3D: each point projects onto its observation (COLMAP pixel convention, +0.5)
-    pts = {}
-    for ln in (d / "points3D.txt").read_text().splitlines():
-        if ln.startswith("#"):
-            continue
-        v = ln.split()
-        pts[int(v[0])] = (np.array([float(x) for x in v[1:4]]), int(v[8]), int(v[9]))
     assert 1000 < len(pts) <= 25000
+    assert np.mean([len(tr) for _, tr in pts.values()]) > 2  # multi-view tracks
+    # every observation is the point's projection (COLMAP pixel convention, +0.5), at a pixel where
+    # that frame's depth agrees, and the track and POINTS2D refer to each other
     checked = 0
     for img_id in (1, N_FRAMES // 2, N_FRAMES):
         tok = obs[img_id - 1].split()
-        for j in range(0, len(tok), 3 * 37):  # a sample of the image's observations
+        for j in range(0, len(tok), 3 * 37):
             x, y, pid = float(tok[j]), float(tok[j + 1]), int(tok[j + 2])
-            X, track_img, p2d = pts[pid]
-            assert track_img == img_id and p2d == j // 3
+            X, track = pts[pid]
+            assert (img_id, j // 3) in track
             w2c = np.linalg.inv(poses[img_id - 1])
             pc = w2c[:3, :3] @ X + w2c[:3, 3]
-            uv = (K @ pc)[:2] / pc[2] + 0.5
-            np.testing.assert_allclose(uv, [x, y], atol=1e-6)
+            uv = (K @ pc)[:2] / pc[2]
+            np.testing.assert_allclose(uv + 0.5, [x, y], atol=1e-6)
+            dk = depths[img_id - 1][int(round(uv[1])), int(round(uv[0]))]
+            assert abs(dk - pc[2]) <= 0.03 * pc[2] + 1e-9
             checked += 1
     assert checked > 5
+
+
+def test_colmap_text_and_binary_load_in_pycolmap(run, exported, tmp_path):
+    """The model as COLMAP reads it (pycolmap): camera, poses, multi-view tracks, reprojection."""
+    pycolmap = pytest.importorskip("pycolmap")
+    cams, K, poses, _ = _run_data(run["run"])
+    out = tmp_path / "bin"
+    doc = cli_json("export", str(run["run"]), "--format", "colmap", "--colmap-binary", "--to", str(out),
+                   "--cache", str(run["cache"]))
+    assert doc["formats"]["colmap"]["binary"] and sorted(p.name for p in (out / "colmap/sparse/0").iterdir()) \
+        == ["cameras.bin", "images.bin", "points3D.bin"]
+    models = [pycolmap.Reconstruction(str(exported["out"] / "colmap/sparse/0")),
+              pycolmap.Reconstruction(str(out / "colmap/sparse/0"))]
+    for rec in models:
+        cam = rec.cameras[1]
+        assert (cam.model_name, cam.width, cam.height) == ("PINHOLE", W, H)
+        np.testing.assert_allclose(cam.params, [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5])
+        assert rec.num_reg_images() == N_FRAMES and rec.num_points3D() > 1000
+        for img in rec.images.values():
+            k = cams["frame_indices"].index(int(img.name[:6]))
+            w2c = np.eye(4)
+            w2c[:3] = img.cam_from_world().matrix()
+            np.testing.assert_allclose(np.linalg.inv(w2c), poses[k], atol=1e-6)
+        assert rec.compute_mean_track_length() > 2
+        rec.update_point_3d_errors()
+        assert rec.compute_mean_reprojection_error() < 1.0
+    a, b = models
+    assert a.num_points3D() == b.num_points3D() and a.compute_num_observations() == b.compute_num_observations()
+
+
+def test_full_res_images_and_scaled_intrinsics(run, tmp_path):
+    """A run at 64x48 of the 96x72 clip: colmap and nerfstudio images are the source frames, the
+    intrinsics scaled with pixel centres (c' = (c + 0.5) s - 0.5); --no-full-res keeps 64x48; an
+    input changed since the run falls back to the working resolution with a warning."""
+    pycolmap = pytest.importorskip("pycolmap")
+    small = tmp_path / "small"
+    cli("run", str(run["clip"]), "--out", str(small), "--cache", str(run["cache"]), *QUICK,
+        "--set", "ingest.long_side=64", check=True)
+    cams, K, poses, _ = _run_data(small)
+    assert (cams["width"], cams["height"]) == (64, 48)
+    out = tmp_path / "full"
+    doc = cli_json("export", str(small), "--format", "colmap,nerfstudio", "--to", str(out))  # cache from run.json
+    assert doc["formats"]["colmap"]["resolution"] == "source" and doc["formats"]["nerfstudio"]["width"] == W
+    s = W / 64
+    fx, cx, cy = K[0, 0] * s, (K[0, 2] + 0.5) * s, (K[1, 2] + 0.5) * s  # COLMAP / nerfstudio: + 0.5
+    rec = pycolmap.Reconstruction(str(out / "colmap/sparse/0"))
+    cam = rec.cameras[1]
+    assert (cam.width, cam.height) == (W, H)
+    np.testing.assert_allclose(cam.params, [fx, fx, cx, cy], rtol=1e-12)
+    rec.update_point_3d_errors()
+    assert rec.compute_mean_reprojection_error() < 1.0 and rec.compute_mean_track_length() > 2
+    ns = json.loads((out / "transforms.json").read_text())
+    assert (ns["w"], ns["h"]) == (W, H)
+    np.testing.assert_allclose([ns["fl_x"], ns["cx"], ns["cy"]], [fx, cx, cy], rtol=1e-12)
+    for sub in ("colmap/images", "images"):
+        img = cv2.imread(str(out / sub / "000003.png"), cv2.IMREAD_COLOR)
+        np.testing.assert_array_equal(img, cv2.imread(str(run["clip"] / "frames" / "000003.png"), cv2.IMREAD_COLOR))
+    low = cli_json("export", str(small), "--format", "colmap", "--no-full-res", "--to", str(tmp_path / "low"))
+    assert (low["formats"]["colmap"]["width"], low["formats"]["colmap"]["resolution"]) == (64, "working")
+    moved = tmp_path / "clip-moved"
+    shutil.copytree(run["clip"], moved)
+    doc = json.loads((small / "run.json").read_text())
+    doc["invocation"]["input"] = str(moved)
+    (small / "run.json").write_text(json.dumps(doc))
+    img = cv2.imread(str(moved / "frames" / "000000.png"))
+    cv2.imwrite(str(moved / "frames" / "000000.png"), 255 - img)  # the input changed since the run
+    p = cli("export", str(small), "--format", "colmap", "--to", str(tmp_path / "changed"), "--json")
+    assert p.returncode == 0 and json.loads(p.stdout)["formats"]["colmap"]["width"] == 64
+    assert "changed since the run" in p.stderr
 
 
 def test_nerfstudio_transforms_flip_back_to_the_poses(run, exported):
@@ -247,6 +325,8 @@ def test_exported_images_are_the_runs_frames(run, exported):
     src = cv2.imread(str(run["clip"] / "frames" / "000005.png"), cv2.IMREAD_COLOR)
     out = cv2.imread(str(exported["out"] / "images" / "000005.png"), cv2.IMREAD_COLOR)
     np.testing.assert_array_equal(src, out)
+    col = cv2.imread(str(exported["out"] / "colmap" / "images" / "000005.png"), cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(src, col)
 
 
 def test_missing_cache_exports_what_it_can_and_fails_in_one_line(run, tmp_path):
@@ -257,8 +337,8 @@ def test_missing_cache_exports_what_it_can_and_fails_in_one_line(run, tmp_path):
     assert p.returncode == 2, p.stderr
     err = [ln for ln in p.stderr.splitlines() if ln.startswith("gcvd-flow: error")]
     assert len(err) == 1 and "ply" in err[0] and str(empty) in err[0]
-    assert (out / "poses.txt").is_file() and (out / "colmap" / "images.txt").is_file()
-    assert not (out / "points.ply").exists() and not (out / "images").exists()
+    assert (out / "poses.txt").is_file() and (out / "colmap" / "sparse" / "0" / "images.txt").is_file()
+    assert not (out / "points.ply").exists() and not (out / "colmap" / "images").exists()
 
 
 def _main(capsys, *args: str) -> tuple[int, list[str]]:

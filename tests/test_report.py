@@ -176,3 +176,46 @@ def test_renders_in_headless_chromium(report, tmp_path):
         drawn = img[changed].astype(float)
         sat = drawn.max(1) - drawn.min(1)  # colour, not grey: plot lines / colormap
         assert np.count_nonzero(sat > 60) > (2_000 if cls == "traj" else 0.5 * min_px), cls
+
+
+def test_python_api_load_eval_report(run, tmp_path):
+    import json
+
+    from gcvd_flow import api
+    from gcvd_flow.io.formats import read_tum_poses
+
+    r = api.load(run["run"])
+    _, poses = read_tum_poses(run["run"] / "poses.txt")
+    cams = json.loads((run["run"] / "cameras.json").read_text())
+    assert len(r) == N_FRAMES and r.poses.shape == (N_FRAMES, 4, 4) and np.array_equal(r.poses, poses)
+    assert r.cameras == cams and r.frame_indices == cams["frame_indices"] and r.keyframes == cams["keyframes"]
+    assert (r.width, r.height) == (W, H) and np.allclose(r.K, cams["K"])
+    assert not isinstance(r.depth, list) and len(r.depth) == N_FRAMES  # read when indexed
+    assert np.array_equal(r.depth[5], np.load(run["run"] / "depth" / f"{cams['frame_indices'][5]:06d}.npy"))
+    m = api.eval(run["run"], run["clip"], write=False)
+    assert m["frames"] == N_FRAMES and m["ate_rmse"] > 0 and "abs_rel" in m
+    page = api.report(run["run"], to=tmp_path / "p.html")
+    assert page == tmp_path / "p.html" and "<h2>Trajectory</h2>" in page.read_text()
+    from gcvd_flow.engine.errors import UsageError
+
+    with pytest.raises(UsageError, match="nope"):
+        api.load(tmp_path / "nope")
+
+
+PRODUCT_VERBS = ("synth", "eval", "report", "compare", "demo", "export")
+
+
+def test_every_product_option_has_help_and_version():
+    import argparse
+
+    from gcvd_flow.cli import PRODUCT
+    from gcvd_flow.engine.cli import build_parser
+
+    ap = build_parser(PRODUCT)
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    missing = [f"{verb} {a.option_strings[0] if a.option_strings else a.dest}"
+               for verb in PRODUCT_VERBS for a in sub.choices[verb]._actions
+               if not a.help and not isinstance(a, argparse._HelpAction)]
+    assert not missing, missing
+    p = cli("--version")
+    assert p.returncode == 0 and p.stdout.startswith("gcvd-flow ")

@@ -4,11 +4,14 @@ Reads RUN_DIR (``poses.txt``, ``depth/NNNNNN.npy``, ``cameras.json``, ``run.json
 ``gcvd_flow.io.run_dir.load_run``) and, for the formats that need colour, the run's RGB frames
 at working resolution: the output of its ``ingest`` stage, decoded from the cache by the digest
 recorded in ``run.json`` (neither the input video nor the current code is needed, and the
-frames are exactly the ones the run used). Writes into DIR (default RUN_DIR/export):
+frames are exactly the ones the run used). ``colmap`` and ``nerfstudio`` write their images at the
+source resolution (``--full-res``, the default), read again from the run's input when its content
+digest is still the one the run recorded (``source_frames.py``). Writes into DIR (default
+RUN_DIR/export):
 
     tum          DIR/poses.txt                    copy of the trajectory (TUM, camera-to-world)   tum.py
     depth-png    DIR/depth/NNNNNN.png             uint16 mm of depth * --depth-scale, 0 = invalid  depth_png.py
-    colmap       DIR/colmap/{cameras,images,points3D}.txt (+ DIR/images/NNNNNN.png)               colmap.py
+    colmap       DIR/colmap/sparse/0/{cameras,images,points3D}.txt|.bin, DIR/colmap/images/        colmap.py
     ply          DIR/points.ply                   coloured point cloud                             clouds.py
     tsdf         DIR/mesh.ply                     TSDF-fused triangle mesh (open3d VoxelBlockGrid) clouds.py
     nerfstudio   DIR/transforms.json (+ DIR/images/, DIR/depth/ PNGs)                             nerfstudio.py
@@ -108,7 +111,8 @@ def export_run(run_dir: str | Path, formats: Sequence[str], to: str | Path | Non
 def cmd_export(a: argparse.Namespace) -> int:
     """`gcvd-flow export` (its arguments are declared in gcvd_flow/cli.py, which stays light)."""
     opt = Options(every=a.every, voxel=a.voxel, tsdf_voxel=a.tsdf_voxel, depth_scale=a.depth_scale, fps=a.fps,
-                  mcap_images=a.mcap_images, max_points=a.max_points)
+                  mcap_images=a.mcap_images, max_points=a.max_points, max_track=a.max_track,
+                  colmap_binary=a.colmap_binary, full_res=a.full_res)
     doc = export_run(a.run_dir, a.formats, a.to, opt, a.cache, a.verify)
     if a.json_mode:
         print(json.dumps(doc, indent=1))

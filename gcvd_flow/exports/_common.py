@@ -56,6 +56,10 @@ class Options:
     fps: float | None = None
     mcap_images: str = "png"
     max_points: int = 20000
+    colmap_binary: bool = False  # colmap: cameras/images/points3D.bin instead of .txt
+    # colmap / nerfstudio images (and intrinsics) at the source resolution; None: on for them
+    full_res: bool | None = None
+    max_track: int = 32  # colmap: observations per 3D point at most (evenly spread over the frames)
 
     def check(self) -> None:
         """UsageError naming the flag for any out-of-range option (before anything is written)."""
@@ -69,6 +73,8 @@ class Options:
             raise UsageError(f"--fps {self.fps}: must be > 0")
         if self.max_points < 0:
             raise UsageError(f"--max-points {self.max_points}: must be >= 0")
+        if self.max_track < 2:
+            raise UsageError(f"--max-track {self.max_track}: must be >= 2")
         if self.mcap_images not in MCAP_IMAGES:
             raise UsageError(f"--mcap-images {self.mcap_images!r}: choose one of {', '.join(MCAP_IMAGES)}")
 
@@ -96,6 +102,19 @@ def write_bytes(path: Path, data: bytes) -> None:
 
 def write_text(path: Path, text: str) -> None:
     write_bytes(path, text.encode())
+
+
+def _link(src: Path, dst: Path) -> bool:
+    """Hard-link ``src`` to ``dst`` (replacing it) where the file system allows; else False."""
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dst.with_name(f".{dst.stem}.tmp-{os.getpid()}{dst.suffix}")
+        tmp.unlink(missing_ok=True)
+        os.link(src, tmp)
+        os.replace(tmp, dst)
+        return True
+    except OSError:
+        return False
 
 
 def clean_stale(folder: Path, keep: set[str], suffix: str) -> None:
@@ -142,20 +161,40 @@ class ExportContext:
             self._shared[key] = make()
         return self._shared[key]
 
-    def images_dir(self) -> dict[str, Any]:
-        """DIR/images/NNNNNN.png: the run's RGB frames (written once per export)."""
+    def view(self) -> Any:
+        """The frames colmap / nerfstudio write (a ``source_frames.FrameView``): at the source
+        resolution with ``--full-res`` (the default) when the run's input is still there and
+        unchanged, else at working resolution (with a warning, once)."""
+        from gcvd_flow.exports import source_frames
+
+        def make() -> Any:
+            if self.opt.full_res is False:
+                return source_frames.working_view(self.run)
+            v = source_frames.source_view(self.run)
+            if isinstance(v, str):
+                self.log(f"warning: images at working resolution {self.run.width}x{self.run.height}: {v}")
+                return source_frames.working_view(self.run)
+            return v
+
+        return self.shared("view", make)
+
+    def images_dir(self, sub: str = "images") -> dict[str, Any]:
+        """DIR/<sub>/NNNNNN.png: the frames of ``view()`` (written once per folder and export)."""
 
         def make() -> dict[str, Any]:
-            run, d = self.run, self.out / "images"
-            assert run.images is not None
+            run, d, view = self.run, self.out / sub, self.view()
+            assert view.images is not None
             names = set()
+            done = [Path(v["dir"]) for key, v in self._shared.items() if isinstance(key, tuple) and key[0] == "images"]
             for k in range(len(run)):
-                write_bytes(d / f"{run.name(k)}.png", png_bytes(run.images[k]))
-                names.add(f"{run.name(k)}.png")
+                name = f"{run.name(k)}.png"
+                if not (done and _link(done[0] / name, d / name)):  # the same PNG in another folder
+                    write_bytes(d / name, png_bytes(view.images[k]))
+                names.add(name)
             clean_stale(d, names, ".png")
-            return {"dir": str(d), "files": len(run)}
+            return {"dir": str(d), "files": len(run), "width": view.width, "height": view.height}
 
-        return self.shared("images", make)
+        return self.shared(("images", sub), make)
 
     def time_ns(self, k: int) -> int:
         """Log time of frame k: source frame index / fps (--fps, else the input's, else 30)."""

@@ -1,7 +1,9 @@
 """``nerfstudio``: DIR/transforms.json (+ DIR/images/, DIR/depth/ PNGs).
 
-``camera_model`` OPENCV (k1..p2 = 0), ``fl_x fl_y cx cy w h`` (cx, cy + 0.5: nerfstudio samples
-pixel centres at i + 0.5), per frame ``file_path``, ``depth_file_path`` and
+``camera_model`` OPENCV (k1..p2 = 0), ``fl_x fl_y cx cy w h`` of the images (cx, cy + 0.5:
+nerfstudio samples pixel centres at i + 0.5); the images are at the source resolution with
+``--full-res`` (the default; intrinsics scaled), the depth PNGs at the working resolution
+(nerfstudio resizes depth to its image, nearest neighbour); per frame ``file_path``, ``depth_file_path`` and
 ``transform_matrix``: camera-to-world in the OpenGL convention (camera x right, y up, z
 backward: our OpenCV pose with its y and z columns negated). ``depth_unit_scale_factor`` =
 0.001 / --depth-scale maps the depth PNGs back to pose units; ``ply_file_path`` when ``ply``
@@ -38,11 +40,12 @@ def write(ctx: ExportContext) -> dict[str, Any]:
     ctx.images_dir()
     depth_pngs(ctx)
     gl = opencv_to_opengl(run.poses)
-    K = run.K
+    view = ctx.view()
+    K = view.K
     doc: dict[str, Any] = {
         "camera_model": "OPENCV", "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]),
         # nerfstudio samples pixel centres at (i + 0.5): principal point in corner coordinates
-        "cx": float(K[0, 2] + 0.5), "cy": float(K[1, 2] + 0.5), "w": run.width, "h": run.height,
+        "cx": float(K[0, 2] + 0.5), "cy": float(K[1, 2] + 0.5), "w": view.width, "h": view.height,
         "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         # depth PNG value * factor = depth in the units of the poses
         "depth_unit_scale_factor": 1e-3 / ctx.opt.depth_scale,
@@ -54,4 +57,5 @@ def write(ctx: ExportContext) -> dict[str, Any]:
         doc["ply_file_path"] = "points.ply"
     dst = ctx.out / "transforms.json"
     write_text(dst, json.dumps(doc, indent=1))
-    return {"file": str(dst), "frames": len(run)}
+    return {"file": str(dst), "frames": len(run), "width": view.width, "height": view.height,
+            "resolution": view.resolution}

@@ -1,8 +1,11 @@
 """RUN_DIR: what a finished run writes for people and other tools, and reading it back.
 
-    poses.txt            TUM trajectory ``t tx ty tz qx qy qz qw``, T_w_c (camera-to-world)
+    poses.txt            TUM trajectory ``t tx ty tz qx qy qz qw``, T_w_c (camera-to-world); ``t`` is
+                         the source timestamp in seconds where the input has one (TUM RGB-D
+                         ``rgb.txt``; video: frame index / fps), else the source frame index
     depth/NNNNNN.npy     float32 (H, W) depth at working resolution, one global scale, 0 = invalid
-    cameras.json         intrinsics at working resolution, sizes, frame indices, keyframes, fps
+    cameras.json         intrinsics at working resolution, sizes, frame indices (NNNNNN),
+                         timestamps and what they are, keyframes, fps
     run.json             written by the engine: resolved config, every stage's key and output digest
 
 ``write_run_dir`` is the pipeline's export hook; ``load_run`` reads and checks a RUN_DIR with
@@ -27,6 +30,16 @@ if TYPE_CHECKING:
 # ------------------------------------------------------------------------------ writing a run
 
 
+def frame_timestamps(source: Any, idx: list[int]) -> tuple[list[float], str]:
+    """poses.txt's ``t`` of source frames ``idx``: (stamps, kind) with kind "seconds" when the
+    input has timestamps (``Source.timestamps``: TUM RGB-D rgb.txt, video index / fps), else
+    ("frame index") the indices themselves."""
+    ts = getattr(source, "timestamps", None)
+    if ts and all(0 <= i < len(ts) for i in idx):
+        return [float(ts[i]) for i in idx], "seconds"
+    return [float(i) for i in idx], "frame index"
+
+
 def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
     """Write RUN_DIR from a finished run: poses.txt (TUM, T_w_c), depth/NNNNNN.npy (float32),
     cameras.json. ``runner`` is the engine's Runner (stage values by name)."""
@@ -37,7 +50,8 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
     idx = list(cam["frame_indices"])
     # only the poses: decoding the whole segment solution would hold every depth map at once
     poses = np.asarray(runner.part("optimize_segments", ("poses",)), np.float64)
-    write_tum_poses(out / "poses.txt", np.asarray(idx, np.float64), poses)
+    stamps, stamp_kind = frame_timestamps(getattr(runner, "source", None), idx)
+    write_tum_poses(out / "poses.txt", np.asarray(stamps, np.float64), poses)
     depth_dir = out / "depth"
     depth_dir.mkdir(exist_ok=True)
     for old in depth_dir.glob("*.npy"):
@@ -50,6 +64,7 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
            "source_height": cam["source_height"], "intrinsics_guessed": cam["guessed"],
            "intrinsics_origin": cam["origin"], "frame_indices": idx, "fps": cam.get("fps"),
+           "timestamps": stamps, "timestamp_kind": stamp_kind, "layout": cam.get("layout"),
            "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
     return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "cameras": str(out / "cameras.json")}
@@ -153,12 +168,22 @@ def load_run(run_dir: str | Path) -> RunData:
                    fps=float(fps) if isinstance(fps, (int, float)) and fps > 0 else None)
 
 
+def recorded_cache(run_dir: str | Path) -> str | None:
+    """The cache directory run.json records (``"cache"``) if it still exists, else None."""
+    try:
+        rec = json.loads((Path(run_dir) / "run.json").read_text()).get("cache")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return rec if isinstance(rec, str) and Path(rec).is_dir() else None
+
+
 def attach_images(run: RunData, cache: str | None, verify: bool = True) -> None:
     """Set ``run.images`` from the run's recorded ``ingest`` output, or ``run.images_error``."""
     from gcvd_flow.engine import api
     from gcvd_flow.engine.artifacts import ArtifactError
     from gcvd_flow.engine.store import StoreError
 
+    cache = cache or recorded_cache(run.run_dir)
     where = cache or str(api.default_cache_dir())
     try:
         frames = api.recorded_output(run.run_dir, "ingest", cache, verify)

@@ -30,7 +30,7 @@ import numpy as np
 from gcvd_flow.engine.dag import ExternalRef
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import digest_file, key_of
-from gcvd_flow.io.formats import read_intrinsics_txt, read_rgb
+from gcvd_flow.io.formats import read_intrinsics_txt, read_rgb, read_tum_stamped_files
 
 # FFmpeg's own log lines would break the one-line error contract; we report failures ourselves.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
@@ -106,6 +106,9 @@ class Source:
     intrinsics_origin: str | None = None
     gt: dict[str, str] = field(default_factory=dict)  # e.g. {"poses": path, "depth": folder}
     names: list[str] = field(default_factory=list)
+    # source timestamp (seconds) of every frame where the input has one: TUM RGB-D rgb.txt
+    # stamps, video frame index / fps; None: frames are known by index only
+    timestamps: list[float] | None = None
 
     @property
     def digest(self) -> str:
@@ -179,7 +182,8 @@ def open_video(path: Path) -> Source:
         raise UsageError(f"{path}: found {n} decodable frame(s); need at least 2")
     vd = digest_file(path)
     refs = [ExternalRef(key_of(["video-frame", vd, i]), VideoFrame(str(path), i)) for i in range(n)]
-    return Source(str(path), "video", refs, size, fps=fps, names=[f"frame {i}" for i in range(n)])
+    return Source(str(path), "video", refs, size, fps=fps, names=[f"frame {i}" for i in range(n)],
+                  timestamps=[i / fps for i in range(n)] if fps else None)
 
 
 def open_source(path_str: str) -> Source:
@@ -202,19 +206,12 @@ def open_source(path_str: str) -> Source:
                             intrinsics_origin="intrinsics.txt" if intr else None, gt=gt)
     # TUM RGB-D
     if (path / "rgb.txt").exists():
-        files = []
-        for line in (path / "rgb.txt").read_text().splitlines():
-            if not line.strip() or line.startswith("#"):
-                continue
-            parts = line.split()
-            if len(parts) < 2:
-                raise UsageError(f"{path / 'rgb.txt'}: malformed line {line!r}")
-            files.append(path / parts[1])
+        stamps, files = read_tum_stamped_files(path / "rgb.txt")  # DatasetError names the line
         missing = [f for f in files if not f.exists()]
         if missing:
             raise UsageError(f"{missing[0]}: listed in rgb.txt but missing")
         gt = {"poses": str(path / "groundtruth.txt")} if (path / "groundtruth.txt").exists() else {}
-        return _from_images(path, files, "tum", gt=gt)
+        return _from_images(path, files, "tum", gt=gt, timestamps=[float(t) for t in stamps])
     # 7-Scenes
     seven = sorted(path.glob("frame-*.color.png"), key=lambda p: natural_key(p.name))
     if not seven:
