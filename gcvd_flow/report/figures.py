@@ -16,6 +16,20 @@ import numpy as np
 from gcvd_flow.io.formats import png_bytes
 
 
+TILE_MAX_WIDTH = 300  # px: shown at 150 CSS px, sharp on a 2x display, small in the file
+
+
+def _fit(img: np.ndarray, nearest: bool = False) -> np.ndarray:
+    """Downscale an image wider than TILE_MAX_WIDTH (area averaging, or nearest for labels)."""
+    import cv2
+
+    h, w = img.shape[:2]
+    if w <= TILE_MAX_WIDTH:
+        return img
+    size = (TILE_MAX_WIDTH, max(1, round(h * TILE_MAX_WIDTH / w)))
+    return cv2.resize(img, size, interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
+
+
 def data_uri(png: bytes) -> str:
     return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
 
@@ -87,7 +101,7 @@ def depth_tile(depth: np.ndarray, cmap: str = "turbo") -> bytes:
         x = np.clip((inv - lo) / max(hi - lo, 1e-12), 0, 1)
         colours = matplotlib.colormaps[cmap](x)[..., :3]
         rgb[ok] = (colours[ok] * 255).round().astype(np.uint8)
-    return png_bytes(rgb)
+    return png_bytes(_fit(rgb, nearest=True))
 
 
 def mask_tile(static: np.ndarray, rgb: np.ndarray | None) -> bytes:
@@ -96,8 +110,8 @@ def mask_tile(static: np.ndarray, rgb: np.ndarray | None) -> bytes:
     base = np.full(s.shape, 90, np.uint8) if rgb is None else (np.asarray(rgb).mean(-1) * 0.6).astype(np.uint8)
     out = np.repeat(base[..., None], 3, axis=-1)
     out[~s] = (230, 30, 200)
-    return png_bytes(out)
+    return png_bytes(_fit(out, nearest=True))
 
 
 def rgb_tile(rgb: np.ndarray) -> bytes:
-    return png_bytes(np.asarray(rgb, np.uint8))
+    return png_bytes(_fit(np.asarray(rgb, np.uint8)))
