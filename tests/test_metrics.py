@@ -238,3 +238,31 @@ def test_run_eval_bad_ground_truth_names_the_file(tmp_path):
         evaluate(run, tmp_path / "clip")
     with pytest.raises(UsageError, match="poses.txt"):
         evaluate(tmp_path / "nope", tmp_path / "clip")
+
+
+def test_run_eval_against_the_icl_frames_by_index(tmp_path):
+    """Redwood / ICL ground truth (a *.log, depth/ PNGs) is matched by source frame index; a run
+    made of the ground truth itself (scaled, strided) evaluates to ~0 (the shared data is optional)."""
+    import json
+    from pathlib import Path
+
+    from gcvd_flow.evaluate.run_eval import evaluate
+    from gcvd_flow.io.formats import read_depth_png, read_redwood_log, write_tum_poses
+
+    icl = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "icl_livingroom1_micro"
+    if not icl.is_dir():
+        pytest.skip(f"{icl} not present (shared ICL-NUIM frames)")
+    gt = read_redwood_log(sorted(icl.glob("*.log"))[0])
+    frames = list(range(3, 60, 7))
+    run = tmp_path / "run"
+    (run / "depth").mkdir(parents=True)
+    P = gt[frames].copy()
+    P[:, :3, 3] *= 0.5
+    write_tum_poses(run / "poses.txt", np.asarray(frames, np.float64), P)
+    for i in frames:
+        np.save(run / "depth" / f"{i:06d}.npy", 0.5 * read_depth_png(icl / "depth" / f"{i:05d}.png"))
+    (run / "cameras.json").write_text(json.dumps({"width": 640, "height": 480, "frame_indices": frames,
+                                                  "K": [[525, 0, 319.5], [0, 525, 239.5], [0, 0, 1]]}))
+    res = evaluate(run, icl)
+    assert res["association"] == "frame index" and res["frames"] == len(frames) == res["depth_frames"]
+    assert res["ate_rmse"] < 1e-9 and res["scale"] == pytest.approx(2.0) and res["abs_rel"] < 1e-6
