@@ -219,3 +219,30 @@ def test_every_product_option_has_help_and_version():
     assert not missing, missing
     p = cli("--version")
     assert p.returncode == 0 and p.stdout.startswith("gcvd-flow ")
+
+
+def test_depth_agreement_health_signal(tmp_path):
+    """Exact depth and poses agree (~100 %); a wrong translation scale does not."""
+    import json
+
+    from gcvd_flow.evaluate.synth import render_clip
+    from gcvd_flow.io.formats import write_tum_poses
+    from gcvd_flow.io.run_dir import load_run
+    from gcvd_flow.report.collect import depth_agreement
+
+    clip = render_clip(n_frames=10, trajectory="orbit", size=(96, 72), seed=0)
+
+    def fake(name: str, poses: np.ndarray):
+        run = tmp_path / name
+        (run / "depth").mkdir(parents=True)
+        write_tum_poses(run / "poses.txt", np.arange(10.0), poses)
+        for i in range(10):
+            np.save(run / "depth" / f"{i:06d}.npy", clip.depth[i].astype(np.float32))
+        (run / "cameras.json").write_text(json.dumps({"width": 96, "height": 72, "K": clip.K.tolist(),
+                                                      "frame_indices": list(range(10))}))
+        return load_run(run)
+
+    assert depth_agreement(fake("exact", clip.poses), [0, 3, 6, 9]) > 0.85  # occlusions, edges
+    wrong = clip.poses.copy()
+    wrong[:, :3, 3] *= 3.0
+    assert depth_agreement(fake("wrong", wrong), [0, 3, 6, 9]) < 0.6

@@ -183,6 +183,37 @@ def _sample(n: int, k: int) -> list[int]:
     return sorted(set(np.linspace(0, n - 1, min(n, k)).round().astype(int).tolist())) if n else []
 
 
+AGREE_TOL = 0.05
+
+
+def depth_agreement(run: RunData, keyframes: list[int], pairs: int = 12, stride: int = 2) -> float | None:
+    """Share of keyframe depth pixels (every ``stride``-th) that, projected with the poses into
+    the next keyframe, land inside it on a valid depth within AGREE_TOL of their own z; None if
+    there is no pair. A self-consistency check needing no ground truth."""
+    kf = keyframes if len(keyframes) >= 2 else list(range(len(run)))
+    if len(kf) < 2:
+        return None
+    K, hits, total = run.K, 0, 0
+    for m in _sample(len(kf) - 1, pairs):
+        a, b = kf[m], kf[m + 1]
+        da, db = run.depth(a)[::stride, ::stride], run.depth(b)
+        v, u = np.nonzero(np.isfinite(da) & (da > 0))
+        z = da[v, u].astype(np.float64)
+        cam = np.stack([(u * stride - K[0, 2]) / K[0, 0] * z, (v * stride - K[1, 2]) / K[1, 1] * z, z], 1)
+        T = np.linalg.inv(run.poses[b]) @ run.poses[a]
+        pb = cam @ T[:3, :3].T + T[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ub = np.round(pb[:, 0] / pb[:, 2] * K[0, 0] + K[0, 2])
+            vb = np.round(pb[:, 1] / pb[:, 2] * K[1, 1] + K[1, 2])
+        h, w = db.shape
+        inside = (pb[:, 2] > 0) & (ub >= 0) & (ub <= w - 1) & (vb >= 0) & (vb <= h - 1)
+        zb = db[vb[inside].astype(np.int64), ub[inside].astype(np.int64)]
+        ok = zb > 0
+        hits += int(np.count_nonzero(np.abs(zb[ok] - pb[inside, 2][ok]) <= AGREE_TOL * pb[inside, 2][ok]))
+        total += int(np.count_nonzero(ok))
+    return hits / total if total else None
+
+
 def _frame_signals(data: ReportData, store: Any) -> None:
     """Share of pixels passing flow consistency, static share, valid depth share, intrinsics."""
     run = data.run
@@ -190,6 +221,12 @@ def _frame_signals(data: ReportData, store: Any) -> None:
     v = float(np.mean(valid))
     data.signals.insert(0, Signal("valid depth", f"{100 * v:.1f} % of pixels", "ok" if v >= 0.5 else "warn",
                                   "pixels of depth/*.npy with a depth (> 0) after filtering"))
+    agree = depth_agreement(run, data.keyframes)
+    if agree is not None:
+        data.signals.insert(1, Signal(
+            "multi-view depth agreement", f"{100 * agree:.1f} % of pixels", "ok" if agree >= 0.6 else "warn",
+            f"depth of each keyframe, moved by the poses into the next keyframe, within {100 * AGREE_TOL:g} % "
+            "of that frame's depth (where it lands inside): poses and depth that fit each other"))
     if data.cams.get("intrinsics_guessed"):
         data.signals.append(Signal("intrinsics", "guessed", "warn",
                                    "no intrinsics given: f = 300/384 x long side; pass --intrinsics"))
