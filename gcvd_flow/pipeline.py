@@ -41,13 +41,8 @@ from stages.frontend import flow
 from stages.frontend import ingest as ingest_mod
 from stages.frontend import masks as masks_mod
 from stages.frontend import priors as priors_mod
-from stages.graph import association as association_mod
 from stages.graph import keyframes as keyframes_mod
-from stages.optimize import edges as opt_edges
-from stages.optimize import keyframes as opt_keyframes
 from stages.optimize import params as opt_params
-from stages.optimize import pose_graph as pose_graph_mod
-from stages.optimize import segments as opt_segments
 
 WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
 
@@ -376,6 +371,9 @@ def _open_resnet(p: AssociationParams) -> Any:
 
 def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     """Keyframes -> {graph (JSON), edge_flows [{i, j, fwd, bwd, fwd_valid, bwd_valid}]}."""
+    # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.graph import association as association_mod
+
     kf = inputs["keyframes"]["indices"]
     frames = inputs["ingest"]
     K = np.asarray(frames.summary["K"])
@@ -441,6 +439,9 @@ def _inv(T: np.ndarray) -> np.ndarray:
 def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """Keyframe windows -> {keyframes, poses (K,4,4) T_w_c, depths [K x (H,W)],
     rel_poses [{a, b, tau, T_b_a = inv(T_w_b) @ T_w_a}], state}."""
+    # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.optimize import keyframes as opt_keyframes
+
     kf = list(inputs["keyframes"]["indices"])
     frames = inputs["ingest"]
     pos = {f: k for k, f in enumerate(kf)}
@@ -472,6 +473,9 @@ OPTIMIZE_KEYFRAMES = declare(Stage("optimize_keyframes", run_optimize_keyframes,
 def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """Verified non-sequential keyframe pairs -> {edges: [{a, b, i, j, T_b_a, loss}]}, a, b keyframe
     positions, i, j frame indices, T_b_a = inv(T_w_b) @ T_w_a (camera a -> camera b coordinates)."""
+    # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.optimize import edges as opt_edges
+
     okf = inputs["optimize_keyframes"]
     kf = list(okf["keyframes"])
     pos = {f: k for k, f in enumerate(kf)}
@@ -509,6 +513,9 @@ class PoseGraphParams(Section):
 
 def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     """Keyframe poses + sequential and loop edges -> globally consistent keyframe poses."""
+    # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.optimize import pose_graph as pose_graph_mod
+
     okf = inputs["optimize_keyframes"]
     T_w_k = np.asarray(okf["poses"], np.float64)
     if not p.enabled or len(T_w_k) < 2:
@@ -559,6 +566,9 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     Images, priors and masks are read one window at a time (lazily stacked fields) and flows
     through a window-sized cache of decoded items: memory stays flat in the clip length (at
     256x192 one flow pair is ~0.9 MB; a 1000-frame clip would hold ~0.9 GB)."""
+    # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.optimize import segments as opt_segments
+
     frames, flows = inputs["ingest"], inputs["flow"]
     okf = inputs["optimize_keyframes"]
     res = opt_segments.optimize_segments(

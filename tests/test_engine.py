@@ -299,7 +299,11 @@ def test_ctrl_c_exits_130_and_leaves_a_consistent_cache(toy_input, tmp_path, job
     # inherits SIGINT ignored, as shells do for background jobs, and Ctrl-C would never arrive
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    time.sleep(2.0)
+    # interrupt once the transform stage is under way (40 decode items + a few transform items
+    # recorded), not after a fixed time: on a loaded machine start-up alone can take seconds
+    deadline = time.time() + 60
+    while len(list((cache / "records").glob("*/*.json"))) < 45 and p.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
     assert p.returncode == 130, err
@@ -308,7 +312,7 @@ def test_ctrl_c_exits_130_and_leaves_a_consistent_cache(toy_input, tmp_path, job
     res = by_stage(cli_json("run", str(toy_input), "--out", str(out), "--cache", str(cache), "--pipeline", "toy",
                             "--set", "transform.sleep=0.05"))
     assert res["transform"]["executed"] + res["transform"]["cached"] == 40
-    if jobs == "1":  # 2 s in, the serial run had finished some items: they are kept
+    if jobs == "1":  # the serial run had finished some transform items before Ctrl-C: they are kept
         assert res["transform"]["cached"] > 0
 
 

@@ -31,7 +31,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from gcvd_flow.engine.errors import UsageError
 
@@ -58,6 +57,8 @@ class DatasetError(UsageError):
 
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) as (qx, qy, qz, qw) (TUM order, w last) -> rotations (..., 3, 3)."""
+    from scipy.spatial.transform import Rotation  # lazy: scipy costs ~0.4 s of CLI start-up
+
     q = np.asarray(q, dtype=np.float64)
     return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
 
@@ -65,6 +66,8 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotations (..., 3, 3) -> unit quaternions (..., 4) as (qx, qy, qz, qw) with qw >= 0
     (q and -q are the same rotation; one sign gives stable text output)."""
+    from scipy.spatial.transform import Rotation
+
     R = np.asarray(R, dtype=np.float64)
     q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
     q[q[:, 3] < 0] *= -1.0
