@@ -44,6 +44,10 @@ def test_outputs_and_metrics(reference_run, loop_clip):
     assert len(depth) == 40
     d = np.load(depth[0], allow_pickle=False)
     assert d.dtype == np.float32 and d.shape == (96, 128) and (d > 0).mean() > 0.9
+    conf = [np.load(p, allow_pickle=False) for p in sorted((run / "confidence").glob("*.npy"))]
+    assert len(conf) == 40 and conf[0].shape == (96, 128) and conf[0].dtype == np.float32
+    allc = np.stack(conf)
+    assert allc.min() >= 0 and allc.max() <= 1 and (allc > 0).mean() > 0.3  # most pixels triangulated
     cams = json.loads((run / "cameras.json").read_text())
     assert cams["width"] == 128 and cams["keyframes"][0] == 0 and cams["keyframes"][-1] == 39
     rj = json.loads((run / "run.json").read_text())

@@ -4,6 +4,7 @@
                          the source timestamp in seconds where the input has one (TUM RGB-D
                          ``rgb.txt``; video: frame index / fps), else the source frame index
     depth/NNNNNN.npy     float32 (H, W) depth at working resolution, one global scale, 0 = invalid
+    confidence/NNNNNN.npy float32 (H, W) per-pixel confidence of that depth in [0, 1], 0 = unmeasured
     cameras.json         intrinsics at working resolution, sizes, frame indices (NNNNNN),
                          timestamps and what they are, keyframes, fps
     run.json             written by the engine: resolved config, every stage's key and output digest
@@ -42,7 +43,8 @@ def frame_timestamps(source: Any, idx: list[int]) -> tuple[list[float], str]:
 
 def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
     """Write RUN_DIR from a finished run: poses.txt (TUM, T_w_c), depth/NNNNNN.npy (float32),
-    cameras.json. ``runner`` is the engine's Runner (stage values by name)."""
+    confidence/NNNNNN.npy (float32 in [0, 1]), cameras.json. ``runner`` is the engine's Runner
+    (stage values by name)."""
     import numpy as np
 
     frames = runner.value("ingest")
@@ -52,13 +54,17 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
     poses = np.asarray(runner.part("optimize_segments", ("poses",)), np.float64)
     stamps, stamp_kind = frame_timestamps(getattr(runner, "source", None), idx)
     write_tum_poses(out / "poses.txt", np.asarray(stamps, np.float64), poses)
-    depth_dir = out / "depth"
-    depth_dir.mkdir(exist_ok=True)
-    for old in depth_dir.glob("*.npy"):
-        old.unlink()
+    depth_dir, conf_dir = out / "depth", out / "confidence"
+    for d in (depth_dir, conf_dir):
+        d.mkdir(exist_ok=True)
+        for old in d.glob("*.npy"):
+            old.unlink()
     filt = runner.value("depth_filter")
     for k, i in enumerate(idx):
-        np.save(depth_dir / f"{i:06d}.npy", np.asarray(filt[k]["depth"], np.float32), allow_pickle=False)
+        item = filt[k]
+        np.save(depth_dir / f"{i:06d}.npy", np.asarray(item["depth"], np.float32), allow_pickle=False)
+        if "confidence" in item:  # float32 (H, W) in [0, 1], 0 = unmeasured (stages/depth/fusion.py)
+            np.save(conf_dir / f"{i:06d}.npy", np.asarray(item["confidence"], np.float32), allow_pickle=False)
     K = np.asarray(cam["K"])
     doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
@@ -67,7 +73,8 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
            "timestamps": stamps, "timestamp_kind": stamp_kind, "layout": cam.get("layout"),
            "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
-    return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "cameras": str(out / "cameras.json")}
+    return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "confidence": str(conf_dir),
+            "cameras": str(out / "cameras.json")}
 
 
 # ------------------------------------------------------------------------------ reading a run
