@@ -32,11 +32,19 @@ def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="render a synthetic clip with exact ground truth (generic layout)")
     p.add_argument("out", metavar="OUT", help="folder to write the clip to (frames/, intrinsics.txt, gt/)")
     p.add_argument("--frames", type=int, default=60, help="number of frames (default 60)")
-    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation"], default="orbit",
-                   help="camera path (default orbit)")
+    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation", "walk"], default="orbit",
+                   help="camera path (default orbit; walk: a 3 m path that never revisits, for 300 frames)")
     p.add_argument("--moving-object", action="store_true", help="add an independently moving object (gt/dynamic/)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
     p.add_argument("--size", default="256x192", metavar="WxH", help="image size (default 256x192)")
+    p.add_argument("--noise", type=float, default=0.0, metavar="STD",
+                   help="sensor noise, std in 8-bit levels (default 0)")
+    p.add_argument("--blur", type=float, default=0.0, metavar="F",
+                   help="motion blur: fraction of each frame's image motion smeared (default 0; 1 = a full frame)")
+    p.add_argument("--exposure", type=float, default=0.0, metavar="F",
+                   help="exposure swings between frames, relative gain (default 0; e.g. 0.2)")
+    p.add_argument("--texture", type=float, default=1.0, metavar="F",
+                   help="surface detail contrast (default 1; e.g. 0.2 for low texture)")
     p.set_defaults(handler=cmd_synth)
 
 
@@ -164,8 +172,12 @@ def cmd_synth(a: argparse.Namespace) -> int:
         raise UsageError("--frames must be at least 2")
     size = _parse_size(a.size)
     t0 = time.perf_counter()
+    for name in ("noise", "blur", "exposure", "texture"):
+        if not 0.0 <= getattr(a, name) < 1e3:
+            raise UsageError(f"--{name} {getattr(a, name)}: must be a non-negative number")
     clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
-                       moving_object=a.moving_object, seed=a.seed)
+                       moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
+                       exposure=a.exposure, texture=a.texture)
     write_generic_layout(a.out, clip)
     print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
           f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")
