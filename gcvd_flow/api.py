@@ -49,6 +49,9 @@ class Result:
     depth: Sequence[np.ndarray]
     keyframes: list[int] = field(default_factory=list)  # source frame indices
     metrics: dict[str, Any] | None = None  # metrics.json of `gcvd-flow eval`, if any
+    # confidence[k]: confidence/NNNNNN.npy of frame k (float32 in [0, 1], 0 = unmeasured), read
+    # when indexed; None when the run directory has none
+    confidence: Sequence[np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -69,8 +72,14 @@ def load(run_dir: str | Path) -> Result:
             metrics = json.loads((root / "metrics.json").read_text())
         except ValueError:
             metrics = None
+    conf = None
+    if all((root / "confidence" / f"{data.name(k)}.npy").is_file() for k in range(len(data))):
+        from gcvd_flow.engine.dag import MapValue
+
+        conf = MapValue(lambda k: np.load(root / "confidence" / f"{data.name(k)}.npy", allow_pickle=False),
+                        len(data), None)
     return Result(root, data.poses, stamps, list(data.frame_indices), data.K, data.width, data.height, cams,
-                  data.depths, [int(i) for i in cams.get("keyframes") or []], metrics)
+                  data.depths, [int(i) for i in cams.get("keyframes") or []], metrics, conf)
 
 
 def eval(run_dir: str | Path, gt: str | Path, max_depth: float = 10.0, write: bool = True) -> dict[str, Any]:  # noqa: A001

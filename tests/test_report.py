@@ -192,6 +192,9 @@ def test_python_api_load_eval_report(run, tmp_path):
     assert (r.width, r.height) == (W, H) and np.allclose(r.K, cams["K"])
     assert not isinstance(r.depth, list) and len(r.depth) == N_FRAMES  # read when indexed
     assert np.array_equal(r.depth[5], np.load(run["run"] / "depth" / f"{cams['frame_indices'][5]:06d}.npy"))
+    if (run["run"] / "confidence").is_dir():
+        c = np.load(run["run"] / "confidence" / f"{cams['frame_indices'][5]:06d}.npy")
+        assert r.confidence is not None and np.array_equal(r.confidence[5], c)
     m = api.eval(run["run"], run["clip"], write=False)
     assert m["frames"] == N_FRAMES and m["ate_rmse"] > 0 and "abs_rel" in m
     page = api.report(run["run"], to=tmp_path / "p.html")
