@@ -14,7 +14,7 @@ from remote_servers import DUMMY_AWS, moto_s3, s3fs_client
 
 from gcvd_flow.engine.store import Store
 
-BUCKET = "gcvd-team"
+BUCKET = f"gcvd-team-{uuid.uuid4().hex[:8]}"  # moto's state is shared by its servers in a process
 
 
 @pytest.fixture(scope="module")
