@@ -208,7 +208,7 @@ def test_python_api_load_eval_report(run, tmp_path):
 PRODUCT_VERBS = ("synth", "eval", "report", "compare", "demo", "export")
 
 
-def test_every_product_option_has_help_and_version():
+def test_every_option_has_help_and_version():
     import argparse
 
     from gcvd_flow.cli import PRODUCT
@@ -217,7 +217,7 @@ def test_every_product_option_has_help_and_version():
     ap = build_parser(PRODUCT)
     sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
     missing = [f"{verb} {a.option_strings[0] if a.option_strings else a.dest}"
-               for verb in PRODUCT_VERBS for a in sub.choices[verb]._actions
+               for verb in sub.choices for a in sub.choices[verb]._actions
                if not a.help and not isinstance(a, argparse._HelpAction)]
     assert not missing, missing
     p = cli("--version")

@@ -92,7 +92,7 @@ def _add_scale_args(p: argparse.ArgumentParser) -> None:
 
 def _add_scale_commands(sub: Any) -> None:
     p = sub.add_parser("run-many", help="run many inputs through one DAG and one cache; a summary table")
-    p.add_argument("inputs", nargs="+", metavar="INPUT")
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="videos / image folders / dataset folders")
     p.add_argument("--out", required=True, metavar="DIR", help="one run directory per input: DIR/<input name>")
     _add_config_args(p)
     p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes / Dask workers")
@@ -103,7 +103,7 @@ def _add_scale_commands(sub: Any) -> None:
     p.add_argument("target", metavar="RUN_DIR|DIGEST", help="a run directory, or a record key / output / object digest")
     p.add_argument("stage", nargs="?", metavar="STAGE", help="with RUN_DIR: this stage only (default: all)")
     p.add_argument("--cache", metavar="DIR", help="default: the run's cache, else $GCVD_FLOW_CACHE / the user cache dir")
-    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.set_defaults(handler=_cmd_lineage)
 
 
@@ -123,12 +123,12 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     p.set_defaults(out_required=False)
 
     p = sub.add_parser("why", help="why STAGE would re-run: field-by-field key difference")
-    p.add_argument("stage")
-    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    p.add_argument("stage", help="the stage to explain (see `dag`)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory of an earlier run")
     _add_config_args(p)
 
     p = sub.add_parser("status", help="which stages of a run are up to date")
-    p.add_argument("--out", required=True, metavar="RUN_DIR")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory of an earlier run")
     _add_config_args(p)
 
     p = sub.add_parser("dag", help="print the stage graph")
@@ -136,22 +136,22 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     p.add_argument("--pipeline", default=product.pipeline, help="installed pipeline (developers: also module:attr)")
 
     p = sub.add_parser("fsck", help="re-hash every cached object; quarantine corrupt ones")
-    p.add_argument("--cache", metavar="DIR")
-    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     _add_remote_args(p, "verify this remote in place instead (lists what is bad; deletes only with --repair)")
     p.add_argument("--repair", action="store_true", help="with --remote: delete bad objects and records")
 
     p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
-    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
     p.add_argument("--keep", type=int, default=5, metavar="N", help="runs to keep (default 5; pins are always kept)")
     p.add_argument("--no-wait", action="store_true",
                    help="fail (exit 2) instead of waiting when a run, pull or push is using the cache")
-    p.add_argument("--json", dest="json_mode", action="store_true")
+    p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
 
     p = sub.add_parser("pin", help="keep a run's artifacts through gc (until unpinned)")
-    p.add_argument("name")
-    p.add_argument("--out", required=True, metavar="RUN_DIR")
-    p.add_argument("--cache", metavar="DIR")
+    p.add_argument("name", help="name of the pin")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory of an earlier run")
+    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
     p.add_argument("--remove", action="store_true", help="remove the pin instead")
 
     for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
@@ -162,8 +162,8 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
         which = p.add_mutually_exclusive_group()
         which.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
         which.add_argument("--all", action="store_true", help="everything (the default)")
-        p.add_argument("--cache", metavar="DIR")
-        p.add_argument("--json", dest="json_mode", action="store_true")
+        p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+        p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
 
     _add_scale_commands(sub)
     product.add_commands(sub)
