@@ -2,7 +2,7 @@
 
     ingest [map: frame] -> flow [map: pair i,i+1] -> masks [map: frame] -> priors [map: frame]
     -> keyframes -> association -> optimize_keyframes -> optimize_edges -> pose_graph
-    -> optimize_segments -> depth_fusion [map: frame] -> depth_filter [map: frame]
+    -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] -> depth_filter [map: frame]
 
 Each block holds everything about one stage: its parameters (a pydantic section: ``--set
 section.key=value``), for a map stage the inputs of each item (typed references: an item of
@@ -546,6 +546,50 @@ POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=("optimize_keyfram
                    params="pose_graph", kind="poses"))
 
 
+# ============================================================================== bundle_adjustment
+@config_section("bundle_adjustment")
+class BundleAdjustmentParams(Section):
+    enabled: bool = Field(False, description="refine keyframe poses over flow tracks (robust reprojection "
+                          "factors, gtsam) after the pose graph")
+    stride: int = Field(12, ge=2, description="px between track starts in every keyframe")
+    track_length: int = Field(4, ge=2, description="keyframes a track follows at most")
+    min_views: int = Field(3, ge=2, description="keyframes that must see a point")
+    robust_px: float = Field(1.0, gt=0, description="Cauchy scale of the reprojection error, px")
+    prior_rot_sigma: float = Field(0.05, gt=0, description="weak prior to the pose graph, rad")
+    prior_trans_frac: float = Field(0.05, gt=0, description="weak prior to the pose graph, x median depth")
+    max_iterations: int = Field(30, ge=1)
+
+
+def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx: Any) -> dict[str, Any]:
+    """Pose-graph keyframe poses -> {poses (K, 4, 4) T_w_k refined over flow tracks, statistics}."""
+    pg = inputs["pose_graph"]
+    T_w_k = np.asarray(pg["poses"], np.float64)
+    if not p.enabled:
+        return {"poses": T_w_k, "enabled": False}
+    # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.optimize import bundle_adjustment as ba_mod
+
+    okf = inputs["optimize_keyframes"]
+    kf = list(okf["keyframes"])
+    by_pair = {(int(e["i"]), int(e["j"])): e for e in inputs["association"]["edge_flows"]}
+    flows = [_flow_dict(by_pair[(kf[m], kf[m + 1])]) for m in range(len(kf) - 1)]
+    res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], flows,
+                               np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
+                               track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
+                               prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
+                               max_iterations=p.max_iterations)
+    ctx.log(f"{res['landmarks']} tracks, {res['observations']} observations, median reprojection error "
+            f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px")
+    return {"poses": np.asarray(res["poses"], np.float64), "enabled": True, "landmarks": res["landmarks"],
+            "observations": res["observations"], "initial_median_px": res["initial_median_px"],
+            "final_median_px": res["final_median_px"], "iterations": res["iterations"]}
+
+
+BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,
+                                  deps=("ingest", "association", "optimize_keyframes", "pose_graph"),
+                                  params="bundle_adjustment", kind="poses"))
+
+
 # ============================================================================== optimize_segments
 class _FlowDicts:
     """flows[i] -> the arrays of pair (i, i+1)'s flow."""
@@ -574,7 +618,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     res = opt_segments.optimize_segments(
         frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
         np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
-        np.asarray(inputs["pose_graph"]["poses"]), np.stack(okf["depths"]),
+        np.asarray(inputs["bundle_adjustment"]["poses"]), np.stack(okf["depths"]),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
         seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
     return {"poses": np.asarray(res["poses"], np.float64),
@@ -582,7 +626,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
 
 
 OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
-                          deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "pose_graph"),
+                          deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "bundle_adjustment"),
                           params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True))
 
 

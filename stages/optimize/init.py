@@ -4,7 +4,7 @@ Poses are T_w_c (camera-to-world, 4x4 float64, OpenCV axes); a relative pose map
 coordinates into camera-b coordinates is T_b_a = inv(T_w_b) @ T_w_a. Pixels (M, 2) are (u, v),
 the centre of the top-left pixel is (0, 0); depth is z-depth.
 
-The initialisation decides the result (DESIGN §9):
+The initialisation decides the result (docs/design.md, "Lessons from the prototype"):
 - keyframes: ``essential_chain``: MAGSAC++ essential matrix per consecutive keyframe pair (about
   5x smaller translation-direction error than RANSAC on DIS flow), scale propagated by
   triangulating each keyframe from both of its pairs on the same pixel grid;

@@ -1,6 +1,6 @@
 """GCVD losses on sampled points (torch).
 
-The optimiser samples M points per ordered frame pair instead of warping whole images (DESIGN §9),
+The optimiser samples M points per ordered frame pair instead of warping whole images (docs/design.md, "Lessons from the prototype"),
 so the pairwise terms take point tensors:
 
 - points are grouped by pair: leading dims (P, M) = (pairs, points per pair);

@@ -1,4 +1,4 @@
-"""Keyframe pose-graph optimisation with gtsam Levenberg-Marquardt (DESIGN §5.9).
+"""Keyframe pose-graph optimisation with gtsam Levenberg-Marquardt (docs/design.md, "Stage: pose_graph").
 
 Nodes are keyframe poses T_w_k (camera-to-world). Each edge (a, b) carries a measured relative
 pose ``T_a_b = inv(T_w_a) @ T_w_b`` (camera-b coordinates -> camera-a coordinates, i.e. camera b
@@ -100,7 +100,7 @@ def optimize_pose_graph(
             it is inverted here.
         kind: "se3" (paper) or "sim3" (absorbs monocular scale drift).
         fixed: node pinned by a tight prior at its initial pose (and scale 1).
-        max_iterations: LM iteration cap (paper/DESIGN: 100).
+        max_iterations: LM iteration cap (paper and docs/design.md: 100).
 
     Returns:
         dict(poses (K, 4, 4) T_w_k, scales (K,), initial_error, final_error, iterations), errors

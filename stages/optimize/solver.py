@@ -11,8 +11,8 @@ the pose network (``pose_param="net"``). Trainable: the depth head (lr), the per
 log-scales (lr * mesh_lr_mult), the spatial mesh vertices (lr * mesh_lr_mult *
 mesh_shape_lr_frac) and the pose corrections (pose_lr).
 
-Losses are evaluated on M = ``points`` random points per ordered pair (a, b) per step (DESIGN
-§9): every pair and so every pose gets a gradient at every step, at a cost independent of the
+Losses are evaluated on M = ``points`` random points per ordered pair (a, b) per step
+(docs/design.md, "Lessons from the prototype"): every pair and so every pose gets a gradient at every step, at a cost independent of the
 image size. A point of frame a is lifted with a's depth and moved into camera b by
 T_b_a = inv(T_w_b) @ T_w_a (camera-a -> camera-b coordinates).
 
