@@ -29,6 +29,7 @@ ROWS = [
     ("w/o mesh deformation", ["depth.mesh=false"]),
     ("w/o depth-gradient loss", ["losses.grad=false"]),
     ("w/o pose graph", ["pose_graph.enabled=false"]),
+    ("+ bundle adjustment", ["bundle_adjustment.enabled=true"]),
 ]
 
 
