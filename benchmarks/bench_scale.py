@@ -2,7 +2,8 @@
 
 Renders a synthetic clip once, then for each worker count runs the GCVD pipeline up to the last
 map stage before keyframe selection (``--until priors``: ingest, flow, masks, priors are map
-stages) with ``--executor dask --jobs W`` on a fresh cache, REPEATS times; per map stage it
+stages; ``--until keyframes`` then ``--until priors``, since priors needs only ingest) with
+``--executor dask --jobs W`` on a fresh cache, REPEATS times; per map stage it
 reports items/s (stage seconds from ``run.json``: the cluster's start-up is not counted) and the
 speed-up over one worker. One full run (in-process) measures the serial part: the whole stages
 (keyframes, association, the optimisations, the pose graph), which run in the client process.
@@ -46,9 +47,15 @@ def measure(clip: Path, tmp: Path, workers: int, repeats: int, extra: list[str])
     runs = []
     for r in range(repeats):
         cache, out = tmp / f"cache-w{workers}-{r}", tmp / f"out-w{workers}-{r}"
-        doc = gcvd("run", str(clip), "--out", str(out), "--cache", str(cache), "--until", "priors",
-                   "--executor", "dask", "--jobs", str(workers), "--json", *extra)
-        runs.append(stage_seconds(doc))
+        # priors needs only ingest; flow and masks are needed by keyframes: two targets, one cache
+        merged: dict[str, tuple[int, float]] = {}
+        for target in ("keyframes", "priors"):
+            doc = gcvd("run", str(clip), "--out", str(out), "--cache", str(cache), "--until", target,
+                       "--executor", "dask", "--jobs", str(workers), "--json", *extra)
+            for name, (n, secs) in stage_seconds(doc).items():
+                if name != "keyframes" and secs >= merged.get(name, (0, 0.0))[1]:
+                    merged[name] = (n, secs)  # a stage computed in the first pass is cached in the second
+        runs.append(merged)
         shutil.rmtree(cache, ignore_errors=True)
     return {name: (runs[0][name][0], statistics.median(r[name][1] for r in runs)) for name in runs[0]}
 
