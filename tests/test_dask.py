@@ -110,6 +110,9 @@ def test_run_many_on_one_cluster_reports_a_table_and_counts_failures(reference, 
     assert [r["ok"] for r in doc["runs"]] == [True, False, True] and doc["failed"] == 1
     assert "no .bin files" in doc["runs"][1]["error"]
     assert ok[0]["items"] == 24 and ok[1]["items"] == 10 and ok[1]["executed"] == 2 * 10 + 3
+    # the map stages (decode, transform) of both inputs ran together on the cluster, before the
+    # whole stages of either: their items were interleaved on the workers
+    assert ok[0]["interleaved"] == 2 * 24 and ok[1]["interleaved"] == 2 * 10
     assert _outputs(tmp_path / "runs" / "input") == ref
     # again, as a table: every stage of both inputs is a cache hit now
     p = cli("run-many", str(inp), str(other), "--out", str(tmp_path / "runs"), "--cache", str(tmp_path / "cache"),

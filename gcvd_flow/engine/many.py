@@ -1,9 +1,13 @@
 """`run-many`: many inputs through one DAG definition and one cache.
 
-Inputs run one after the other, each into ``DIR/<input name>``, sharing one item executor (one
-process pool or one Dask cluster, started once) and the cache, so a clip that shares items with
-an earlier one (same frames, same settings) reuses them. A failing input is reported and the
-others still run; the exit code is the number of failures (at most 100).
+Each input runs into ``DIR/<input name>``, all sharing one item executor (one process pool or
+one Dask cluster, started once) and the cache, so a clip that shares items with an earlier one
+(same frames, same settings) reuses them. With an executor, the map stages that come before the
+first whole stage (for GCVD: ingest, flow, masks, priors) run for all inputs at once, so the
+items of different clips interleave on the workers; then every input runs to the end, one after
+the other (the whole stages set process-wide thread counts of the numeric libraries, so two of
+them must not share a process). A failing input is reported and the others still run; the exit
+code is the number of failures (at most 100).
 """
 
 from __future__ import annotations
@@ -31,13 +35,16 @@ def run_dir_names(inputs: list[str]) -> list[str]:
     return names
 
 
-def _row(inp: str, out: Path, res: dict[str, Any] | None, seconds: float, error: str | None) -> dict[str, Any]:
+def _row(inp: str, out: Path, res: dict[str, Any] | None, seconds: float, error: str | None,
+         early: int = 0) -> dict[str, Any]:
+    """A summary row; ``early`` items were computed in the interleaved map-stage pass and show
+    as cache hits in the final pass (they count as executed here)."""
     row: dict[str, Any] = {"input": inp, "out": str(out), "ok": error is None, "seconds": round(seconds, 3)}
     if res is not None:
         stages = res.get("stages") or []
         first = stages[0] if stages else {"executed": 0, "cached": 0}
-        row.update(items=first["executed"] + first["cached"], executed=sum(s["executed"] for s in stages),
-                   cache_hits=sum(s["cached"] for s in stages))
+        row.update(items=first["executed"] + first["cached"], executed=sum(s["executed"] for s in stages) + early,
+                   cache_hits=sum(s["cached"] for s in stages) - early, interleaved=early)
     if error is not None:
         row["error"] = error
     return row
@@ -58,14 +65,17 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
         executor = make_executor(base.jobs, spec.pipeline.worker_init, base.executor, base.scheduler)
     rows = []
     t_all = time.perf_counter()
+    names = run_dir_names(inputs)
     try:
-        for inp, name in zip(inputs, run_dir_names(inputs)):
+        early = _map_stages_of_all_inputs(inputs, names, root, base, spec, executor, log) if executor else {}
+        for inp, name in zip(inputs, names):
             out = root / name
             t0 = time.perf_counter()
             try:
                 res = api.run(replace(base, input=inp, out=str(out)), log=lambda m, n=name: log(f"[{n}] {m}"),
                               executor=executor)
-                rows.append(_row(inp, out, res, time.perf_counter() - t0, None))
+                rows.append(_row(inp, out, res, time.perf_counter() - t0 + early.get(name, (0, 0.0))[1], None,
+                                 early.get(name, (0, 0.0))[0]))
             except KeyboardInterrupt:
                 raise
             except (UsageError, StoreError, OSError) as exc:
@@ -79,6 +89,46 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
             executor.close()
     failed = sum(1 for r in rows if not r["ok"])
     return {"runs": rows, "failed": failed, "seconds": round(time.perf_counter() - t_all, 3)}
+
+
+def _prefix_map_targets(pipeline: Any) -> list[str]:
+    """The map stages before the first whole stage that no other such stage depends on (running
+    them as targets runs the whole map prefix of the DAG)."""
+    prefix: list[str] = []
+    for s in pipeline.stages:
+        if s.is_map and all(d in prefix for d in s.deps):
+            prefix.append(s.name)
+    needed = {d for s in pipeline.stages if s.name in prefix for d in s.deps}
+    return [n for n in prefix if n not in needed]
+
+
+def _map_stages_of_all_inputs(inputs: list[str], names: list[str], root: Path, base: Any, spec: Any,
+                              executor: Any, log: Callable[[str], None]) -> dict[str, tuple[int, float]]:
+    """Run the map prefix of every input concurrently (threads sharing the executor: the items
+    are computed by its workers, the threads only plan and wait). Returns name -> (items
+    executed, seconds). Failures are left for the full pass to report."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gcvd_flow.engine import api
+
+    targets = _prefix_map_targets(spec.pipeline)
+
+    def one(inp: str, name: str) -> tuple[int, float]:
+        t0, executed = time.perf_counter(), 0
+        for target in targets:
+            try:
+                res = api.run(replace(base, input=inp, out=str(root / name)), target=target,
+                              log=lambda m, n=name: log(f"[{n}] {m}"), executor=executor)
+            except Exception:  # noqa: BLE001 - reported by the full pass
+                break
+            executed += sum(s["executed"] for s in res.get("stages") or [])
+        return executed, time.perf_counter() - t0
+
+    if not targets or len(inputs) < 2:
+        return {}
+    with ThreadPoolExecutor(max_workers=min(len(inputs), 8)) as pool:
+        futures = {name: pool.submit(one, inp, name) for inp, name in zip(inputs, names)}
+        return {name: f.result() for name, f in futures.items()}
 
 
 def format_table(doc: dict[str, Any]) -> str:
