@@ -77,14 +77,19 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- text formats
 
 
-def _numeric_rows(path: Path) -> list[tuple[int, list[float]]]:
-    """(line number, floats) of every non-empty, non-'#' line; DatasetError if unparsable."""
+def _read_text(path: Path) -> str:
+    """A text file's content; a one-line DatasetError naming it if it is missing or unreadable."""
     try:
-        text = path.read_text()
+        return path.read_text()
     except FileNotFoundError:
         raise DatasetError(path, "file not found") from None
     except (OSError, UnicodeDecodeError) as e:
         raise DatasetError(path, f"cannot read: {e}") from None
+
+
+def _numeric_rows(path: Path) -> list[tuple[int, list[float]]]:
+    """(line number, floats) of every non-empty, non-'#' line; DatasetError if unparsable."""
+    text = _read_text(path)
     rows = []
     for ln, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
@@ -144,12 +149,7 @@ def read_tum_stamped_files(path: PathLike) -> tuple[np.ndarray, list[Path]]:
     """Read a TUM RGB-D file list (``rgb.txt`` / ``depth.txt``: ``timestamp filename`` per line,
     ``#`` comments) -> (timestamps float64 (N,) seconds, paths relative to the list's folder)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(path, "file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(path, f"cannot read: {e}") from None
+    text = _read_text(path)
     stamps, files = [], []
     for ln, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
