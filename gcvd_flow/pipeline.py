@@ -569,15 +569,16 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
     from stages.optimize import bundle_adjustment as ba_mod
 
+    from gcvd_flow.io.native_output import native_stdout_silenced
+
     okf = inputs["optimize_keyframes"]
-    kf = list(okf["keyframes"])
-    by_pair = {(int(e["i"]), int(e["j"])): e for e in inputs["association"]["edge_flows"]}
-    flows = [_flow_dict(by_pair[(kf[m], kf[m + 1])]) for m in range(len(kf) - 1)]
-    res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], flows,
-                               np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
-                               track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
-                               prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
-                               max_iterations=p.max_iterations)
+    edges = {(int(e["i"]), int(e["j"])): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
+    with native_stdout_silenced():
+        res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], edges, list(okf["keyframes"]),
+                                   np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
+                                   track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
+                                   prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
+                                   max_iterations=p.max_iterations)
     ctx.log(f"{res['landmarks']} tracks, {res['observations']} observations, median reprojection error "
             f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px")
     return {"poses": np.asarray(res["poses"], np.float64), "enabled": True, "landmarks": res["landmarks"],

@@ -11,17 +11,25 @@ from geometry_ref import rigid_flow
 from stages.optimize.bundle_adjustment import build_tracks, bundle_adjust
 
 
-def _keyframe_problem(seed: int = 0):
-    clip = render_clip(n_frames=40, trajectory="walk", size=(128, 96), seed=seed)
-    kf = list(range(0, 40, 3))
-    T_gt = clip.poses[kf]
-    depths = [clip.depth[k] for k in kf]
-    flows = []
-    for a, b in zip(kf, kf[1:]):
-        fl = rigid_flow(clip.depth[a], clip.K, clip.poses[a], clip.poses[b])
-        ok = np.isfinite(fl).all(-1)
-        flows.append({"fwd": np.nan_to_num(fl).astype(np.float32), "fwd_valid": ok})
-    return clip.K, T_gt, depths, flows
+def _pair_flow(clip, a: int, b: int) -> dict[str, np.ndarray]:
+    """Exact flows both ways between frames a and b, as the association stage stores them."""
+    out = {}
+    for name, (s, t) in (("fwd", (a, b)), ("bwd", (b, a))):
+        fl = rigid_flow(clip.depth[s], clip.K, clip.poses[s], clip.poses[t])
+        out[name], out[name + "_valid"] = np.nan_to_num(fl).astype(np.float32), np.isfinite(fl).all(-1)
+    return out
+
+
+def _keyframe_problem(seed: int = 0, trajectory: str = "walk", n_frames: int = 40, step: int = 3,
+                      loop_edge: bool = False):
+    """Keyframes every ``step`` frames; edge flows between consecutive keyframes (and, with
+    ``loop_edge``, between the last and the first)."""
+    clip = render_clip(n_frames=n_frames, trajectory=trajectory, size=(128, 96), seed=seed)
+    kf = list(range(0, n_frames, step))
+    edges = {(a, b): _pair_flow(clip, a, b) for a, b in zip(kf, kf[1:])}
+    if loop_edge:
+        edges[(kf[0], kf[-1])] = _pair_flow(clip, kf[0], kf[-1])
+    return clip.K, clip.poses[kf], [clip.depth[k] for k in kf], edges, kf
 
 
 def _jitter(T: np.ndarray, seed: int) -> np.ndarray:
@@ -38,8 +46,8 @@ def _jitter(T: np.ndarray, seed: int) -> np.ndarray:
 
 
 def test_tracks_follow_the_flow():
-    K, T_gt, depths, flows = _keyframe_problem()
-    tracks = build_tracks(flows, len(T_gt), depths[0].shape, stride=16, track_length=4)
+    K, T_gt, depths, edges, kf = _keyframe_problem()
+    tracks = build_tracks(edges, kf, depths[0].shape, stride=16, track_length=4)
     assert len(tracks) > 50 and max(len(t) for t in tracks) == 4
     # a track's observations are the projections of one 3-D point (exact flows, exact depth)
     m, u, v = tracks[0][0]
@@ -51,13 +59,59 @@ def test_tracks_follow_the_flow():
 
 
 def test_bundle_adjustment_makes_poses_agree_with_the_tracks():
-    K, T_gt, depths, flows = _keyframe_problem()
+    K, T_gt, depths, edges, kf = _keyframe_problem()
     T0 = _jitter(T_gt, seed=1)
     before = ate(T0, T_gt)["ate_rmse"]
-    res = bundle_adjust(T0, depths, flows, K, stride=12, track_length=4, min_views=3)
+    res = bundle_adjust(T0, depths, edges, kf, K, stride=12, track_length=4, min_views=3)
     after = ate(res["poses"], T_gt)["ate_rmse"]
     print(f"ATE {before * 100:.2f} cm -> {after * 100:.2f} cm, median reprojection "
           f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px, {res['landmarks']} tracks")
     assert res["landmarks"] > 100 and res["final_median_px"] < res["initial_median_px"]
     assert after < 0.5 * before
     np.testing.assert_allclose(res["poses"][0], T0[0], atol=1e-6)  # the gauge: first keyframe fixed
+
+
+def _drift(T: np.ndarray, deg_per_kf: float = 0.4) -> np.ndarray:
+    """A smooth drift: each keyframe's pose relative to the previous is turned a little more
+    (about the vertical axis), as chained windows leave it; the error grows along the path."""
+    out = T.copy()
+    for k in range(1, len(T)):
+        step = np.linalg.inv(T[k - 1]) @ T[k]
+        turn = np.eye(4)
+        turn[:3, :3] = Rotation.from_rotvec([0, np.radians(deg_per_kf), 0]).as_matrix()
+        out[k] = out[k - 1] @ turn @ step
+    return out
+
+
+def test_tracks_cross_loop_edges():
+    """A loop edge (first <-> last keyframe) adds the other end's view to tracks that reach
+    either end; those observations are the same 3-D point (exact flows)."""
+    K, T_gt, depths, edges, kf = _keyframe_problem(trajectory="loop", n_frames=48, step=4, loop_edge=True)
+    n = len(kf)
+    tracks = build_tracks(edges, kf, depths[0].shape, stride=16, track_length=4)
+    across = [t for t in tracks if {o[0] for o in t} >= {0, n - 1}]
+    assert len(across) > 20
+    without = build_tracks({e: f for e, f in edges.items() if e != (kf[0], kf[-1])}, kf, depths[0].shape,
+                           stride=16, track_length=4)
+    assert not [t for t in without if {o[0] for o in t} >= {0, n - 1}]
+    for t in across[:10]:
+        m, u, v = t[0]
+        X = T_gt[m] @ np.r_[depths[m][int(round(v)), int(round(u))] * (np.linalg.inv(K) @ [u, v, 1.0]), 1.0]
+        for k, a, b in t[1:]:
+            p = K @ (np.linalg.inv(T_gt[k]) @ X)[:3]
+            assert np.hypot(p[0] / p[2] - a, p[1] / p[2] - b) < 1.0
+
+
+def test_loop_edge_lets_bundle_adjustment_remove_drift():
+    """A smooth drift is what short tracks cannot see (each window is self-consistent); the loop
+    edge's observations tie the end of the loop to its start, and the drift goes away."""
+    K, T_gt, depths, edges, kf = _keyframe_problem(trajectory="loop", n_frames=48, step=4, loop_edge=True)
+    T0 = _drift(T_gt)
+    before = ate(T0, T_gt)["ate_rmse"]
+    kw = dict(stride=12, track_length=4, min_views=3, prior_trans_frac=1.0, prior_rot_sigma=1.0)
+    with_loop = ate(bundle_adjust(T0, depths, edges, kf, K, **kw)["poses"], T_gt)["ate_rmse"]
+    chain_only = {e: f for e, f in edges.items() if e != (kf[0], kf[-1])}
+    without = ate(bundle_adjust(T0, depths, chain_only, kf, K, **kw)["poses"], T_gt)["ate_rmse"]
+    print(f"ATE {before * 100:.2f} cm drifted -> {without * 100:.2f} cm chain tracks -> "
+          f"{with_loop * 100:.2f} cm with the loop edge")
+    assert with_loop < 0.5 * without and with_loop < 0.3 * before
