@@ -142,6 +142,10 @@ def _add_export(sub) -> None:
                    "(default 32)")
     p.add_argument("--colmap-binary", action="store_true",
                    help="colmap: write cameras.bin, images.bin, points3D.bin instead of the text model")
+    p.add_argument("--min-confidence", type=float, default=None, metavar="C",
+                   help="depth confidence threshold in [0, 1] (runs with confidence/): nerfstudio masks are "
+                   "255 where confidence >= C, else 0 (default 0.5; 0 = no masks); when given, ply and the "
+                   "mcap cloud also drop pixels below C (default: they keep every valid pixel)")
     p.add_argument("--full-res", action=argparse.BooleanOptionalAction, default=None,
                    help="colmap / nerfstudio: images at the source resolution (read from the run's input, "
                    "intrinsics scaled); default on; --no-full-res: the working resolution")

@@ -275,6 +275,7 @@ def test_mcap_topics_schemas_counts_and_poses(run, exported):
     path = exported["out"] / "run.mcap"
     expected = {"/camera/image": ("foxglove.CompressedImage", N_FRAMES),
                 "/camera/depth": ("foxglove.RawImage", N_FRAMES),
+                "/camera/confidence": ("foxglove.RawImage", N_FRAMES),  # the run has confidence/
                 "/camera/calibration": ("foxglove.CameraCalibration", N_FRAMES),
                 "/tf": ("foxglove.FrameTransform", N_FRAMES),
                 "/trajectory": ("foxglove.PosesInFrame", 1),

@@ -11,11 +11,16 @@ RUN_DIR/export):
 
     tum          DIR/poses.txt                    copy of the trajectory (TUM, camera-to-world)   tum.py
     depth-png    DIR/depth/NNNNNN.png             uint16 mm of depth * --depth-scale, 0 = invalid  depth_png.py
+                 DIR/confidence/NNNNNN.png        uint16 confidence * 65535 (runs with confidence/)
     colmap       DIR/colmap/sparse/0/{cameras,images,points3D}.txt|.bin, DIR/colmap/images/        colmap.py
     ply          DIR/points.ply                   coloured point cloud                             clouds.py
     tsdf         DIR/mesh.ply                     TSDF-fused triangle mesh (open3d VoxelBlockGrid) clouds.py
-    nerfstudio   DIR/transforms.json (+ DIR/images/, DIR/depth/ PNGs)                             nerfstudio.py
-    mcap         DIR/run.mcap                     foxglove JSON schemas: image, depth, calibration, /tf, trajectory, cloud
+    nerfstudio   DIR/transforms.json (+ DIR/images/, DIR/depth/, DIR/confidence/, DIR/masks/ PNGs) nerfstudio.py
+    mcap         DIR/run.mcap                     foxglove JSON schemas: image, depth, confidence, calibration,
+                                                  /tf, trajectory, cloud
+
+Confidence (RUN_DIR/confidence/, optional: older run dirs export without it) in each format:
+``confidence.py``.
 
 Every file is written to a temporary name in its folder and renamed into place
 (``_common._atomic``), so an interrupted export never leaves a partial file under a final
@@ -40,7 +45,7 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.exports import clouds, colmap, depth_png, mcap, nerfstudio, tum
 from gcvd_flow.exports._common import _atomic, ExportContext, Options, Writer, images_use  # noqa: F401 - API
 from gcvd_flow.exports.depth_png import depth_to_mm16  # noqa: F401 - part of this API
-from gcvd_flow.io.run_dir import RunData, attach_images, load_run  # noqa: F401 - part of this API
+from gcvd_flow.io.run_dir import RunData, attach_images, check_confidence, load_run  # noqa: F401 - part of this API
 
 #: format name -> writer; the order is the write order (nerfstudio refers to points.ply).
 WRITERS: dict[str, Writer] = {
@@ -89,6 +94,9 @@ def export_run(run_dir: str | Path, formats: Sequence[str], to: str | Path | Non
     fmts = parse_formats(formats)
     opt.check()
     run = load_run(run_dir)
+    check_confidence(run)
+    if run.confidence_note:
+        log(f"warning: no confidence exported: {run.confidence_note}")
     out = Path(to) if to is not None else Path(run_dir) / "export"
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -112,7 +120,7 @@ def cmd_export(a: argparse.Namespace) -> int:
     """`gcvd-flow export` (its arguments are declared in gcvd_flow/cli.py, which stays light)."""
     opt = Options(every=a.every, voxel=a.voxel, tsdf_voxel=a.tsdf_voxel, depth_scale=a.depth_scale, fps=a.fps,
                   mcap_images=a.mcap_images, max_points=a.max_points, max_track=a.max_track,
-                  colmap_binary=a.colmap_binary, full_res=a.full_res)
+                  colmap_binary=a.colmap_binary, full_res=a.full_res, min_confidence=a.min_confidence)
     doc = export_run(a.run_dir, a.formats, a.to, opt, a.cache, a.verify)
     if a.json_mode:
         print(json.dumps(doc, indent=1))

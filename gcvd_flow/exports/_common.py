@@ -24,6 +24,8 @@ from gcvd_flow.io.formats import png_bytes
 from gcvd_flow.io.run_dir import RunData
 
 DEFAULT_FPS = 30.0
+#: nerfstudio masks: 255 where the depth confidence is >= this (``--min-confidence``), else 0
+DEFAULT_MIN_CONFIDENCE = 0.5
 MCAP_IMAGES = ("png", "jpeg", "raw")
 
 Writer = Callable[["ExportContext"], dict[str, Any]]
@@ -60,6 +62,13 @@ class Options:
     # colmap / nerfstudio images (and intrinsics) at the source resolution; None: on for them
     full_res: bool | None = None
     max_track: int = 32  # colmap: observations per 3D point at most (evenly spread over the frames)
+    # confidence threshold in [0, 1]: nerfstudio masks (None: DEFAULT_MIN_CONFIDENCE; 0: no masks);
+    # the ply / mcap clouds drop pixels below it only when it is given (None: every valid pixel)
+    min_confidence: float | None = None
+
+    @property
+    def mask_threshold(self) -> float:
+        return DEFAULT_MIN_CONFIDENCE if self.min_confidence is None else float(self.min_confidence)
 
     def check(self) -> None:
         """UsageError naming the flag for any out-of-range option (before anything is written)."""
@@ -75,6 +84,8 @@ class Options:
             raise UsageError(f"--max-points {self.max_points}: must be >= 0")
         if self.max_track < 2:
             raise UsageError(f"--max-track {self.max_track}: must be >= 2")
+        if self.min_confidence is not None and not 0.0 <= self.min_confidence <= 1.0:  # NaN fails too
+            raise UsageError(f"--min-confidence {self.min_confidence}: must be a number in [0, 1]")
         if self.mcap_images not in MCAP_IMAGES:
             raise UsageError(f"--mcap-images {self.mcap_images!r}: choose one of {', '.join(MCAP_IMAGES)}")
 

@@ -2,7 +2,8 @@
 
 ``ply``  DIR/points.ply  binary PLY, coloured points: every valid depth pixel of every N-th
          frame (``--every``) backprojected at its pose into the world frame; ``--voxel M``
-         averages points per M-sized voxel (default off).
+         averages points per M-sized voxel (default off); ``--min-confidence C`` (only when
+         given, and for runs with confidence/) keeps the pixels whose confidence is >= C.
 ``tsdf`` DIR/mesh.ply    triangle mesh with vertex colours from open3d TSDF fusion
          (``VoxelBlockGrid``) of depth + colour of every N-th frame at the run's poses; voxel
          length ``--tsdf-voxel``, default median depth / 100; truncation 4 voxels.
@@ -211,13 +212,29 @@ def tsdf_mesh(depths: Sequence[np.ndarray], images: Sequence[np.ndarray], poses:
 # ------------------------------------------------------------------------------ the writers
 
 
+def confident_depths(ctx: ExportContext) -> Sequence[np.ndarray]:
+    """The run's depth (lazy), set to 0 (invalid) where the confidence is below ``--min-confidence``
+    when that option is given and the run has confidence/; else the depth as it is."""
+    from gcvd_flow.engine.dag import MapValue
+
+    run, thr = ctx.run, ctx.opt.min_confidence
+    if thr is None or thr <= 0 or not run.has_confidence:
+        return run.depths
+
+    def get(k: int) -> np.ndarray:
+        d = run.depth(k)
+        return np.where(run.confidence(k) >= np.float32(thr), d, np.float32(0.0)).astype(np.float32)
+
+    return MapValue(get, len(run), None)
+
+
 def fused_cloud(ctx: ExportContext, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """The run's fused cloud (every --every-th frame, voxel grid ``voxel``), once per export;
-    grey points without images."""
+    """The run's fused cloud (every --every-th frame, voxel grid ``voxel``, pixels below a given
+    --min-confidence dropped), once per export; grey points without images."""
 
     def make() -> tuple[np.ndarray, np.ndarray]:
         run = ctx.run
-        pts, cols = fuse_point_cloud(run.depths, run.poses, run.K, run.images, ctx.opt.every, voxel)
+        pts, cols = fuse_point_cloud(confident_depths(ctx), run.poses, run.K, run.images, ctx.opt.every, voxel)
         if cols is None:
             cols = np.full((len(pts), 3), 128, np.uint8)
         return pts, cols
@@ -236,14 +253,17 @@ def write_ply(ctx: ExportContext) -> dict[str, Any]:
 
     pts, cols = fused_cloud(ctx, ctx.opt.voxel)
     if len(pts) == 0:
-        raise UsageError(f"{ctx.run.run_dir / 'depth'}: no valid depth to make a point cloud of")
+        thr = ctx.opt.min_confidence if ctx.run.has_confidence else None
+        low = f" with confidence >= {thr:g}" if thr else ""
+        raise UsageError(f"{ctx.run.run_dir / 'depth'}: no valid depth{low} to make a point cloud of")
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.colors = o3d.utility.Vector3dVector(cols.astype(np.float64) / 255.0)
     dst = ctx.out / "points.ply"
     with _atomic(dst) as tmp:
         if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
             raise OSError(f"{dst}: open3d could not write the point cloud")
-    return {"file": str(dst), "points": int(len(pts)), "every": ctx.opt.every, "voxel": ctx.opt.voxel}
+    return {"file": str(dst), "points": int(len(pts)), "every": ctx.opt.every, "voxel": ctx.opt.voxel,
+            "min_confidence": ctx.opt.min_confidence if ctx.run.has_confidence else None}
 
 
 @uses_images("required")

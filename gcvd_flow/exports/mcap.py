@@ -4,7 +4,10 @@ Per frame, at log time source frame index / fps (``--fps``, else the input's, el
 ``/camera/image`` ``foxglove.CompressedImage`` (PNG; ``--mcap-images jpeg``, or ``raw`` for
 ``foxglove.RawImage`` rgb8), ``/camera/depth`` ``foxglove.RawImage`` 32FC1,
 ``/camera/calibration`` ``foxglove.CameraCalibration`` (K in the OpenCV pixel convention, no
-distortion), ``/tf`` ``foxglove.FrameTransform`` world -> camera (the camera-to-world pose).
+distortion), ``/tf`` ``foxglove.FrameTransform`` world -> camera (the camera-to-world pose), and
+for runs with confidence/ ``/camera/confidence`` ``foxglove.RawImage`` 32FC1 (the depth's
+confidence in [0, 1], little-endian float32 like the depth; its channel is registered after the
+others, so files of runs without confidence keep their channel ids).
 Once, at the first frame's time: ``/trajectory`` ``foxglove.PosesInFrame`` (all poses) and
 ``/points`` ``foxglove.PointCloud`` (the fused cloud, voxel ``--voxel`` or median depth / 100).
 """
@@ -27,6 +30,7 @@ TOPICS = {  # topic -> schema (the image topic's schema depends on --mcap-images
     "/camera/image": "foxglove.CompressedImage", "/camera/depth": "foxglove.RawImage",
     "/camera/calibration": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransform",
     "/trajectory": "foxglove.PosesInFrame", "/points": "foxglove.PointCloud"}
+CONFIDENCE_TOPIC = "/camera/confidence"  # foxglove.RawImage 32FC1, runs with confidence/ only
 
 
 # ------------------------------------------------------------------------------ the writer
@@ -49,7 +53,7 @@ def _image_msg(ts: dict[str, int], rgb: np.ndarray, how: str, width: int, height
 
 def _messages(ctx: ExportContext, pts: np.ndarray, cols: np.ndarray) -> Iterator[tuple[str, int, dict[str, Any]]]:
     """(topic, log time ns, message) in write order: trajectory and cloud, then per frame
-    /tf, calibration, image, depth."""
+    /tf, calibration, image, depth (, confidence)."""
     from scipy.spatial.transform import Rotation
 
     run = ctx.run
@@ -71,10 +75,17 @@ def _messages(ctx: ExportContext, pts: np.ndarray, cols: np.ndarray) -> Iterator
             "R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "P": [float(v) for v in calib_P]}
         yield "/camera/image", t, _image_msg(ts, run.images[k], ctx.opt.mcap_images,  # type: ignore[index]
                                              run.width, run.height)
-        depth = np.ascontiguousarray(run.depth(k), "<f4")
-        yield "/camera/depth", t, {"timestamp": ts, "frame_id": "camera", "width": run.width,
-                                   "height": run.height, "encoding": "32FC1", "step": run.width * 4,
-                                   "data": _b64(depth.tobytes())}
+        yield "/camera/depth", t, _float_image_msg(ts, run.depth(k))
+        if run.has_confidence:
+            yield CONFIDENCE_TOPIC, t, _float_image_msg(ts, run.confidence(k))
+
+
+def _float_image_msg(ts: dict[str, int], img: np.ndarray) -> dict[str, Any]:
+    """foxglove.RawImage 32FC1 of a float (H, W) image (little-endian float32 rows)."""
+    a = np.ascontiguousarray(img, "<f4")
+    h, w = a.shape
+    return {"timestamp": ts, "frame_id": "camera", "width": w, "height": h, "encoding": "32FC1",
+            "step": w * 4, "data": _b64(a.tobytes())}
 
 
 @uses_images("required")
@@ -89,6 +100,8 @@ def write(ctx: ExportContext) -> dict[str, Any]:
     topics = dict(TOPICS)
     if opt.mcap_images == "raw":
         topics["/camera/image"] = "foxglove.RawImage"
+    if ctx.run.has_confidence:
+        topics[CONFIDENCE_TOPIC] = "foxglove.RawImage"
     dst = ctx.out / "run.mcap"
     counts: dict[str, int] = {}
     with _atomic(dst) as tmp, open(tmp, "wb") as f:

@@ -94,6 +94,10 @@ class RunData:
     fps: float | None = None
     images: Sequence[np.ndarray] | None = None  # uint8 (H, W, 3) RGB per frame
     images_error: str | None = None
+    # confidence/NNNNNN.npy of every frame, or None: a run dir from before confidence existed, or
+    # one where some frames lack the file (``confidence_note`` then says which)
+    confidence_paths: list[Path] | None = None
+    confidence_note: str | None = None
     _median: float | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -114,6 +118,25 @@ class RunData:
     @property
     def depths(self) -> Sequence[np.ndarray]:
         return MapValue(self.depth, len(self), None)
+
+    @property
+    def has_confidence(self) -> bool:
+        return self.confidence_paths is not None
+
+    def confidence(self, k: int) -> np.ndarray:
+        """float32 (H, W) confidence of frame k's depth in [0, 1] (0 = unmeasured; NaN read as 0,
+        values outside [0, 1] clipped). Only when ``has_confidence``."""
+        import numpy as np
+
+        assert self.confidence_paths is not None, "the run has no confidence/"
+        p = self.confidence_paths[k]
+        try:
+            c = np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"{p}: not a readable .npy confidence map ({exc})") from None
+        if c.shape != (self.height, self.width):
+            raise UsageError(f"{p}: confidence is {c.shape}, cameras.json says {self.height}x{self.width}")
+        return np.clip(np.nan_to_num(np.asarray(c, np.float32), nan=0.0), 0.0, 1.0)
 
     def name(self, k: int) -> str:
         return f"{self.frame_indices[k]:06d}"
@@ -170,9 +193,40 @@ def load_run(run_dir: str | Path) -> RunData:
         if d.shape != (height, width) or d.dtype.kind != "f":
             raise UsageError(f"{p}: depth is {d.dtype} {d.shape}, expected float ({height}, {width})")
         paths.append(p)
+    conf_paths, conf_note = _confidence_paths(run, idx)
     fps = cams.get("fps")
     return RunData(run, K, width, height, idx, poses, paths,
-                   fps=float(fps) if isinstance(fps, (int, float)) and fps > 0 else None)
+                   fps=float(fps) if isinstance(fps, (int, float)) and fps > 0 else None,
+                   confidence_paths=conf_paths, confidence_note=conf_note)
+
+
+def _confidence_paths(run: Path, idx: list[int]) -> tuple[list[Path] | None, str | None]:
+    """(confidence/NNNNNN.npy of every frame, None) when all are there; (None, None) without
+    confidence/ (a run from before it existed); (None, why) when only some frames have one (the
+    exports then carry no confidence). Contents are checked by ``check_confidence`` (exports),
+    not here: commands that do not read confidence must not fail on it."""
+    paths = [run / "confidence" / f"{i:06d}.npy" for i in idx]
+    present = [p.is_file() for p in paths]
+    if not any(present):
+        return None, None
+    if not all(present):
+        missing = paths[present.index(False)]
+        return None, f"{missing}: missing ({present.count(False)} of {len(paths)} frames have no confidence)"
+    return paths, None
+
+
+def check_confidence(run: RunData) -> None:
+    """One-line UsageError naming the first confidence/NNNNNN.npy that is not a float (H, W) array
+    (headers only), so that an export fails before it writes anything."""
+    import numpy as np
+
+    for p in run.confidence_paths or []:
+        try:
+            c = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"{p}: not a readable .npy confidence map ({exc})") from None
+        if c.shape != (run.height, run.width) or c.dtype.kind != "f":
+            raise UsageError(f"{p}: confidence is {c.dtype} {c.shape}, expected float ({run.height}, {run.width})")
 
 
 def recorded_cache(run_dir: str | Path) -> str | None:
