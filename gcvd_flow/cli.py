@@ -32,8 +32,9 @@ def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="render a synthetic clip with exact ground truth (generic layout)")
     p.add_argument("out", metavar="OUT", help="folder to write the clip to (frames/, intrinsics.txt, gt/)")
     p.add_argument("--frames", type=int, default=60, help="number of frames (default 60)")
-    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation", "walk"], default="orbit",
-                   help="camera path (default orbit; walk: a 3 m path that never revisits, for 300 frames)")
+    p.add_argument("--trajectory", choices=["orbit", "loop", "forward", "rotation", "walk", "scan"], default="orbit",
+                   help="camera path (default orbit; walk: a 3 m path that never revisits, for 300 frames; "
+                   "scan: 2.5 m while panning +-40 deg four times, keyframe-heavy at 200 frames)")
     p.add_argument("--moving-object", action="store_true", help="add an independently moving object (gt/dynamic/)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
     p.add_argument("--size", default="256x192", metavar="WxH", help="image size (default 256x192)")

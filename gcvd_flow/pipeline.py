@@ -1,8 +1,10 @@
 """The GCVD pipeline: its configuration and its DAG, one block per stage.
 
-    ingest [map: frame] -> flow [map: pair i,i+1] -> masks [map: frame] -> priors [map: frame]
-    -> keyframes -> association -> optimize_keyframes -> optimize_edges -> pose_graph
-    -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] -> depth_filter [map: frame]
+    ingest [map: frame] -> flow [map: pair i,i+1] -> flow_far [map: pair i,j] -> masks [map: frame]
+    -> priors [map: frame] (reads flow_far) -> keyframes -> association -> optimize_keyframes
+    -> optimize_edges -> pose_graph
+    -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] (reads flow_far)
+    -> depth_filter [map: frame]
 
 Each block holds everything about one stage: its parameters (a pydantic section: ``--set
 section.key=value``), for a map stage the inputs of each item (typed references: an item of
@@ -165,6 +167,80 @@ FLOW = declare(MapStage("flow", run_flow, deps=("ingest",), params="flow", kind=
                 resources={"model": _open_raft}, description="forward/backward flow of adjacent pairs + consistency"))
 
 
+# ============================================================================== flow_far
+# Direct DIS flows between frames further apart, computed once per pair for every stage that
+# triangulates against a reference: priors (frame i vs i-span and i-span/2, forward for the
+# first frames) and depth_fusion (frame i vs i+offset). The pairs are the union of what their
+# sections ask for, each item keyed by its two images, preset and threshold only, so changing
+# depth_fusion.offsets computes only the new pairs and leaves priors' items cached. Pair (a, b)
+# (a < b) holds compute_pair_flow(a, b): frame b's flow to a is its bwd / bwd_valid, exactly
+# what compute_pair_flow(b, a) returns as fwd / fwd_valid.
+def _prior_refs(i: int, n: int, p: "PriorsParams") -> list[int]:
+    """Frame i's prior references: span and span/2 frames back, forward for the first frames."""
+    if p.backend != "geometric":
+        return []
+    step = -1 if (i >= p.span or i >= n - 1 - i) else 1
+    js = [min(max(i + step * k, 0), n - 1) for k in (p.span, max(1, p.span // 2))]
+    return [j for j in js if j != i]
+
+
+def _fusion_refs(i: int, n: int, p: "DepthFusionParams") -> list[int]:
+    return [i + off for off in p.offsets if 0 <= i + off < n and off != 0] if p.enabled else []
+
+
+def _far_pair(i: int, j: int, preset: str, fb_thresh: float) -> tuple[int, int, str, float]:
+    return (min(i, j), max(i, j), preset, float(fb_thresh))
+
+
+def _far_pairs(n: int, b: Any) -> list[tuple[int, int, str, float]]:
+    pairs = set()
+    for i in range(n):
+        pairs.update(_far_pair(i, j, b.priors.preset, b.priors.fb_thresh) for j in _prior_refs(i, n, b.priors))
+        pairs.update(_far_pair(i, j, b.depth_fusion.preset, b.depth_fusion.fb_thresh)
+                     for j in _fusion_refs(i, n, b.depth_fusion))
+    return sorted(pairs)
+
+
+def _flow_far_items(view, b: Any):
+    return [{"a": ItemRef("ingest", a), "b": ItemRef("ingest", c), "preset": Const(preset),
+             "fb_thresh": Const(fb)} for a, c, preset, fb in _far_pairs(view.len("ingest"), b)]
+
+
+def _flow_far_summary(view, b: Any) -> dict[str, Any]:
+    return {"pairs": [list(pr) for pr in _far_pairs(view.len("ingest"), b)]}
+
+
+def _far_index(view) -> dict[tuple, int]:
+    """flow_far's pairs (a, b, preset, fb_thresh) -> item index, from its summary."""
+    return {tuple(pr): k for k, pr in enumerate(view.summary("flow_far")["pairs"])}
+
+
+def _far_refs(index: dict[tuple, int], i: int, js: list[int], preset: str, fb_thresh: float) -> dict[str, Any]:
+    """Item inputs reading frame i's flows to frames js from flow_far: refs (the pair items)
+    and ref_dirs ("fwd": i is the pair's first frame, "bwd": its second)."""
+    return {"refs": [ItemRef("flow_far", index[_far_pair(i, j, preset, fb_thresh)]) for j in js],
+            "ref_dirs": Const(["fwd" if i < j else "bwd" for j in js])}
+
+
+def run_flow_far(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """Pair (a, b), a < b -> {fwd, bwd (H, W, 2) float32 px, fwd_valid, bwd_valid bool} (DIS)."""
+    return flow.compute_pair_flow(inputs["a"]["image"], inputs["b"]["image"], preset=inputs["preset"],
+                                  fb_thresh=inputs["fb_thresh"])
+
+
+def _far_flow(fl: dict[str, Any], direction: str) -> tuple[np.ndarray, np.ndarray]:
+    """A flow_far item seen from one of its frames: (flow to the other frame, its valid mask)."""
+    if direction == "fwd":
+        return np.asarray(fl["fwd"]), np.asarray(fl["fwd_valid"], bool)
+    return np.asarray(fl["bwd"]), np.asarray(fl["bwd_valid"], bool)
+
+
+FLOW_FAR = declare(MapStage("flow_far", run_flow_far, deps=("ingest",), params=("priors", "depth_fusion"),
+                   kind="flow_far", items=_flow_far_items, summary=_flow_far_summary,
+                   selection_params=("priors", "depth_fusion"),
+                   description="direct flows of the pairs priors and depth_fusion triangulate, once per pair"))
+
+
 # ============================================================================== masks
 @config_section("masks")
 class MasksParams(Section):
@@ -269,16 +345,15 @@ def _prior_items(view, p: PriorsParams):
     # Reference frames span and span/2 frames back (forward for the first frames): the prior
     # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
     # link, which on ICL turned 2-view poses off by degrees (AbsRel 0.25 vs 0.085 direct).
+    # The direct flows are flow_far's items (shared with depth_fusion).
     n = view.len("ingest")
+    index = _far_index(view) if p.backend == "geometric" else {}
     out = []
     for i in range(n):
         it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
-        if p.backend == "geometric":
-            step = -1 if (i >= p.span or i >= n - 1 - i) else 1
-            for name, k in (("ref", p.span), ("ref_near", max(1, p.span // 2))):
-                j = min(max(i + step * k, 0), n - 1)
-                if j != i:
-                    it[name] = ItemRef("ingest", j)
+        js = _prior_refs(i, n, p)
+        if js:
+            it.update(_far_refs(index, i, js, p.preset, p.fb_thresh))
         out.append(it)
     return out
 
@@ -299,11 +374,10 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
     # direct flows to the far reference (more parallax) and the near one (sees what the far
     # one lost); the prior fuses both (stages.frontend.priors.geometric_prior)
     flows = []
-    for ref in ("ref", "ref_near"):
-        if ref in inputs:
-            fl = flow.compute_pair_flow(image, inputs[ref]["image"], preset=p.preset, fb_thresh=p.fb_thresh)
-            if fl["fwd_valid"].mean() >= priors_mod.MIN_VALID_FRACTION:
-                flows.append((fl["fwd"], fl["fwd_valid"]))
+    for fl, direction in zip(inputs.get("refs", []), inputs.get("ref_dirs", [])):
+        fwd, valid = _far_flow(fl, direction)
+        if valid.mean() >= priors_mod.MIN_VALID_FRACTION:
+            flows.append((fwd, valid))
     out = priors_mod.geometric_prior(image, K, flows[:1], extra=flows[1:]) if flows else None
     if out is None:
         h, w = image.shape[:2]
@@ -312,7 +386,7 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = declare(MapStage("priors", run_priors, deps=("ingest",), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=("ingest", "flow_far"), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
                   description="MiDaS-shaped relative inverse depth"))
 
@@ -645,15 +719,16 @@ class DepthFusionParams(Section):
 
 
 def _fusion_items(view, p: DepthFusionParams):
+    # the flows to the references are flow_far's items (shared with priors)
     n = view.len("ingest")
+    index = _far_index(view) if p.enabled else {}
     out = []
     for i in range(n):
-        refs = [i + off for off in p.offsets if 0 <= i + off < n and off != 0] if p.enabled else []
-        out.append({"index": Const(i), "image": ItemRef("ingest", i),
-                    "K": PartRef("ingest", ("K",), summary=True),
+        refs = _fusion_refs(i, n, p)
+        out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
                     "poses": PartRef("optimize_segments", ("poses",)),
                     "depth": PartRef("optimize_segments", ("depths", i)),
-                    "refs": [ItemRef("ingest", j) for j in refs], "ref_indices": Const(refs)})
+                    **_far_refs(index, i, refs, p.preset, p.fb_thresh), "ref_indices": Const(refs)})
     return out
 
 
@@ -665,14 +740,15 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
         return {"depth": depth, "measured": 0.0, "confidence": np.zeros_like(depth)}
     poses = np.asarray(inputs["poses"], np.float64)
     i = int(inputs["index"])
-    refs = [(ref["image"], poses[int(j)]) for ref, j in zip(inputs["refs"], inputs["ref_indices"])]
-    fused, measured, confidence = depth_fusion.fuse_depth(
-        inputs["image"]["image"], depth, poses[i], refs, np.asarray(inputs["K"]), preset=p.preset,
-        fb_thresh=p.fb_thresh, min_angle_deg=p.min_angle_deg, max_log_dev=p.max_log_dev)
+    flows = [(*_far_flow(fl, d), poses[int(j)])
+             for fl, d, j in zip(inputs["refs"], inputs["ref_dirs"], inputs["ref_indices"])]
+    fused, measured, confidence = depth_fusion.fuse_depth_flows(
+        depth, poses[i], flows, np.asarray(inputs["K"]), min_angle_deg=p.min_angle_deg,
+        max_log_dev=p.max_log_dev)
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "optimize_segments"),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "flow_far", "optimize_segments"),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 

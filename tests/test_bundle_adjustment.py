@@ -115,3 +115,23 @@ def test_loop_edge_lets_bundle_adjustment_remove_drift():
     print(f"ATE {before * 100:.2f} cm drifted -> {without * 100:.2f} cm chain tracks -> "
           f"{with_loop * 100:.2f} cm with the loop edge")
     assert with_loop < 0.5 * without and with_loop < 0.3 * before
+
+
+def test_native_prints_stay_off_stdout():
+    """gtsam_unstable prints rejected trial steps to C++ std::cout; with thousands of lines `run
+    --json` would not be JSON. Inside the guard, C-level writes to stdout vanish; around it
+    stdout works as before (nothing lost, nothing delayed into it)."""
+    import subprocess
+    import sys
+
+    code = ("import ctypes, json, sys\n"
+            "from gcvd_flow.io.native_output import native_stdout_silenced\n"
+            "libc = ctypes.CDLL(None)\n"
+            "print('before', flush=True)\n"
+            "with native_stdout_silenced():\n"
+            "    for _ in range(3):\n"
+            "        libc.printf(b'native noise\\n')\n"
+            "    print('python noise')\n"
+            "print(json.dumps({'ok': 1}))\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert p.stdout.splitlines() == ["before", '{"ok": 1}'], p.stdout

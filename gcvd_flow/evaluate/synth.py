@@ -38,7 +38,7 @@ import open3d as o3d
 
 log = logging.getLogger(__name__)
 
-TRAJECTORIES = ("orbit", "loop", "forward", "rotation", "walk")
+TRAJECTORIES = ("orbit", "loop", "forward", "rotation", "walk", "scan")
 
 # Room extents in metres (world frame, y down).
 ROOM_MIN = np.array([-3.0, -1.5, -3.0])
@@ -179,6 +179,15 @@ def make_trajectory(kind: str, n_frames: int) -> np.ndarray:
             dx = 0.9 * np.cos(np.pi * (2 * si - 1) * 0.75) * np.pi * 1.5
             eye = np.array([x, -0.05 + 0.015 * np.sin(6 * np.pi * si), z])
             R = _yaw_pitch(0.35 * np.arctan2(dx, 1.7), 0.2)
+            poses[i] = np.eye(4)
+            poses[i, :3, :3], poses[i, :3, 3] = R, eye
+    elif kind == "scan":
+        # A room scan: 2.5 m along the room while panning +-40 deg four times (yaw ~3 deg per
+        # frame at 200 frames, like sweeping a phone across the walls): the keyframe-heavy clip
+        # (88 of 200 frames, 44 %, become keyframes; the real clips of issue 13 had 22-60 %).
+        for i, si in enumerate(s):
+            eye = np.array([0.6 * np.sin(np.pi * si), -0.05 + 0.02 * np.sin(8 * np.pi * si), -2.4 + 2.5 * si])
+            R = _yaw_pitch(np.deg2rad(40.0) * np.sin(4 * 2 * np.pi * si), 0.2 + 0.05 * np.sin(3 * np.pi * si))
             poses[i] = np.eye(4)
             poses[i, :3, :3], poses[i, :3, 3] = R, eye
     else:  # rotation: pan 40 deg with a small tilt, camera centre fixed exactly

@@ -29,6 +29,7 @@ def native_stdout_silenced() -> Iterator[None]:
         os.dup2(devnull, 1)
         yield
     finally:
+        sys.stdout.flush()
         libc.fflush(None)
         os.dup2(saved, 1)
         os.close(saved)

@@ -61,28 +61,55 @@ def fuse_depth(
     """Fused depth float32 (H, W) of one frame, the fraction of pixels measured, and the
     per-pixel confidence float32 (H, W) in [0, 1] (module docstring).
 
-    refs: [(image_j uint8 (H, W, 3), pose_j (4, 4) camera-to-world), ...].
+    refs: [(image_j uint8 (H, W, 3), pose_j (4, 4) camera-to-world), ...]; the DIS flow
+    image -> image_j (``preset``, forward-backward test at ``fb_thresh`` px) is computed here.
     """
+    flows = []
+    for img_j, pose_j in refs:
+        fl = flow_mod.compute_pair_flow(image, img_j, preset=preset, fb_thresh=fb_thresh)
+        flows.append((fl["fwd"], fl["fwd_valid"], pose_j))
+    return fuse_depth_flows(depth, pose, flows, K, min_angle_deg=min_angle_deg, max_log_dev=max_log_dev)
+
+
+def _measure(fwd: np.ndarray, fwd_valid: np.ndarray, depth: np.ndarray, T: np.ndarray, K: np.ndarray,
+             min_angle_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """One reference's triangulated pixels (v, u, z, weight = angle^2), or None when too few."""
+    valid = fwd_valid & (depth > 0)
+    if valid.sum() < MIN_MEASUREMENTS:
+        return None
+    if np.linalg.norm(T[:3, 3]) < 1e-9:
+        return None  # no baseline: nothing to triangulate
+    vs, us = np.nonzero(valid)
+    p = np.stack([us, vs], 1).astype(np.float64)
+    q = p + fwd[valid].astype(np.float64)
+    z, _ = triangulate_depths(p, q, K, T[:3, :3], T[:3, 3])
+    ang = _angles_deg(p, q, K, T[:3, :3])
+    ok = np.isfinite(z) & (z > 0) & (ang > min_angle_deg)
+    if ok.sum() < MIN_MEASUREMENTS:
+        return None
+    return vs[ok], us[ok], z[ok], ang[ok] ** 2
+
+
+def fuse_depth_flows(
+    depth: np.ndarray,
+    pose: np.ndarray,
+    flows: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    min_angle_deg: float = 0.2,
+    max_log_dev: float = 0.3,
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """``fuse_depth`` with the flows given: flows [(fwd float32 (H, W, 2) this frame -> j,
+    fwd_valid bool (H, W) its forward-backward consistency, pose_j (4, 4) camera-to-world), ...]
+    (e.g. the items of the pipeline's ``flow_far`` stage, computed once per pair)."""
     depth = np.asarray(depth, np.float64)
     h, w = depth.shape
     K = np.asarray(K, np.float64)
-    vv, uu = np.mgrid[0:h, 0:w]
     meas: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # (v, u, z, weight)
-    for img_j, pose_j in refs:
-        fl = flow_mod.compute_pair_flow(image, img_j, preset=preset, fb_thresh=fb_thresh)
-        valid = fl["fwd_valid"] & (depth > 0)
-        if valid.sum() < MIN_MEASUREMENTS:
-            continue
+    for fwd, fwd_valid, pose_j in flows:
         T = np.linalg.inv(np.asarray(pose_j, np.float64)) @ np.asarray(pose, np.float64)
-        if np.linalg.norm(T[:3, 3]) < 1e-9:
-            continue  # no baseline: nothing to triangulate
-        p = np.stack([uu[valid], vv[valid]], 1).astype(np.float64)
-        q = p + fl["fwd"][valid].astype(np.float64)
-        z, _ = triangulate_depths(p, q, K, T[:3, :3], T[:3, 3])
-        ang = _angles_deg(p, q, K, T[:3, :3])
-        ok = np.isfinite(z) & (z > 0) & (ang > min_angle_deg)
-        if ok.sum() >= MIN_MEASUREMENTS:
-            meas.append((vv[valid][ok], uu[valid][ok], z[ok], ang[ok] ** 2))
+        m = _measure(np.asarray(fwd), np.asarray(fwd_valid, bool), depth, T, K, min_angle_deg)
+        if m is not None:
+            meas.append(m)
     if not meas:
         # nothing triangulated (no baseline, too small an angle, no consistent flow): keep the
         # optimised depth rather than a scale estimated from nothing
@@ -104,5 +131,5 @@ def fuse_depth(
     # 3x3 median: per-pixel flow noise, and seams between measured and kept pixels
     fused = cv2.medianBlur(fused.astype(np.float32), 3)
     rms_angle = np.sqrt(den / np.maximum(kept, 1.0))  # den sums angle^2 of the kept measurements
-    confidence = (kept / np.maximum(made, 1.0)) * (kept / max(len(refs), 1)) * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG))
+    confidence = (kept / np.maximum(made, 1.0)) * (kept / max(len(flows), 1)) * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG))
     return fused, float(have.mean()), confidence.astype(np.float32)

@@ -1,0 +1,126 @@
+"""flow_far: the direct flows priors and depth_fusion triangulate, computed once per pair.
+
+priors (frame i vs i-8 and i-4, forward for the first frames) and depth_fusion (frame i vs i-8
+and i+8) used to run DIS forward + backward on the same pairs each; now both read the items of
+one map stage. These tests fail if a pair is computed twice, if a consumer reads the wrong
+direction of a pair (results must equal computing the flow directly), or if changing one
+consumer's pairs invalidates the other consumer.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import by_stage, cli, cli_json
+from gcvd_flow import api
+from gcvd_flow import pipeline as gp
+from stages.frontend import flow as flow_mod
+from stages.frontend import priors as priors_mod
+
+N = 24
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("clip") / "loop"
+    cli("synth", str(out), "--frames", str(N), "--trajectory", "loop", "--size", "96x72", check=True)
+    return out
+
+
+def _pairs(n: int, **sections) -> list[tuple]:
+    cfg = gp.GCVDConfig(**sections)
+    return gp._far_pairs(n, type("B", (), {"priors": cfg.priors, "depth_fusion": cfg.depth_fusion}))
+
+
+def test_graph_priors_and_fusion_read_flow_far():
+    names = gp.PIPELINE.names()
+    assert names.index("flow_far") < names.index("priors")
+    assert "flow_far" in gp.PIPELINE.get("priors").deps
+    assert "flow_far" in gp.PIPELINE.get("depth_fusion").deps
+
+
+def test_pairs_are_the_union_of_both_consumers():
+    pairs = _pairs(N)
+    assert len(pairs) == len(set(pairs)) and all(a < b for a, b, _, _ in pairs)
+    spans = Counter(b - a for a, b, _, _ in pairs)
+    # i-8 / i+8 of fusion and the span-8 prior share one set of pairs; the span-4 prior its own
+    assert spans == {8: N - 8, 4: N - 4}
+    # a consumer of each kind asks for 2 flows per frame: 4 per frame before, ~2 per frame now
+    asked = sum(len(gp._prior_refs(i, N, gp.PriorsParams())) + len(gp._fusion_refs(i, N, gp.DepthFusionParams()))
+                for i in range(N))
+    assert asked == 2 * N + 2 * (N - 8) and len(pairs) == 2 * N - 12
+    # sections disagreeing on the DIS settings get separate pairs, nothing shared by mistake
+    apart = _pairs(N, depth_fusion={"preset": "medium"})
+    assert len(apart) == len(pairs) + (N - 8)
+    assert _pairs(N, priors={"backend": "midas", "weights": __file__}, depth_fusion={"enabled": False}) == []
+
+
+def test_a_reversed_pair_is_the_direct_flow_of_the_other_frame():
+    from gcvd_flow.evaluate.synth import render_clip
+
+    c = render_clip(9, "loop", size=(96, 72), seed=1)
+    item = flow_mod.compute_pair_flow(c.frames[0], c.frames[8], preset="fine")
+    for direction, (a, b) in (("fwd", (0, 8)), ("bwd", (8, 0))):
+        direct = flow_mod.compute_pair_flow(c.frames[a], c.frames[b], preset="fine")
+        f, v = gp._far_flow(item, direction)
+        assert np.array_equal(f, direct["fwd"]) and np.array_equal(v, direct["fwd_valid"])
+
+
+def _run(clip: Path, tmp: Path, *sets: str, until: str = "priors") -> dict:
+    args = [a for s in sets for a in ("--set", s)]
+    return by_stage(cli_json("run", str(clip), "--out", str(tmp / "run"), "--cache", str(tmp / "cache"),
+                             "--until", until, *args))
+
+
+def test_each_pair_once_and_offsets_do_not_invalidate_priors(clip, tmp_path):
+    first = _run(clip, tmp_path)
+    assert first["flow_far"]["executed"] == len(_pairs(N)) and first["priors"]["executed"] == N
+    # the items equal the flows computed directly, and the priors equal the prior computed
+    # from direct flows (what the stage did before it read flow_far)
+    far = api.recorded_output(tmp_path / "run", "flow_far", str(tmp_path / "cache"))
+    frames = api.recorded_output(tmp_path / "run", "ingest", str(tmp_path / "cache"))
+    pri = api.recorded_output(tmp_path / "run", "priors", str(tmp_path / "cache"))
+    pairs = [tuple(p) for p in far.summary["pairs"]]
+    assert pairs == _pairs(N)
+    for k in (0, len(pairs) - 1):
+        a, b, preset, fb = pairs[k]
+        direct = flow_mod.compute_pair_flow(frames[a]["image"], frames[b]["image"], preset=preset, fb_thresh=fb)
+        assert all(np.array_equal(far[k][n], direct[n]) for n in ("fwd", "bwd", "fwd_valid", "bwd_valid"))
+    K = np.asarray(frames.summary["K"])
+    for i in (2, N - 1):  # a frame looking forward, one looking back
+        fl = [flow_mod.compute_pair_flow(frames[i]["image"], frames[j]["image"], preset="fine")
+              for j in gp._prior_refs(i, N, gp.PriorsParams())]
+        fl = [(f["fwd"], f["fwd_valid"]) for f in fl if f["fwd_valid"].mean() >= priors_mod.MIN_VALID_FRACTION]
+        ref = priors_mod.geometric_prior(frames[i]["image"], K, fl[:1], extra=fl[1:])
+        assert np.array_equal(pri[i]["inv_depth"], ref["inv_depth"].astype(np.float32))
+    # a further fusion reference computes only its new pairs; the priors stay cached
+    more = _run(clip, tmp_path, "depth_fusion.offsets=[-8, 8, 12]")
+    assert more["flow_far"]["executed"] == N - 12 and more["flow_far"]["cached"] == len(_pairs(N))
+    assert more["priors"]["executed"] == 0 and more["priors"]["cached"] == N
+    # fusion at +-4 needs no new flow: the span-4 prior computed those pairs already
+    near = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -4, 4, 8]")
+    assert near["flow_far"]["executed"] == 0 and near["priors"]["executed"] == 0
+
+
+def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
+    """In process (--jobs 1): every DIS pair flow of the run is counted by its images."""
+    calls: Counter = Counter()
+    real = flow_mod.compute_pair_flow
+
+    def counting(img_a, img_b, *a, **kw):
+        calls[(img_a.tobytes(), img_b.tobytes())] += 1
+        return real(img_a, img_b, *a, **kw)
+
+    monkeypatch.setattr(flow_mod, "compute_pair_flow", counting)
+    quick = ["optimize_keyframes.steps=10", "optimize_edges.steps=5", "optimize_segments.steps=5"]
+    res = api.run(api.Invocation(input=str(clip), out=str(tmp_path / "run"), cache=str(tmp_path / "cache"),
+                                 sets=quick, json_mode=True), log=lambda m: None)
+    st = {s["name"]: s for s in res["stages"]}
+    assert st["depth_fusion"]["executed"] == N and st["flow_far"]["executed"] == len(_pairs(N))
+    # adjacent pairs (flow) + far pairs (flow_far), each once, none also in reverse
+    assert sum(calls.values()) == (N - 1) + len(_pairs(N))
+    assert max(calls.values()) == 1 and not any((b, a) in calls for a, b in calls)
