@@ -623,15 +623,18 @@ POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=("optimize_keyfram
 # ============================================================================== bundle_adjustment
 @config_section("bundle_adjustment")
 class BundleAdjustmentParams(Section):
-    enabled: bool = Field(False, description="refine keyframe poses over flow tracks (robust reprojection "
+    enabled: bool = Field(True, description="refine keyframe poses over flow tracks (robust reprojection "
                           "factors, gtsam) after the pose graph")
     stride: int = Field(12, ge=2, description="px between track starts in every keyframe")
-    track_length: int = Field(4, ge=2, description="keyframes a track follows at most")
+    track_length: int = Field(8, ge=2, description="keyframes a track follows at most (plus one hop "
+                              "across each loop edge)")
     min_views: int = Field(3, ge=2, description="keyframes that must see a point")
-    robust_px: float = Field(1.0, gt=0, description="Cauchy scale of the reprojection error, px")
+    robust_px: float = Field(0.3, gt=0, description="Cauchy scale of the reprojection error, px")
     prior_rot_sigma: float = Field(0.05, gt=0, description="weak prior to the pose graph, rad")
     prior_trans_frac: float = Field(0.05, gt=0, description="weak prior to the pose graph, x median depth")
     max_iterations: int = Field(30, ge=1)
+    consistent_px: float = Field(0.25, ge=0, description="keep the pose graph's poses when they already "
+                                 "reproject the tracks to this median error, px (flow noise, no drift)")
 
 
 def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx: Any) -> dict[str, Any]:
@@ -652,12 +655,14 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
                                    np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
                                    track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
                                    prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
-                                   max_iterations=p.max_iterations)
+                                   max_iterations=p.max_iterations, consistent_px=p.consistent_px)
     ctx.log(f"{res['landmarks']} tracks, {res['observations']} observations, median reprojection error "
-            f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px")
+            f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px"
+            + (" (poses kept: already consistent with the tracks)" if res["skipped"] and res["landmarks"] else ""))
     return {"poses": np.asarray(res["poses"], np.float64), "enabled": True, "landmarks": res["landmarks"],
             "observations": res["observations"], "initial_median_px": res["initial_median_px"],
-            "final_median_px": res["final_median_px"], "iterations": res["iterations"]}
+            "final_median_px": res["final_median_px"], "iterations": res["iterations"],
+            "skipped": bool(res["skipped"])}
 
 
 BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,

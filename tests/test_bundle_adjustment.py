@@ -103,35 +103,39 @@ def test_tracks_cross_loop_edges():
 
 
 def test_loop_edge_lets_bundle_adjustment_remove_drift():
-    """A smooth drift is what short tracks cannot see (each window is self-consistent); the loop
-    edge's observations tie the end of the loop to its start, and the drift goes away."""
+    """Drift comes from small systematic flow errors that every link of the chain repeats
+    (here +0.15 px horizontally on each consecutive pair): chain tracks agree with them and turn
+    the path; the loop edge's unbiased view of the start ties the end back to it."""
     K, T_gt, depths, edges, kf = _keyframe_problem(trajectory="loop", n_frames=48, step=4, loop_edge=True)
-    T0 = _drift(T_gt)
-    before = ate(T0, T_gt)["ate_rmse"]
-    kw = dict(stride=12, track_length=4, min_views=3, prior_trans_frac=1.0, prior_rot_sigma=1.0)
-    with_loop = ate(bundle_adjust(T0, depths, edges, kf, K, **kw)["poses"], T_gt)["ate_rmse"]
-    chain_only = {e: f for e, f in edges.items() if e != (kf[0], kf[-1])}
-    without = ate(bundle_adjust(T0, depths, chain_only, kf, K, **kw)["poses"], T_gt)["ate_rmse"]
-    print(f"ATE {before * 100:.2f} cm drifted -> {without * 100:.2f} cm chain tracks -> "
+    loop = (kf[0], kf[-1])
+    biased = {}
+    for e, f in edges.items():
+        f = dict(f)
+        if e != loop:
+            f["fwd"] = f["fwd"] + np.float32([0.15, 0.0])
+            f["bwd"] = f["bwd"] - np.float32([0.15, 0.0])
+        biased[e] = f
+    kw = dict(stride=12, track_length=4, min_views=3, robust_px=1.0, prior_trans_frac=1.0, prior_rot_sigma=1.0,
+              consistent_px=0.0)
+    def loop_gap(T: np.ndarray) -> float:
+        """Error (m) of the last keyframe's position seen from the first: the loop's closure."""
+        rel, rel_gt = np.linalg.inv(T[0]) @ T[-1], np.linalg.inv(T_gt[0]) @ T_gt[-1]
+        scale = ate(T, T_gt)["scale"]
+        return float(np.linalg.norm(scale * rel[:3, 3] - rel_gt[:3, 3]))
+
+    with_loop = loop_gap(bundle_adjust(T_gt, depths, biased, kf, K, **kw)["poses"])
+    chain_only = {e: f for e, f in biased.items() if e != loop}
+    without = loop_gap(bundle_adjust(T_gt, depths, chain_only, kf, K, **kw)["poses"])
+    print(f"loop closure error from the true poses: {without * 100:.2f} cm with chain tracks, "
           f"{with_loop * 100:.2f} cm with the loop edge")
-    assert with_loop < 0.5 * without and with_loop < 0.3 * before
+    assert with_loop < 0.5 * without
 
 
-def test_native_prints_stay_off_stdout():
-    """gtsam_unstable prints rejected trial steps to C++ std::cout; with thousands of lines `run
-    --json` would not be JSON. Inside the guard, C-level writes to stdout vanish; around it
-    stdout works as before (nothing lost, nothing delayed into it)."""
-    import subprocess
-    import sys
-
-    code = ("import ctypes, json, sys\n"
-            "from gcvd_flow.io.native_output import native_stdout_silenced\n"
-            "libc = ctypes.CDLL(None)\n"
-            "print('before', flush=True)\n"
-            "with native_stdout_silenced():\n"
-            "    for _ in range(3):\n"
-            "        libc.printf(b'native noise\\n')\n"
-            "    print('python noise')\n"
-            "print(json.dumps({'ok': 1}))\n")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert p.stdout.splitlines() == ["before", '{"ok": 1}'], p.stdout
+def test_consistent_poses_are_kept():
+    """Poses that already reproject the tracks within flow noise are returned unchanged."""
+    K, T_gt, depths, edges, kf = _keyframe_problem()
+    res = bundle_adjust(T_gt, depths, edges, kf, K, consistent_px=0.25)
+    assert res["skipped"] and res["initial_median_px"] < 0.25 and res["landmarks"] > 100
+    np.testing.assert_array_equal(res["poses"], T_gt)
+    moved = bundle_adjust(_jitter(T_gt, seed=1), depths, edges, kf, K, consistent_px=0.25)
+    assert not moved["skipped"] and moved["iterations"] > 0

@@ -38,6 +38,7 @@ class BundleResult(TypedDict):
     initial_median_px: float  # median reprojection error over all observations (robust to outliers)
     final_median_px: float
     iterations: int
+    skipped: bool  # poses returned unchanged (already consistent with the tracks, or no tracks)
 
 
 def _bilinear(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -135,11 +136,17 @@ def inverse_depth_landmark(u: float, v: float, z: float, Kinv: np.ndarray) -> np
 
 def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                         edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
-                        K: np.ndarray, stride: int = 12, track_length: int = 4, min_views: int = 3,
-                        robust_px: float = 1.0, prior_rot_sigma: float = 0.05, prior_trans_frac: float = 0.05,
-                        max_iterations: int = 30) -> BundleResult:
+                        K: np.ndarray, stride: int = 12, track_length: int = 8, min_views: int = 3,
+                        robust_px: float = 0.3, prior_rot_sigma: float = 0.05, prior_trans_frac: float = 0.05,
+                        max_iterations: int = 30, consistent_px: float = 0.25) -> BundleResult:
     """Refine keyframe poses T_w_k (K, 4, 4) over tracks of the keyframe graph
-    (:func:`build_tracks`), landmarks as inverse depth in their first keyframe."""
+    (:func:`build_tracks`), landmarks as inverse depth in their first keyframe.
+
+    If the given poses (with landmarks at the keyframes' depth) already reproject the tracks to a
+    median error below ``consistent_px``, they are kept (``skipped``): the tracks hold no evidence
+    of drift then, only flow noise (~0.1 px for DIS), which the dense windows average better than
+    sparse tracks can. On the synthetic loop, bundle adjustment started at the exact poses moves
+    them to 1.4 mm keyframe ATE (median error 0.11 px); the pose graph gives 1.0 mm."""
     import gtsam_unstable
 
     T_w_k = np.asarray(T_w_k, np.float64)
@@ -149,7 +156,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
               if len(t) >= min_views]
     if n < 3 or not tracks:
         return {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
-                "final_median_px": 0.0, "iterations": 0}
+                "final_median_px": 0.0, "iterations": 0, "skipped": True}
     med = float(np.median([np.median(d[d > 0]) for d in depths if (d > 0).any()] or [1.0]))
     cal = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
     pix = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(robust_px),
@@ -169,15 +176,19 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
             graph.add(gtsam_unstable.InvDepthFactorVariant3b(X("x", m), X("x", k), L("l", j),
                                                              np.array([a, b]), cal, pix))
         n_obs += len(track)
+    e0 = _median_error(graph, values)
+    if e0 < consistent_px:
+        return {"poses": T_w_k, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
+                "final_median_px": e0, "iterations": 0, "skipped": True}
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = opt.optimize()
     poses = np.stack([result.atPose3(X("x", k)).matrix() for k in range(n)])
-    e0, e1 = _median_error(graph, values), _median_error(graph, result)
+    e1 = _median_error(graph, result)
     log.debug("bundle adjustment: %d landmarks, %d observations, median %.3f -> %.3f px", n_lm, n_obs, e0, e1)
     return {"poses": poses, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
-            "final_median_px": e1, "iterations": int(opt.iterations())}
+            "final_median_px": e1, "iterations": int(opt.iterations()), "skipped": False}
 
 
 def _pose_priors(T_w_k: np.ndarray, rot_sigma: float, trans_sigma: float
