@@ -12,6 +12,11 @@ start at the same moment (separate caches and run dirs); the ratio is the slower
 against the run alone, with OpenMP's idle threads sleeping (the default since this change:
 ``OMP_WAIT_POLICY=PASSIVE``) and with OpenMP's own default (``OMP_WAIT_POLICY=`` empty: spin,
 then sleep) as the peer, median of ``--repeat`` rounds.
+
+``--real``: the issue-13 clips, each run ``--repeat`` times cold: the ICL-NUIM living room
+(../shared/data, 211 frames 640x480) and a keyframe-heavy synthetic scan (200 frames rendered
+at 640x480, ``synth --trajectory scan``); median seconds per frame, per-stage medians, keyframe
+share and peak RSS.
 """
 
 from __future__ import annotations
@@ -71,16 +76,70 @@ def side_by_side(frames: int, size: str, trajectory: str, repeat: int) -> dict:
     return out
 
 
+ICL = ROOT.parent / "shared" / "data" / "icl_livingroom1_micro"
+
+
+def _cold_run(clip: Path, work: Path, extra: list[str]) -> dict:
+    """One cold run in its own process: {seconds, stages {name: s}, peak_rss_mb, keyframes, frames}."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    cmd = [sys.executable, "-m", "gcvd_flow", "run", str(clip), "--out", str(work / "run"), "--cache",
+           str(work / "cache"), "--json", *extra]
+    with open(work / "out.json", "w") as fo, open(work / "err.txt", "w") as fe:
+        p = subprocess.Popen(cmd, cwd=ROOT, stdout=fo, stderr=fe, env=dict(os.environ, CI="1"))
+        _, status, usage = os.wait4(p.pid, 0)  # this child's own peak RSS (KiB on Linux)
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit((work / "err.txt").read_text()[-3000:])
+    doc = json.loads((work / "out.json").read_text())
+    cams = json.loads((work / "run" / "cameras.json").read_text())
+    return {"seconds": doc["seconds"], "stages": {s["name"]: s["seconds"] for s in doc["stages"]},
+            "peak_rss_mb": usage.ru_maxrss / 1024, "keyframes": len(cams["keyframes"]),
+            "frames": len((work / "run" / "poses.txt").read_text().splitlines())}
+
+
+def real_clips(repeat: int) -> list[dict]:
+    import statistics
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-real-") as tmp_s:
+        tmp = Path(tmp_s)
+        scan = tmp / "scan"
+        subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(scan), "--frames", "200",
+                        "--trajectory", "scan", "--size", "640x480"], cwd=ROOT, check=True, capture_output=True)
+        for name, clip, extra in (("icl", ICL, ["--intrinsics", "525,525,319.5,239.5"]),
+                                  ("scan-640x480", scan, [])):
+            runs = [_cold_run(clip, tmp / f"{name}-{r}", extra) for r in range(repeat)]
+            n = runs[0]["frames"]
+            med = statistics.median(r["seconds"] for r in runs)
+            row = {"clip": name, "frames": n, "keyframes": runs[0]["keyframes"],
+                   "keyframe_share": runs[0]["keyframes"] / n, "total_s_all": [r["seconds"] for r in runs],
+                   "s_per_frame": med / n, "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+                   "stages_s": {k: statistics.median(r["stages"][k] for r in runs) for k in runs[0]["stages"]}}
+            rows.append(row)
+            top = sorted(row["stages_s"].items(), key=lambda kv: -kv[1])[:5]
+            print(f"{name}: {n} frames, {row['keyframes']} keyframes ({100 * row['keyframe_share']:.0f} %), "
+                  f"median {med:.1f} s = {row['s_per_frame']:.3f} s/frame (runs "
+                  f"{', '.join(f'{r:.1f}' for r in row['total_s_all'])} s), peak {row['peak_rss_mb']:.0f} MB; "
+                  + ", ".join(f"{k} {v:.1f} s" for k, v in top), file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--side-by-side", type=int, metavar="FRAMES", default=0,
                     help="measure two runs started together vs one alone (load collapse) instead")
-    ap.add_argument("--repeat", type=int, default=3, help="rounds for --side-by-side (median)")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds for --side-by-side / --real (median)")
     ap.add_argument("--frames", type=int, nargs="+", default=[50, 200, 500, 1000])
     ap.add_argument("--size", default="256x192")
     ap.add_argument("--trajectory", default="loop")
+    ap.add_argument("--real", action="store_true",
+                    help="the ICL clip and a keyframe-heavy 640x480 scan, --repeat cold runs each, instead")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
+    if a.real:
+        doc = real_clips(a.repeat)
+        print(json.dumps(doc, indent=1) if a.json else "")
+        return
     if a.side_by_side:
         doc = side_by_side(a.side_by_side, a.size, a.trajectory, a.repeat)
         print(json.dumps(doc, indent=1) if a.json else "")
