@@ -104,3 +104,31 @@ def test_past_neighbours_count_as_much_as_future_ones() -> None:
     assert ep < 0.6 * base, (base, ep, ef)
     assert ef < 0.6 * base, (base, ep, ef)
     assert abs(ep - ef) < 0.15 * base, (base, ep, ef)
+
+
+def test_one_walk_per_side_equals_chaining_to_each_neighbour() -> None:
+    """filter_depth tracks to all neighbours of a side in one walk; each track must equal
+    chaining from the centre to that neighbour on its own, step by step, to the bit."""
+    from stages.depth.filter import _inside, _sample, _walk, chain_flow
+
+    def chained(fwd, bwd, start, end, x, y):
+        inside = _inside(x, y, w, h, 0.0)
+        step = 1 if end >= start else -1
+        for k in range(start, end, step):
+            f = _sample(fwd[k] if step > 0 else bwd[k - 1], x, y)
+            x, y = x + f[..., 0], y + f[..., 1]
+            inside = inside & _inside(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
+        return x, y, inside
+
+    rng = np.random.default_rng(5)
+    m, h, w = 6, 24, 32
+    fwd = (rng.standard_normal((m - 1, h, w, 2)) * 1.5).astype(np.float32)
+    bwd = (rng.standard_normal((m - 1, h, w, 2)) * 1.5).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    for c, end in ((2, 5), (3, 0)):
+        walked = {j: t for j, *t in _walk(fwd, bwd, c, end, xx, yy)}
+        assert sorted(walked) == sorted(set(range(min(c, end), max(c, end) + 1)) - {c})
+        for j, t in walked.items():
+            ref = chained(fwd, bwd, c, j, xx, yy)
+            assert all(np.array_equal(a, b) for a, b in zip(t, ref))
+            assert all(np.array_equal(a, b) for a, b in zip(chain_flow(fwd, bwd, c, j, xx, yy), ref))

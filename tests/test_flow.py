@@ -87,3 +87,44 @@ def test_chain_flows(orbit):
     epe = float(np.linalg.norm(f - gt, axis=-1)[m].mean())
     print(f"3-link chained EPE {epe:.3f} px, valid {m.mean():.3f}")
     assert m.mean() > 0.5 and epe < 1.5
+
+
+def _warp_reference(f: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """warp_sample as first written (2-D fancy index, trailing channel axis), float64."""
+    f = f[..., None] if f.ndim == 2 else f
+    h, w = f.shape[:2]
+    x = np.clip(coords[..., 0].astype(np.float64), 0.0, w - 1.0)
+    y = np.clip(coords[..., 1].astype(np.float64), 0.0, h - 1.0)
+    x0, y0 = np.minimum(np.floor(x).astype(np.int64), w - 2), np.minimum(np.floor(y).astype(np.int64), h - 2)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    ax, ay = (x - x0)[..., None], (y - y0)[..., None]
+    ff = f.astype(np.float64)
+    return (ff[y0, x0] * (1 - ax) * (1 - ay) + ff[y0, x1] * ax * (1 - ay)
+            + ff[y1, x0] * (1 - ax) * ay + ff[y1, x1] * ax * ay)
+
+
+def test_warp_sample_and_chain_are_bit_identical_to_the_plain_formula():
+    # the fast paths (channels first, take, in-place terms, flow and validity sampled together)
+    # must not change a bit: stage outputs are compared by digest
+    rng = np.random.default_rng(3)
+    h, w = 48, 64
+    flows = [((rng.standard_normal((h, w, 2)) * 2 + 0.7).astype(np.float32), rng.random((h, w)) > 0.1)
+             for _ in range(4)]
+    coords = rng.random((9, 11, 2)) * [w + 10, h + 10] - 5
+    for f in (flows[0][0], flows[0][1].astype(np.float64), rng.random((h, w, 3))):
+        ref = _warp_reference(f, coords)
+        got = warp_sample(f, coords)
+        assert got.dtype == (np.float64 if f.dtype == np.float64 else np.float32)
+        assert np.array_equal(got, ref[..., 0] if f.ndim == 2 else ref.astype(got.dtype))
+    total, valid = flows[0][0].astype(np.float64), flows[0][1].copy()
+    v, u = np.mgrid[0:h, 0:w]
+    base = np.stack([u, v], -1).astype(np.float64)
+    inside = lambda t: np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= w - 1) & (t[..., 1] >= 0) & (t[..., 1] <= h - 1)
+    valid &= inside(base + total)
+    for f, vm in flows[1:]:
+        pos = base + total
+        total = total + _warp_reference(f, pos)
+        valid &= _warp_reference(vm.astype(np.float64), pos)[..., 0] > 0.999
+        valid &= inside(base + total)
+    got_f, got_v = chain_flows(flows)
+    assert np.array_equal(got_f, total.astype(np.float32)) and np.array_equal(got_v, valid)

@@ -22,6 +22,7 @@ invalid); flows (M-1, H, W, 2) float32 px.
 from __future__ import annotations
 
 import logging
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -36,8 +37,8 @@ def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear sample ``img`` (H, W[, C]) at float pixel positions (x, y) (H', W')."""
     return cv2.remap(
         np.ascontiguousarray(img, dtype=np.float32),
-        x.astype(np.float32),
-        y.astype(np.float32),
+        np.ascontiguousarray(x, dtype=np.float32),
+        np.ascontiguousarray(y, dtype=np.float32),
         interpolation=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     )
@@ -70,6 +71,20 @@ def chain_flow(
     frame k we need fwd_flows[k] (defined on frame k's pixel grid); going backward from frame
     k+1 we need bwd_flows[k] (defined on frame k+1's grid).
     """
+    x, y, inside = x0, y0, None
+    for _, x, y, inside in _walk(fwd_flows, bwd_flows, start, end, x0, y0):
+        pass
+    if inside is None:  # start == end
+        h, w = fwd_flows.shape[1:3]
+        x, y = x0.astype(np.float32).copy(), y0.astype(np.float32).copy()
+        inside = _inside(x, y, w, h, 0.0)
+    return x, y, inside
+
+
+def _walk(fwd_flows: np.ndarray, bwd_flows: np.ndarray, start: int, end: int, x0: np.ndarray,
+          y0: np.ndarray) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """``chain_flow`` one frame at a time: yields (frame, x, y, inside) for every frame after
+    ``start`` up to ``end``, so that the tracks to all neighbours on one side cost one pass."""
     h, w = fwd_flows.shape[1:3]
     x = x0.astype(np.float32).copy()
     y = y0.astype(np.float32).copy()
@@ -80,8 +95,8 @@ def chain_flow(
         f = _sample(flow, x, y)
         x = x + f[..., 0]
         y = y + f[..., 1]
-        inside &= _inside(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
-    return x, y, inside
+        inside = inside & _inside(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
+        yield k + step, x, y, inside
 
 
 def filter_depth(
@@ -125,11 +140,11 @@ def filter_depth(
     num = np.where(valid_c, w_self * d_c, 0.0).astype(np.float64)
     den = np.where(valid_c, w_self, 0.0).astype(np.float64)
 
-    for j in range(max(0, center - radius), min(m - 1, center + radius) + 1):
-        if j == center:
-            continue
-        # Track c -> j. For j > c this uses fwd_flows[c..j-1]; for j < c bwd_flows[j..c-1].
-        xj, yj, ok = chain_flow(fwd_flows, bwd_flows, center, j, xx, yy)
+    lo, hi = max(0, center - radius), min(m - 1, center + radius)
+    # Track c -> j (j > c: fwd_flows[c..j-1]; j < c: bwd_flows[j..c-1]), one walk per side.
+    tracks = {j: (x, y, ok) for end in (lo, hi) for j, x, y, ok in _walk(fwd_flows, bwd_flows, center, end, xx, yy)}
+    for j in sorted(tracks):  # lo..hi without the centre, ascending (the order of the sums)
+        xj, yj, ok = tracks[j]
         # Round trip j -> c, starting from the tracked positions in frame j. The return path
         # must use the flows of the *opposite* direction, each sampled on the grid of the frame
         # the track is in: for j > c these are bwd_flows[j-1..c] (k+1 -> k), for j < c they

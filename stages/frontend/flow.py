@@ -77,32 +77,47 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
     y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros_like(y, np.int64)
     x1 = np.minimum(x0 + 1, w - 1)
     y1 = np.minimum(y0 + 1, h - 1)
-    ax = (x - x0)[..., None]
-    ay = (y - y0)[..., None]
-    ff = f.astype(np.float64, copy=False)
-    out = (
-        ff[y0, x0] * (1 - ax) * (1 - ay)
-        + ff[y0, x1] * ax * (1 - ay)
-        + ff[y1, x0] * (1 - ax) * ay
-        + ff[y1, x1] * ax * ay
-    )
-    out = out.astype(np.float32 if f.dtype != np.float64 else np.float64)
-    return out[..., 0] if squeeze else out
+    ax = x - x0
+    ay = y - y0
+    bx, by = 1 - ax, 1 - ay
+    # channels first, gathered (take: ~4x faster than a fancy index) from the flattened field,
+    # so that every product runs over contiguous pixels rather than a trailing axis of 1-3;
+    # the arithmetic is the same, term by term and in the same order (in place), as
+    # f[y0, x0] * (1 - ax) * (1 - ay) + f[y0, x1] * ax * (1 - ay) + ...
+    ff = np.ascontiguousarray(f.reshape(h * w, -1).T, dtype=np.float64)
+    r0, r1 = y0 * w, y1 * w
+    out = None
+    for rows, cols, wx, wy in ((r0, x0, bx, by), (r0, x1, ax, by), (r1, x0, bx, ay), (r1, x1, ax, ay)):
+        term = ff.take(rows + cols, axis=1)
+        term *= wx
+        term *= wy
+        if out is None:
+            out = term
+        else:
+            out += term
+    dtype = np.float32 if f.dtype != np.float64 else np.float64
+    if squeeze:
+        return out[0].astype(dtype)
+    return np.ascontiguousarray(np.moveaxis(out, 0, -1), dtype=dtype)
+
+
+def _inside(tgt: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Finite target coordinates (H, W, 2) inside an h x w image: bool (H, W)."""
+    u, v = tgt[..., 0], tgt[..., 1]
+    return np.isfinite(tgt).all(-1) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+
+
+def _grid(h: int, w: int) -> np.ndarray:
+    """Pixel coordinates (u, v) of an h x w image, float64 (H, W, 2)."""
+    v, u = np.mgrid[0:h, 0:w]
+    return np.stack([u, v], -1).astype(np.float64)
 
 
 def _targets(flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Target coordinates p + flow(p) (H, W, 2) float64 and their in-image mask (H, W)."""
     h, w = flow.shape[:2]
-    v, u = np.mgrid[0:h, 0:w]
-    tgt = np.stack([u + flow[..., 0].astype(np.float64), v + flow[..., 1].astype(np.float64)], -1)
-    inside = (
-        np.isfinite(tgt).all(-1)
-        & (tgt[..., 0] >= 0)
-        & (tgt[..., 0] <= w - 1)
-        & (tgt[..., 1] >= 0)
-        & (tgt[..., 1] <= h - 1)
-    )
-    return tgt, inside
+    tgt = _grid(h, w) + flow.astype(np.float64)
+    return tgt, _inside(tgt, h, w)
 
 
 def fb_consistency(fwd: np.ndarray, bwd: np.ndarray, thresh: float = 1.0) -> np.ndarray:
@@ -132,20 +147,18 @@ def chain_flows(
         raise ValueError("chain_flows needs at least one flow")
     f0, v0 = flows[0]
     h, w = f0.shape[:2]
-    v, u = np.mgrid[0:h, 0:w]
-    base = np.stack([u, v], -1).astype(np.float64)
+    base = _grid(h, w)
     total = f0.astype(np.float64).copy()
     valid = np.asarray(v0, bool).copy()
-    _, inside = _targets(f0)
-    valid &= inside
+    valid &= _inside(base + total, h, w)
     for f, vm in flows[1:]:
         pos = base + total
-        step = warp_sample(f.astype(np.float64), pos)
-        vm_s = warp_sample(np.asarray(vm, np.float64), pos)
-        total = total + step
-        valid &= vm_s > 0.999
-        _, inside = _targets(total)
-        valid &= inside
+        # the link's flow and validity sampled together (one set of bilinear weights)
+        both = np.concatenate([f.astype(np.float64), np.asarray(vm, np.float64)[..., None]], -1)
+        sampled = warp_sample(both, pos)
+        total = total + sampled[..., :2]
+        valid &= sampled[..., 2] > 0.999
+        valid &= _inside(base + total, h, w)
     return total.astype(np.float32), valid
 
 
