@@ -1,7 +1,7 @@
 """The GCVD pipeline itself on a tiny synthetic clip, beyond one machine: machine A runs
 in-process and pushes to S3 (s3fs -> moto's standalone server on 127.0.0.1); machine C runs the
 same clip's map stages on a 2-worker Dask LocalCluster (byte-identical artifacts); machine B, with an empty
-cache, reads through the remote and computes nothing."""
+cache, reads through the remote, computes nothing and downloads only the objects it reads."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ import pytest
 
 from conftest import cli, cli_json
 from remote_servers import DUMMY_AWS, moto_s3, s3fs_client
+
+from gcvd_flow.engine.store import Store
 
 
 def _outputs(out: Path) -> dict[str, str]:
@@ -42,4 +44,21 @@ def test_gcvd_on_dask_and_through_s3_gives_identical_artifacts(tmp_path):
                      f"s3://{bucket}/gcvd", env=env)
         assert sum(s["executed"] for s in b["stages"]) == 0 and b["remote"]["pulled"]["refused"] == 0
         assert _outputs(tmp_path / "b") == _outputs(tmp_path / "a")
-        assert (tmp_path / "b" / "poses.txt").read_text() == (tmp_path / "a" / "poses.txt").read_text()
+        assert _files(tmp_path / "b") == _files(tmp_path / "a")  # RUN_DIR byte-identical
+    # B downloaded the records and only the objects it read (what it wrote into RUN_DIR, the
+    # stages' manifests): none of the intermediates (flows, masks, priors, ...)
+    pulled, pushed = b["remote"]["pulled"], a["remote"]["pushed"]
+    ca, b_objects = Store(tmp_path / "ca"), set(Store(tmp_path / "cb").iter_objects())
+    keys = {k: v["key"] for k, v in json.loads((tmp_path / "a" / "run.json").read_text())["stages"].items()}
+    for stage in ("flow", "masks", "priors", "association", "optimize_keyframes"):
+        objects = set(ca.get_record(keys[stage])["objects"]) - {ca.get_record(keys[stage])["outputs"]}
+        assert objects and not objects & b_objects, stage
+    assert pulled["objects_named"] == pushed["objects"] and pulled["objects"] == len(b_objects)
+    assert pulled["objects"] < pushed["objects"] / 2 and pulled["bytes"] < pushed["bytes"] / 4
+    print(f"read-through: {pulled['objects']} of {pushed['objects']} objects, "
+          f"{pulled['bytes']} of {pushed['bytes']} bytes")
+
+
+def _files(out: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
+            if p.is_file() and p.name not in ("run.json", ".gcvd-stamp.json")}

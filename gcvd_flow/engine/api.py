@@ -196,13 +196,19 @@ def _previous_stages(out: str | None) -> dict[str, Any] | None:
 MAX_HEALING_PASSES = 8
 
 
-def _attach(inv: Invocation, runner: Runner, log: Callable[[str], None], executor: Any) -> None:
-    """Remote record source, executor kind and a shared executor (run-many) for one run."""
-    if inv.remote or inv.push:
+def _attach(inv: Invocation, runner: Runner, log: Callable[[str], None], executor: Any, records: Any) -> Any:
+    """Remote record source (made once per run, kept across its self-healing passes: it
+    remembers what came in and what it refused; it is also the store's lazy object source),
+    executor kind and a shared executor (run-many) for one pass; returns the record source."""
+    if records is None and (inv.remote or inv.push):
         from gcvd_flow.engine.remote import record_source
 
-        runner.records = record_source(runner.store, inv.remote, inv.remotes_file, push=inv.push, log=log)
+        records = record_source(runner.store, inv.remote, inv.remotes_file, push=inv.push, log=log)
+    if records is not None:
+        records.attach(runner.store)
+        runner.records = records
     runner.executor_kind, runner.scheduler, runner.shared_executor = inv.executor, inv.scheduler, executor
+    return records
 
 
 def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | None = None,
@@ -216,10 +222,12 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
     (a recomputation that cannot restore it) is an error."""
     t0 = time.perf_counter()
     damaged: list[str] = []
+    from_remote: set[str] = set()  # objects the remote could not supply (it said so on one line)
     passes: list[list[StageReport]] = []
+    records = None
     while True:
         spec, config, runner = _prepare(inv, log, target)
-        _attach(inv, runner, log, executor)
+        records = _attach(inv, runner, log, executor, records)
         try:
             with runner.store.lease():  # gc waits for this run (and never deletes its objects)
                 reports = runner.run(target)
@@ -231,6 +239,8 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
             if exc.digest in damaged or len(damaged) >= MAX_HEALING_PASSES:
                 raise StoreError(f"{exc}; recomputing did not restore it (run `gcvd-flow fsck`)") from None
             damaged.append(exc.digest)
+            if getattr(exc, "remote", False):
+                from_remote.add(exc.digest)
     result["stages"] = [r.as_run_json() for r in _merge_passes(passes)]
     result["seconds"] = round(time.perf_counter() - t0, 3)
     if runner.records is not None:
@@ -238,8 +248,10 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
     if damaged:
         redone = sorted({r.name for ps in passes[1:] for r in ps if r.executed})
         result["healed"] = {"objects": damaged, "recomputed": redone}
-        log(f"warning: {len(damaged)} damaged cache object(s) ({', '.join(d[:12] for d in damaged)}) were "
-            f"quarantined or missing; recomputed: {', '.join(redone) or 'nothing'}")
+        local = [d for d in damaged if d not in from_remote]
+        if local:
+            log(f"warning: {len(local)} damaged cache object(s) ({', '.join(d[:12] for d in local)}) were "
+                f"quarantined or missing; recomputed: {', '.join(redone) or 'nothing'}")
     return result
 
 

@@ -175,13 +175,30 @@ def is_leaf(node: Any) -> bool:
     return isinstance(node, dict) and any(k.startswith("$") for k in node)
 
 
+def leaf_digests(node: Any) -> list[str]:
+    """The objects a (sub-)tree of a manifest points at, in order."""
+    if is_leaf(node):
+        return [d for k, d in node.items() if k.startswith("$")]
+    if isinstance(node, dict):
+        return [d for v in node.values() for d in leaf_digests(v)]
+    if isinstance(node, list):
+        return [d for v in node for d in leaf_digests(v)]
+    return []
+
+
 def decode_tree(store: Store, node: Any) -> Any:
+    if getattr(store, "fallback", None) is not None:  # read-through run: this tree's objects in one batch
+        store.ensure(leaf_digests(node))
+    return _decode(store, node)
+
+
+def _decode(store: Store, node: Any) -> Any:
     if is_leaf(node):
         return decode_leaf(store, node)
     if isinstance(node, dict):
-        return {k: decode_tree(store, v) for k, v in node.items()}
+        return {k: _decode(store, v) for k, v in node.items()}
     if isinstance(node, list):
-        return [decode_tree(store, v) for v in node]
+        return [_decode(store, v) for v in node]
     return node
 
 

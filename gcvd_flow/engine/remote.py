@@ -21,9 +21,11 @@ Download (pull, read-through runs): a record is used only if its preimage hashes
 is filed under (``store.record_problem``: a swapped record is refused with a one-line warning
 naming it); every object is read at most to the size its record declares (for local paths only
 as a regular file: no FIFO, no symlink), re-hashed, and refused (one warning line, never used)
-unless its bytes hash to its name. A record enters the local store only once all its objects
-and child records did. Nothing pulled is unpickled or executed: artifacts are JSON and
-npy / PNG / safetensors.
+unless its bytes hash to its name. A pulled record enters the local store only once all its
+objects and child records did. A read-through run (``RemoteRecords``) installs records with
+their child records only; their objects stay on the remote until something reads one
+(``RemoteObjects``, the store's fallback), then come in exactly as pulled ones do. Nothing
+pulled is unpickled or executed: artifacts are JSON and npy / PNG / safetensors.
 
 What a remote is *not* trusted for: a writer with access to it can publish wrong outputs under
 a correctly derived key (the preimage proves which computation a record claims to be, not that
@@ -35,6 +37,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -322,6 +325,7 @@ class Downloader:
         self.local, self.remote, self.log = local, remote, log
         self.refused_objects: dict[str, str] = {}
         self.refused_records: dict[str, str] = {}
+        self.promised: dict[str, int] = {}  # digest -> size: objects on the remote, fetched when read
         self.stats: dict[str, Any] = {"records": 0, "objects": 0, "bytes": 0}
 
     def _warn_record(self, key: str, why: str) -> None:
@@ -372,10 +376,12 @@ class Downloader:
                     self.stats["objects"] += 1
                     self.stats["bytes"] += size
 
-    def download(self, keys: Iterable[str], list_first: bool = False) -> list[str]:
+    def download(self, keys: Iterable[str], list_first: bool = False, objects: bool = True) -> list[str]:
         """Install the remote records of ``keys`` (with their children and objects) into the
         local store; returns the keys installed. ``list_first``: learn which records exist by
-        listing (many keys, most probably absent) instead of asking for each."""
+        listing (many keys, most probably absent) instead of asking for each. ``objects=False``
+        (read-through runs): the records come in verified, their objects stay on the remote
+        until something reads them (``promised``; ``RemoteObjects`` fetches them)."""
         keys = [k for k in dict.fromkeys(keys) if is_digest(k) and k not in self.refused_records]
         if list_first and keys:
             present = self.remote.record_keys(keys)
@@ -383,25 +389,36 @@ class Downloader:
         recs = self.fetch_records(keys)
         kids = sorted({c for r in recs.values() for c in r.get("children", [])
                        if c not in recs and self.local.read_record(c) is None})
-        child_recs = self.fetch_records(kids)
-        need: dict[str, int] = {}
-        for r in list(recs.values()) + list(child_recs.values()):
-            need.update(r["objects"])
-        self.fetch_objects(need)
+        both = {**self.fetch_records(kids), **recs}
+        if objects:
+            need: dict[str, int] = {}
+            for r in both.values():
+                need.update(r["objects"])
+            self.fetch_objects(need)
+            if recs:
+                self.local.sync()  # objects durable before the records that name them
         installed: list[str] = []
-        if recs:
-            self.local.sync()  # objects durable before the records that name them
-        both = {**child_recs, **recs}
         for k, r in sorted(both.items(), key=lambda kv: bool(kv[1].get("children"))):  # children first
-            if any(self.local.object_size(d) != s for d, s in r["objects"].items()):
+            if objects and any(self.local.object_size(d) != s for d, s in r["objects"].items()):
                 continue
             if any(self.local.read_record(c) is None for c in r.get("children", [])):
                 continue
             if self.local.read_record(k) is None:
                 self.local.put_record(k, r)
                 self.stats["records"] += 1
+            if not objects:
+                self.promise(r["objects"])
             installed.append(k)
         return installed
+
+    def promise(self, objects: dict[str, int]) -> None:
+        """Objects a record that came in names: the remote holds them (objects are pushed before
+        the records naming them), so they may be fetched when read."""
+        for d, size in objects.items():
+            if d not in self.promised:
+                self.promised[d] = size
+                self.stats["objects_named"] = self.stats.get("objects_named", 0) + 1
+                self.stats["bytes_named"] = self.stats.get("bytes_named", 0) + size
 
     def report(self) -> dict[str, Any]:
         return {**self.stats, "refused": len(self.refused_objects),
@@ -474,14 +491,44 @@ def pull(local: Store, remote: str | Remote | None, out: str | None = None, remo
 # ------------------------------------------------------------------------------ read-through runs
 
 
+class RemoteObjects:
+    """The local store's object source during a read-through run (``Store.fallback``): the
+    objects named by the records that came in (``Downloader.promised``) count as present, and
+    are downloaded only when something reads one — the runner decoding a stage's value, a map
+    item's inputs before it is dispatched, the export writing RUN_DIR. Each comes in as a pulled
+    one does: read at most to its recorded size, re-hashed, refused with one warning line and
+    never used unless its bytes hash to its name. A refused object (or any once the remote has
+    failed) is no longer offered, so the records naming it become invisible and what they held
+    is recomputed (the run's self-healing pass)."""
+
+    def __init__(self, records: "RemoteRecords"):
+        self._records = records
+        self._lock = threading.Lock()  # a stage may read from several threads
+
+    def size(self, digest: str) -> int | None:
+        down = self._records._down
+        if down is None or self._records.failed is not None or digest in down.refused_objects:
+            return None
+        return down.promised.get(digest)
+
+    def fetch(self, digests: Iterable[str]) -> None:
+        down = self._records._down
+        with self._lock:
+            need = {d: s for d in digests if (s := self.size(d)) is not None}
+            if need and down is not None:
+                self._records._guard("read-through", lambda: down.fetch_objects(need))
+
+
 class RemoteRecords:
     """The runner's record source for ``run --remote`` / ``--push``: the local store first,
-    then the remote (a record found there comes in verified, with its children and objects);
-    ``stage_done`` pushes each finished stage the remote does not hold yet.
+    then the remote (a record found there comes in verified, with its children; its objects
+    follow when read, through ``objects``, the store's fallback); ``stage_done`` pushes each
+    finished stage the remote does not hold yet.
 
     As with Bazel's remote cache, the remote is an accelerator, not a dependency: if it cannot
     be reached (network, credentials, a missing bucket), one warning line says so and the run
-    goes on with the local cache alone (nothing half-downloaded is ever installed)."""
+    goes on with the local cache alone (nothing half-downloaded is ever installed, and what was
+    only on the remote is recomputed)."""
 
     def __init__(self, store: Store, remote: Remote | None, push: bool = False, log: Log = _stderr):
         self.store, self.remote, self.push, self.log = store, remote, push, log
@@ -489,6 +536,16 @@ class RemoteRecords:
         self._tried: set[str] = set()
         self.pushed: dict[str, int] = {"records": 0, "objects": 0, "bytes": 0}
         self.failed: str | None = None
+        self.objects = RemoteObjects(self)
+        self.attach(store)
+
+    def attach(self, store: Store) -> None:
+        """Serve ``store`` (a run opens its store again for each self-healing pass; what came
+        in, was refused and was tried is remembered across passes)."""
+        self.store = store
+        if self._down is not None:
+            self._down.local = store
+            store.fallback = self.objects
 
     def _guard(self, what: str, fn: Callable[[], Any]) -> None:
         if self.failed is not None or self.remote is None:
@@ -506,7 +563,7 @@ class RemoteRecords:
         rec = self.store.get_record(key)
         if rec is None and self._down is not None and key not in self._tried:
             self._tried.add(key)
-            self._guard("read-through", lambda: self._down.download([key]))
+            self._guard("read-through", lambda: self._down.download([key], objects=False))
             rec = self.store.get_record(key)
         return rec
 
@@ -518,7 +575,7 @@ class RemoteRecords:
         missing = [k for k in keys if k not in self._tried and self.store.get_record(k) is None]
         self._tried.update(missing)
         if missing:
-            self._guard("read-through", lambda: self._down.download(missing))
+            self._guard("read-through", lambda: self._down.download(missing, objects=False))
 
     def stage_done(self, key: str | None, executed: int) -> None:
         if not self.push or key is None or self.remote is None:

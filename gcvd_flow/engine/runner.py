@@ -12,10 +12,11 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from gcvd_flow.engine import keys
-from gcvd_flow.engine.artifacts import Encoder, Tensors, decode_tree, is_leaf, load_manifest, load_value, validate
+from gcvd_flow.engine.artifacts import (Encoder, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value,
+                                        validate)
 from gcvd_flow.engine.dag import Const, DepsView, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, make_executor, open_resource
@@ -498,7 +499,7 @@ class Runner:
                 todo.append(t)
         run_exec = executor if len(todo) > 1 else InProcessExecutor()
         try:
-            for res in run_exec.run(todo):
+            for res in run_exec.run(self._with_inputs(todo)):
                 outputs[res.index] = res.output
                 objects.update(res.objects)
                 if res.computed:
@@ -522,12 +523,47 @@ class Runner:
         self._outputs[stage.name] = out
         self._items[stage.name] = list(outputs)  # type: ignore[arg-type]
 
+    # Read-through runs: the objects of a task's inputs are fetched here, in the runner, before
+    # the task is dispatched (a chunk of tasks per round trip), not by the workers. Workers
+    # (process pool, Dask, even the in-process executor) open the store by path: giving each the
+    # store's fallback would mean a remote connection and credentials per worker (and per Dask
+    # host), and refusals warned about from many processes, out of reach of the run's
+    # self-healing pass. The runner knows what a task reads (its references are manifest
+    # digests and manifest sub-trees), and what it writes lands in the store the workers read.
+    def _with_inputs(self, tasks: list[ItemTask]) -> Iterator[ItemTask]:
+        if self.store.fallback is None:
+            yield from tasks
+            return
+        for i in range(0, len(tasks), INPUT_CHUNK):
+            chunk = tasks[i:i + INPUT_CHUNK]
+            refs = _flat_refs([r for t in chunk for r in t.refs.values()])
+            self.store.ensure(r.digest for r in refs if r.how == "artifact")  # the manifests first
+            leaves: list[str] = []
+            for r in refs:
+                if r.how == "artifact":
+                    leaves += leaf_digests(load_manifest(self.store, r.digest)["value"])
+                elif r.how == "tree":
+                    leaves += leaf_digests(r.payload)
+            self.store.ensure(leaves)
+            yield from chunk
+
     # ---------------------------------------------------------------- records
 
     def stage_summary(self) -> dict[str, Any]:
         """What a run dir and the cache's run list remember of this run."""
         return {name: {"key": r.key, "output": r.output, "fields": _jsonable_fields(r.fields or {})}
                 for name, r in self.reports.items()}
+
+
+INPUT_CHUNK = 32  # map tasks whose input objects a read-through run fetches in one batch
+
+
+def _flat_refs(refs: list[ResolvedRef]) -> list[ResolvedRef]:
+    """``refs`` with lists of references expanded."""
+    out: list[ResolvedRef] = []
+    for r in refs:
+        out.extend(_flat_refs(r.payload) if r.how == "list" else [r])
+    return out
 
 
 def _jsonable_fields(f: dict[str, Any]) -> dict[str, Any]:

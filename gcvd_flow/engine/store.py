@@ -36,7 +36,7 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator, Protocol
 
 import blake3
 
@@ -74,11 +74,24 @@ class CorruptObject(StoreError):
 
 
 class MissingObject(StoreError):
-    """An object a record names is not in the cache (deleted, or lost with a crash)."""
+    """An object a record names is not in the cache (deleted, or lost with a crash), or one the
+    store's object source could not supply (``remote``: it said why already, on one line)."""
 
-    def __init__(self, message: str, digest: str = ""):
+    def __init__(self, message: str, digest: str = "", remote: bool = False):
         super().__init__(message)
         self.digest = digest
+        self.remote = remote
+
+
+class ObjectSource(Protocol):
+    """Where a store gets objects it lacks (``Store.fallback``; a read-through run installs the
+    remote's: ``remote.RemoteObjects``). ``size`` is the size of an object the source can
+    supply (None: it cannot); ``fetch`` brings such objects into the store, each verified
+    against its digest and size; what it refuses stays absent (it says why)."""
+
+    def size(self, digest: str) -> int | None: ...
+
+    def fetch(self, digests: Iterable[str]) -> None: ...
 
 
 def canonical_json(obj: Any) -> bytes:
@@ -134,6 +147,9 @@ class Store:
     def __init__(self, root: str | Path, verify: bool = True):
         self.root = Path(root).expanduser()
         self.verify = verify
+        # objects this store lacks but may fetch when read (None: a record naming a missing
+        # object is invisible; a read-through run sets the remote's, see ObjectSource)
+        self.fallback: ObjectSource | None = None
         self.fsync_always = os.environ.get("GCVD_FLOW_FSYNC", "") == "always"
         self._dirs: set[Path] = set()  # fan-out directories known to exist (saves mkdir calls)
         for sub in ("objects", "records", "locks", "tmp", "runs", "pins", "quarantine"):
@@ -205,15 +221,42 @@ class Store:
 
     def get_bytes(self, digest: str, verify: bool | None = None) -> bytes:
         path = self.object_path(digest)
-        try:
-            data = path.read_bytes()
-        except (FileNotFoundError, NotADirectoryError):
-            raise MissingObject(f"object {digest[:12]} is missing from the cache", digest) from None
+        data = self._read(path)
+        want = self.fallback.size(digest) if self.fallback is not None else None
+        if want is not None and (data is None or len(data) != want):
+            self.ensure([digest])  # fetched lazily, verified on its way in (or MissingObject)
+            data = self._read(path)
+        if data is None:
+            raise MissingObject(f"object {digest[:12]} is missing from the cache", digest)
         if self.verify if verify is None else verify:
             if digest_bytes(data) != digest:
                 self.quarantine(digest)
                 raise CorruptObject(f"object {digest[:12]} is corrupt (moved to quarantine)", digest)
         return data
+
+    @staticmethod
+    def _read(path: Path) -> bytes | None:
+        try:
+            return path.read_bytes()
+        except (FileNotFoundError, NotADirectoryError):
+            return None
+
+    def ensure(self, digests: Iterable[str]) -> None:
+        """Fetch from the fallback, in one batch (one round trip, not one per object), those of
+        ``digests`` it offers that are absent here or of another size (truncated: never
+        trusted); no-op without a fallback. Raises ``MissingObject`` (``remote=True``) for
+        one the fallback then did not supply (refused: it said why)."""
+        fb = self.fallback
+        if fb is None:
+            return
+        need = {d: s for d in dict.fromkeys(digests) if (s := fb.size(d)) is not None and self.object_size(d) != s}
+        if not need:
+            return
+        fb.fetch(list(need))
+        for d, s in need.items():
+            if self.object_size(d) != s:
+                raise MissingObject(f"object {d[:12]} is missing from the cache and the remote could not "
+                                    f"supply it", d, remote=True)
 
     def quarantine(self, digest: str) -> None:
         src = self.object_path(digest)
@@ -272,12 +315,14 @@ class Store:
 
     def get_record(self, key: str) -> dict[str, Any] | None:
         """The record for ``key`` if it belongs to ``key`` and every object it names is present
-        with its recorded size (a map stage's record names its items' objects too)."""
+        with its recorded size (a map stage's record names its items' objects too) — here, or
+        with that size in the fallback (``self.fallback``: fetched when read)."""
         rec = self.read_record(key)
         if rec is None:
             return None
+        fb = self.fallback
         for digest, size in rec["objects"].items():
-            if self.object_size(digest) != size:
+            if self.object_size(digest) != size and (fb is None or fb.size(digest) != size):
                 return None
         return rec
 
