@@ -642,7 +642,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     pg = inputs["pose_graph"]
     T_w_k = np.asarray(pg["poses"], np.float64)
     if not p.enabled:
-        return {"poses": T_w_k, "enabled": False}
+        return {"poses": T_w_k, "enabled": False, "depth_scale": np.ones(len(T_w_k))}
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
     from stages.optimize import bundle_adjustment as ba_mod
 
@@ -662,7 +662,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     return {"poses": np.asarray(res["poses"], np.float64), "enabled": True, "landmarks": res["landmarks"],
             "observations": res["observations"], "initial_median_px": res["initial_median_px"],
             "final_median_px": res["final_median_px"], "iterations": res["iterations"],
-            "skipped": bool(res["skipped"])}
+            "skipped": bool(res["skipped"]), "depth_scale": np.asarray(res["depth_scale"], np.float64)}
 
 
 BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,
@@ -694,11 +694,11 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     from stages.optimize import segments as opt_segments
 
     frames, flows = inputs["ingest"], inputs["flow"]
-    okf = inputs["optimize_keyframes"]
+    okf, ba = inputs["optimize_keyframes"], inputs["bundle_adjustment"]
     res = opt_segments.optimize_segments(
         frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
         np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
-        np.asarray(inputs["bundle_adjustment"]["poses"]), np.stack(okf["depths"]),
+        np.asarray(ba["poses"]), np.stack(okf["depths"]) * np.asarray(ba["depth_scale"], np.float32)[:, None, None],
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
         seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
     return {"poses": np.asarray(res["poses"], np.float64),

@@ -139,3 +139,16 @@ def test_consistent_poses_are_kept():
     np.testing.assert_array_equal(res["poses"], T_gt)
     moved = bundle_adjust(_jitter(T_gt, seed=1), depths, edges, kf, K, consistent_px=0.25)
     assert not moved["skipped"] and moved["iterations"] > 0
+
+
+def test_depth_scale_follows_the_adjusted_landmarks():
+    """A keyframe whose depth map is 10 % too far (the scale drift chained windows leave) gets
+    its landmarks pulled back by the other views: depth_scale ~ 1 / 1.1 there, ~ 1 elsewhere —
+    what optimize_segments multiplies the keyframe depths by."""
+    K, T_gt, depths, edges, kf = _keyframe_problem()
+    depths = [d * (1.1 if m == 5 else 1.0) for m, d in enumerate(depths)]
+    res = bundle_adjust(T_gt, depths, edges, kf, K, consistent_px=0.0)
+    scale = res["depth_scale"]
+    assert scale.shape == (len(kf),)
+    assert abs(scale[5] - 1 / 1.1) < 0.02, scale
+    assert np.all(np.abs(np.delete(scale, 5) - 1) < 0.02), scale

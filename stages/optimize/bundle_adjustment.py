@@ -39,6 +39,7 @@ class BundleResult(TypedDict):
     final_median_px: float
     iterations: int
     skipped: bool  # poses returned unchanged (already consistent with the tracks, or no tracks)
+    depth_scale: np.ndarray  # (K,) float64: median new / old distance of the landmarks anchored in each keyframe
 
 
 def _bilinear(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -156,7 +157,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
               if len(t) >= min_views]
     if n < 3 or not tracks:
         return {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
-                "final_median_px": 0.0, "iterations": 0, "skipped": True}
+                "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
     med = float(np.median([np.median(d[d > 0]) for d in depths if (d > 0).any()] or [1.0]))
     cal = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
     pix = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(robust_px),
@@ -164,6 +165,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     graph, values = _pose_priors(T_w_k, prior_rot_sigma, prior_trans_frac * med)
     Kinv, X, L = np.linalg.inv(K), gtsam.symbol, gtsam.symbol  # pose x_k, landmark l_j
     n_obs = n_lm = 0
+    anchor: dict[int, int] = {}  # landmark j -> its keyframe
     for j, track in enumerate(tracks):
         m, u, v = track[0]
         z = float(np.asarray(depths[m])[int(round(v)), int(round(u))])
@@ -171,6 +173,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
             continue
         values.insert(L("l", j), inverse_depth_landmark(u, v, z, Kinv))
         n_lm += 1
+        anchor[j] = m
         graph.add(gtsam_unstable.InvDepthFactorVariant3a(X("x", m), L("l", j), np.array([u, v]), cal, pix))
         for k, a, b in track[1:]:
             graph.add(gtsam_unstable.InvDepthFactorVariant3b(X("x", m), X("x", k), L("l", j),
@@ -179,7 +182,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     e0 = _median_error(graph, values)
     if e0 < consistent_px:
         return {"poses": T_w_k, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
-                "final_median_px": e0, "iterations": 0, "skipped": True}
+                "final_median_px": e0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -188,7 +191,23 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     e1 = _median_error(graph, result)
     log.debug("bundle adjustment: %d landmarks, %d observations, median %.3f -> %.3f px", n_lm, n_obs, e0, e1)
     return {"poses": poses, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
-            "final_median_px": e1, "iterations": int(opt.iterations()), "skipped": False}
+            "final_median_px": e1, "iterations": int(opt.iterations()), "skipped": False,
+            "depth_scale": _depth_scale(values, result, anchor, n)}
+
+
+def _depth_scale(before: gtsam.Values, after: gtsam.Values, anchor: dict[int, int], n: int,
+                 min_landmarks: int = 20) -> np.ndarray:
+    """(n,) per keyframe: median ratio of its anchored landmarks' distance after / before the
+    adjustment (inverse depth rho: before / after). Moving a keyframe corrects the local scale
+    that drift had; its depth map must follow or the frames between keyframes fit depth at the
+    old scale against poses at the new one. 1 where fewer than ``min_landmarks`` anchor there."""
+    ratios: dict[int, list[float]] = {}
+    for j, m in anchor.items():
+        r0, r1 = before.atVector(gtsam.symbol("l", j))[2], after.atVector(gtsam.symbol("l", j))[2]
+        if r0 > 0 and r1 > 0:
+            ratios.setdefault(m, []).append(r0 / r1)
+    return np.array([float(np.median(ratios[m])) if len(ratios.get(m, ())) >= min_landmarks else 1.0
+                     for m in range(n)])
 
 
 def _pose_priors(T_w_k: np.ndarray, rot_sigma: float, trans_sigma: float
