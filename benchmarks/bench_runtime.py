@@ -1,8 +1,8 @@
 """Per-frame runtime and peak memory on synthetic clips of 50/200/500/1000 frames.
 
-Split like the GCVD paper's Table 4: pre-processing (ingest, flow, masks, priors,
+Split like the GCVD paper's Table 4: pre-processing (ingest, flow, flow_far, masks, priors,
 keyframes, association), main (optimize_keyframes, optimize_edges, pose_graph,
-optimize_segments) and post-processing (depth_fusion, depth_filter). Each clip runs cold in a fresh cache
+bundle_adjustment, optimize_segments) and post-processing (depth_fusion, depth_filter). Each clip runs cold in a fresh cache
 in its own process; peak memory is that process's max RSS.
 
     make bench-runtime         # or: .venv/bin/python benchmarks/bench_runtime.py --frames 50 200
@@ -31,8 +31,8 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PRE = ("ingest", "flow", "masks", "priors", "keyframes", "association")
-MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "optimize_segments")
+PRE = ("ingest", "flow", "flow_far", "masks", "priors", "keyframes", "association")
+MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment", "optimize_segments")
 POST = ("depth_fusion", "depth_filter")
 
 
