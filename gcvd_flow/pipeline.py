@@ -764,6 +764,10 @@ class DepthFilterParams(Section):
     enabled: bool = True
     radius: int = Field(4, ge=0)
     border: int = 4
+    fill_from: float = Field(0.7, ge=0, le=1, description="depth confidence of the pixels an edge-aware "
+                             "fill of uncertain depth is made from")
+    fill_below: float = Field(0.4, ge=0, le=1, description="pixels less confident than this are pulled "
+                              "towards that fill (in proportion; 0 = off)")
 
 
 def _filter_items(view, p: DepthFilterParams):
@@ -773,7 +777,7 @@ def _filter_items(view, p: DepthFilterParams):
     for i in range(n):
         lo, hi = max(0, i - r), min(n - 1, i + r)
         out.append({"center": Const(i - lo), "depths": [ItemRef("depth_fusion", j) for j in range(lo, hi + 1)],
-                    "flows": [ItemRef("flow", j) for j in range(lo, hi)]})
+                    "flows": [ItemRef("flow", j) for j in range(lo, hi)], "image": ItemRef("ingest", i)})
     return out
 
 
@@ -789,10 +793,14 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
     bwd = np.stack([fl["bwd"] for fl in inputs["flows"]])
     out = np.asarray(depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border),
                      np.float32)
-    return {"depth": out, "confidence": np.where(out > 0, conf, 0.0).astype(np.float32)}
+    conf = np.where(out > 0, conf, 0.0).astype(np.float32)
+    if p.fill_below > 0:
+        gray = np.asarray(inputs["image"]["image"], np.float64).mean(axis=2) / 255.0
+        out = depth_filter.fill_uncertain(gray, out, conf, source=p.fill_from, full=p.fill_below)
+    return {"depth": out, "confidence": conf}
 
 
-DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=("flow", "depth_fusion"), params="depth_filter",
+DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=("ingest", "flow", "depth_fusion"), params="depth_filter",
                         kind="depth", items=_filter_items))
 
 

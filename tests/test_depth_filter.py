@@ -132,3 +132,27 @@ def test_one_walk_per_side_equals_chaining_to_each_neighbour() -> None:
             ref = chained(fwd, bwd, c, j, xx, yy)
             assert all(np.array_equal(a, b) for a, b in zip(t, ref))
             assert all(np.array_equal(a, b) for a, b in zip(chain_flow(fwd, bwd, c, j, xx, yy), ref))
+
+
+def test_fill_uncertain_follows_the_confident_surface_along_image_edges():
+    """A low-confidence blob with wrong depth on the right plane takes the right plane's depth
+    (not the left one's across the image edge); confident pixels and invalid zeros stay."""
+    from stages.depth.filter import fill_uncertain
+
+    h, w = 48, 64
+    gray = np.full((h, w), 0.2)
+    gray[:, 32:] = 0.8  # an image edge between two surfaces
+    depth = np.ones((h, w), np.float32)
+    depth[:, 32:] = 2.0
+    conf = np.full((h, w), 0.9, np.float32)
+    blob = np.zeros((h, w), bool)
+    blob[14:34, 40:56] = True
+    depth[blob], conf[blob] = 3.0, 0.0  # triangulation failed there; the network guessed 3 m
+    depth[0, 0], conf[0, 0] = 0.0, 0.0
+    out = fill_uncertain(gray, depth, conf, source=0.7, full=0.7)
+    assert np.allclose(out[blob], 2.0, rtol=0.02)
+    assert np.array_equal(out[~blob & (conf >= 0.7)], depth[~blob & (conf >= 0.7)])
+    assert out[0, 0] == 0.0 and out.dtype == np.float32
+    half = fill_uncertain(gray, depth, np.where(blob, 0.2, conf).astype(np.float32), source=0.7, full=0.4)
+    assert np.allclose(half[blob], np.sqrt(3.0 * 2.0), rtol=0.02)  # half its own log-depth
+    assert np.array_equal(fill_uncertain(gray, depth, conf, full=0.0), depth)
