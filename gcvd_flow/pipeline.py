@@ -812,8 +812,9 @@ GCVDConfig = create_model("GCVDConfig", __config__=ConfigDict(extra="forbid"), s
 
 
 PROFILES: dict[str, dict[str, Any]] = {
-    # The paper's / authors' settings (GPU-sized).
+    # The paper's / authors' settings (GPU-sized), and the paper's method: no bundle adjustment.
     "paper": {
+        "bundle_adjustment": {"enabled": False},
         "ingest": {"long_side": 384},
         "flow": {"preset": "medium"},
         "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024},
