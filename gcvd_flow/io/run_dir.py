@@ -106,14 +106,20 @@ class RunData:
     def depth(self, k: int) -> np.ndarray:
         import numpy as np
 
-        p = self.depth_paths[k]
+        return np.asarray(self._load_map(self.depth_paths[k], "depth"), np.float32)
+
+    def _load_map(self, p: Path, what: str) -> "np.ndarray":
+        """One per-frame .npy map (no pickle), checked against cameras.json's size; one-line
+        UsageError naming the file otherwise."""
+        import numpy as np
+
         try:
-            d = np.load(p, allow_pickle=False)
+            m = np.load(p, allow_pickle=False)
         except (OSError, ValueError) as exc:
-            raise UsageError(f"{p}: not a readable .npy depth map ({exc})") from None
-        if d.shape != (self.height, self.width):
-            raise UsageError(f"{p}: depth is {d.shape}, cameras.json says {self.height}x{self.width}")
-        return np.asarray(d, np.float32)
+            raise UsageError(f"{p}: not a readable .npy {what} map ({exc})") from None
+        if m.shape != (self.height, self.width):
+            raise UsageError(f"{p}: {what} is {m.shape}, cameras.json says {self.height}x{self.width}")
+        return m
 
     @property
     def depths(self) -> Sequence[np.ndarray]:
@@ -129,13 +135,7 @@ class RunData:
         import numpy as np
 
         assert self.confidence_paths is not None, "the run has no confidence/"
-        p = self.confidence_paths[k]
-        try:
-            c = np.load(p, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"{p}: not a readable .npy confidence map ({exc})") from None
-        if c.shape != (self.height, self.width):
-            raise UsageError(f"{p}: confidence is {c.shape}, cameras.json says {self.height}x{self.width}")
+        c = self._load_map(self.confidence_paths[k], "confidence")
         return np.clip(np.nan_to_num(np.asarray(c, np.float32), nan=0.0), 0.0, 1.0)
 
     def name(self, k: int) -> str:

@@ -23,7 +23,7 @@ poses T_w_k (K, 4, 4) camera-to-world, OpenCV axes.
 from __future__ import annotations
 
 import logging
-from typing import Any, Mapping, Sequence, TypedDict
+from typing import Mapping, Sequence, TypedDict
 
 import gtsam
 import numpy as np
