@@ -12,6 +12,10 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
+
+# The suite runs on 2 xdist workers: runs compute their map items in-process unless a test asks
+# for workers (--jobs N, or tests/test_jobs.py, which unsets this); results do not depend on it.
+os.environ.setdefault("GCVD_FLOW_JOBS", "1")
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 

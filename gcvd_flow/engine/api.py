@@ -102,7 +102,7 @@ class Invocation:
     profile: str | None = None
     sets: list[str] = field(default_factory=list)
     cache: str | None = None
-    jobs: int = 1
+    jobs: int = 0  # map-item worker processes; 0 = auto (executors.resolve_jobs)
     json_mode: bool = False
     pipeline: str = ""  # a registered pipeline name (the product's CLI and API set theirs)
     verify: bool = True

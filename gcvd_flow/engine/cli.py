@@ -50,12 +50,24 @@ def _product() -> Product:
     return _PRODUCT
 
 
+def _jobs_arg(text: str) -> int:
+    """argparse type of --jobs: N >= 1 or auto (0)."""
+    from gcvd_flow.engine.executors import parse_jobs
+
+    try:
+        return parse_jobs(text)
+    except UsageError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--jobs: ")) from None
+
+
 def _add_run_args(p: argparse.ArgumentParser, input_required: bool = True) -> None:
     if input_required:
         p.add_argument("input", metavar="INPUT", help="video file, image folder or dataset folder")
     p.add_argument("--out", required=input_required, metavar="RUN_DIR", help="run directory for the results")
     _add_config_args(p)
-    p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes")
+    p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",
+                   help="map items in N worker processes (default auto: $GCVD_FLOW_JOBS, else one per usable "
+                   "core; results do not depend on it)")
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -95,7 +107,8 @@ def _add_scale_commands(sub: Any) -> None:
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="videos / image folders / dataset folders")
     p.add_argument("--out", required=True, metavar="DIR", help="one run directory per input: DIR/<input name>")
     _add_config_args(p)
-    p.add_argument("--jobs", type=int, default=1, metavar="N", help="map items in N worker processes / Dask workers")
+    p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",
+                   help="map items in N worker processes / Dask workers (default auto: one per usable core)")
     _add_scale_args(p)
     p.set_defaults(handler=_cmd_run_many)
 
@@ -177,7 +190,7 @@ def _invocation(a: argparse.Namespace, input_: str | None = None, out: str | Non
     return Invocation(input=input_ if input_ is not None else getattr(a, "input", None),
                           out=out if out is not None else getattr(a, "out", None),
                           config_file=getattr(a, "config_file", None), profile=getattr(a, "profile", None),
-                          sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 1),
+                          sets=sets, cache=getattr(a, "cache", None), jobs=getattr(a, "jobs", 0),
                           json_mode=getattr(a, "json_mode", False),
                           pipeline=getattr(a, "pipeline", None) or _product().pipeline,
                           verify=getattr(a, "verify", True), remote=getattr(a, "remote_name", None),

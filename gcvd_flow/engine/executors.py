@@ -145,8 +145,51 @@ def compute_item(task: ItemTask) -> ItemResult:
                       time.perf_counter() - t0)
 
 
+JOBS_ENV = "GCVD_FLOW_JOBS"
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity, e.g. a container's cpuset)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def parse_jobs(text: str, where: str = "--jobs") -> int:
+    """A jobs setting: a positive integer, or ``auto`` (0: one worker per usable core)."""
+    from gcvd_flow.engine.errors import UsageError
+
+    t = str(text).strip().lower()
+    if t == "auto":
+        return 0
+    try:
+        n = int(t)
+    except ValueError:
+        n = -1
+    if n < 1:
+        raise UsageError(f"{where}: expected a positive integer or 'auto', got {text!r}")
+    return n
+
+
+def resolve_jobs(jobs: int | None) -> int:
+    """Worker processes for map items: ``jobs`` if >= 1, else ``$GCVD_FLOW_JOBS`` if set, else
+    one per usable core. Results do not depend on it (items are pure; each worker's numeric
+    libraries run single-threaded, and the item results were checked bit-identical to
+    in-process ones), only the wall time does."""
+    if jobs is not None and jobs >= 1:
+        return int(jobs)
+    env = os.environ.get(JOBS_ENV, "").strip()
+    if env:
+        n = parse_jobs(env, f"${JOBS_ENV}")
+        if n >= 1:
+            return n
+    return usable_cores()
+
+
 class InProcessExecutor:
     jobs = 1
+    min_items = 1
 
     def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
         for t in tasks:
@@ -165,7 +208,14 @@ def _worker_init(pipeline_init: Callable[[], None] | None) -> None:
 
 
 class ProcessPoolItemExecutor:
-    """Items in parallel worker processes (``--jobs N``); results in completion order."""
+    """Items in parallel worker processes (``--jobs N``); results in completion order.
+
+    A stage with fewer than ``min_items`` items to compute runs them in the calling process:
+    starting the workers (each imports the pipeline's numeric libraries, ~1-2 s) costs more than
+    a handful of items saves. Workers start on the first stage that needs them and serve the
+    rest of the run."""
+
+    min_items = 8
 
     def __init__(self, jobs: int, worker_init: Callable[[], None] | None = None):
         self.jobs = max(1, jobs)
@@ -299,7 +349,9 @@ EXECUTORS = ("process", "dask")
 
 def make_executor(jobs: int, worker_init: Callable[[], None] | None = None, kind: str = "process",
                   scheduler: str | None = None):
-    """``process``: in this process (jobs <= 1) or a local process pool; ``dask``: a Dask cluster."""
+    """``process``: in this process (jobs == 1) or a local process pool; ``dask``: a Dask cluster.
+    ``jobs`` 0 (``auto``): see :func:`resolve_jobs`."""
+    jobs = resolve_jobs(jobs)
     if kind == "dask":
         return DaskItemExecutor(jobs, worker_init, scheduler)
     if scheduler:

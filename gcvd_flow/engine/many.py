@@ -54,14 +54,14 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
     """Run every input with the settings of ``base`` (an api.Invocation); never stops early."""
     from gcvd_flow.engine import api
     from gcvd_flow.engine.errors import StoreError
-    from gcvd_flow.engine.executors import make_executor
+    from gcvd_flow.engine.executors import make_executor, resolve_jobs
 
     if not inputs:
         raise UsageError("run-many: no INPUT given")
     spec = api.load_spec(base.pipeline, allow_module_ref=True)
     root = Path(out_root)
     executor = None
-    if base.executor == "dask" or base.jobs > 1:
+    if base.executor == "dask" or resolve_jobs(base.jobs) > 1:
         executor = make_executor(base.jobs, spec.pipeline.worker_init, base.executor, base.scheduler)
     rows = []
     t_all = time.perf_counter()
