@@ -24,6 +24,7 @@ __all__ = [
     "photometric_loss",
     "flow_loss",
     "depth_consistency_loss",
+    "prior_gradients",
     "gradient_orientation_loss",
     "mesh_smoothness_loss",
     "dense_photometric_loss",
@@ -81,34 +82,54 @@ def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return gx, gy
 
 
+PriorGradients = list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+def prior_gradients(prior_disp: torch.Tensor, scales: int = 3, mask: torch.Tensor | None = None) -> PriorGradients:
+    """The prior's side of :func:`gradient_orientation_loss`, per scale: (rx, ry, |r|, w), each
+    (B, h_s - 1, w_s - 1). It does not change during an optimisation, so the solver computes it
+    once per window. prior_disp (B, h, w) relative inverse depth; mask (B, h, w) optional weights."""
+    ref = prior_disp
+    m = torch.ones_like(ref) if mask is None else mask.to(ref.dtype)
+    out: PriorGradients = []
+    for s in range(scales):
+        if s > 0:
+            ref = F.avg_pool2d(ref[:, None], 2)[:, 0]
+            m = F.avg_pool2d(m[:, None], 2)[:, 0]
+        if min(ref.shape[-2:]) < 3:
+            break
+        rx, ry = _grad_xy(ref)
+        nr = (rx * rx + ry * ry).sqrt()
+        # only where the prior has a gradient worth following
+        w = m[:, :-1, :-1] * (nr > 1e-3 * ref.abs().mean((1, 2), keepdim=True)).to(ref.dtype)
+        out.append((rx, ry, nr, w))
+    return out
+
+
 def gradient_orientation_loss(
-    depth: torch.Tensor, prior_disp: torch.Tensor, scales: int = 3, mask: torch.Tensor | None = None
+    depth: torch.Tensor, prior_disp: torch.Tensor | None, scales: int = 3, mask: torch.Tensor | None = None,
+    prior_grads: PriorGradients | None = None,
 ) -> torch.Tensor:
     """(1 - cos)^2 between the 2D gradients of the predicted inverse depth and of the prior.
 
     depth (B, h, w) > 0; prior_disp (B, h, w) relative inverse depth; mask (B, h, w) optional
     weights. Evaluated at ``scales`` resolutions (x1, x1/2, x1/4, area pooling), averaged -> (B,).
     Orientation only (scale-invariant), so it keeps the prior's edges without fixing its scale.
+    ``prior_grads``: :func:`prior_gradients` of (prior_disp, scales, mask), computed beforehand
+    (then prior_disp may be None).
     """
+    if prior_grads is None:
+        assert prior_disp is not None
+        prior_grads = prior_gradients(prior_disp, scales, mask)
     disp = 1.0 / depth.clamp(min=1e-6)
-    ref = prior_disp
-    m = torch.ones_like(disp) if mask is None else mask.to(disp.dtype)
     out = torch.zeros(depth.shape[0], dtype=depth.dtype)
-    for s in range(scales):
+    for s, (rx, ry, nr, w) in enumerate(prior_grads):
         if s > 0:
             disp = F.avg_pool2d(disp[:, None], 2)[:, 0]
-            ref = F.avg_pool2d(ref[:, None], 2)[:, 0]
-            m = F.avg_pool2d(m[:, None], 2)[:, 0]
-        if min(disp.shape[-2:]) < 3:
-            break
         gx, gy = _grad_xy(disp)
-        rx, ry = _grad_xy(ref)
         num = gx * rx + gy * ry
         nd = (gx * gx + gy * gy + 1e-12).sqrt()
-        nr = (rx * rx + ry * ry).sqrt()
         cos = num / (nd * nr.clamp(min=1e-12))
-        # only where the prior has a gradient worth following
-        w = m[:, :-1, :-1] * (nr > 1e-3 * ref.abs().mean((1, 2), keepdim=True)).to(disp.dtype)
         out = out + weighted_mean(((1 - cos) ** 2).flatten(1), w.flatten(1))
     return out / scales
 

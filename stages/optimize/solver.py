@@ -181,6 +181,12 @@ class Solver:
         if fl:
             m[self.flow_idx] = m[self.flow_idx] * self.fvalid
         self.amask = m
+        # constant per window, so gathered once rather than at every step: each pair's two
+        # images (npair, 3, h, w), the flat offset of frame a's depth in the (n * h * w) depth
+        # vector, and the prior's gradients for the gradient-orientation loss
+        self.img_pa, self.img_pb = win.imgs[self.pa], win.imgs[self.pb]
+        self.pa_offset = (self.pa * hw)[:, None]
+        self.prior_grads = L.prior_gradients(torch.exp(win.enc.log_prior[:, 0]), 3, win.static)
 
     def poses(self) -> torch.Tensor:
         """(n, 4, 4) float64 T_w_c (camera-to-world)."""
@@ -212,14 +218,13 @@ class Solver:
         nu = (u0[..., None] + _OFFS[:, 1]).clamp(0, w - 1)
         nv = (v0[..., None] + _OFFS[:, 0]).clamp(0, h - 1)
         nidx = (nv * w + nu).reshape(npair, M * 9)
-        dflat = depth.reshape(-1, hw)[self.pa]  # (npair, hw)
-        d_a = dflat.gather(1, nidx)
+        d_a = depth.reshape(-1)[self.pa_offset + nidx]  # (npair, M * 9)
         X = self.rays[nidx] * d_a[..., None]
         Xb = G.transform(T_b_a, X)
         uv, z = G.project(Xb, win.K.to(torch.float32))
         uvc, zc = uv.reshape(npair, M, 9, 2)[:, :, 4], z.reshape(npair, M, 9)[:, :, 4]
-        img_b, inside = G.sample_bilinear(win.imgs[self.pb], uv)
-        img_a = G.gather_pixels(win.imgs[self.pa], nidx)
+        img_b, inside = G.sample_bilinear(self.img_pb, uv)
+        img_a = G.gather_pixels(self.img_pa, nidx)
         d_b, _ = G.sample_bilinear(depth[self.pb][:, None], uvc)
         ins_c = inside.reshape(npair, M, 9)[:, :, 4]
         wgt = self.amask.gather(1, idx) * ins_c.float() * (zc > 1e-3).float()
@@ -239,8 +244,8 @@ class Solver:
             pair_loss = pair_loss.index_add(0, fi, lw.w_flow * fl)
         total = (self.pw * pair_loss).sum()
         if lw.grad and lw.w_grad > 0:
-            prior_disp = torch.exp(win.enc.log_prior[:, 0])
-            total = total + lw.w_grad * win.grad_mult * L.gradient_orientation_loss(depth, prior_disp, 3, win.static).mean()
+            total = total + lw.w_grad * win.grad_mult * L.gradient_orientation_loss(
+                depth, None, 3, win.static, prior_grads=self.prior_grads).mean()
         if use_mesh and lw.w_mesh > 0:
             total = total + lw.w_mesh * L.mesh_smoothness_loss(self.mesh, win.dyn_mesh).mean()
         return total
