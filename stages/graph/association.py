@@ -181,21 +181,33 @@ def _gray(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(img, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
 
 
+SiftFeatures = tuple[np.ndarray, np.ndarray | None]  # keypoint positions (K, 2) px, descriptors (K, 128)
+
+
+def _sift_features(img: np.ndarray) -> SiftFeatures:
+    """SIFT keypoint positions and descriptors of one image (a keyframe takes part in several
+    pairs: its features are computed once)."""
+    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)
+    kp, des = sift.detectAndCompute(_gray(img), None)
+    return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
+
+
+def _match_features(fa: SiftFeatures, fb: SiftFeatures) -> tuple[np.ndarray, np.ndarray]:
+    """Ratio-test matches of two images' features: (pts_a (M, 2), pts_b (M, 2)) float64 px,
+    deterministic order."""
+    (pos_a, des_a), (pos_b, des_b) = fa, fb
+    if des_a is None or des_b is None or len(pos_a) < 2 or len(pos_b) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(des_a, des_b, k=2)
+    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < SIFT_RATIO * m[1].distance]
+    ia = np.asarray([q for q, _ in pairs], np.int64)
+    ib = np.asarray([t for _, t in pairs], np.int64)
+    return pos_a[ia].reshape(-1, 2), pos_b[ib].reshape(-1, 2)
+
+
 def _sift_matches(img_a: np.ndarray, img_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Ratio-test SIFT matches: (pts_a (M, 2), pts_b (M, 2)) float64 px, deterministic order."""
-    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)
-    kp_a, des_a = sift.detectAndCompute(_gray(img_a), None)
-    kp_b, des_b = sift.detectAndCompute(_gray(img_b), None)
-    if des_a is None or des_b is None or len(kp_a) < 2 or len(kp_b) < 2:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    knn = matcher.knnMatch(des_a, des_b, k=2)
-    pa, pb = [], []
-    for m in knn:
-        if len(m) == 2 and m[0].distance < SIFT_RATIO * m[1].distance:
-            pa.append(kp_a[m[0].queryIdx].pt)
-            pb.append(kp_b[m[0].trainIdx].pt)
-    return np.asarray(pa, np.float64).reshape(-1, 2), np.asarray(pb, np.float64).reshape(-1, 2)
+    return _match_features(_sift_features(img_a), _sift_features(img_b))
 
 
 def _homography(pts_a: np.ndarray, pts_b: np.ndarray) -> tuple[np.ndarray | None, float]:
@@ -307,6 +319,7 @@ def verify_pair(
     min_inlier_ratio: float = 0.5,
     min_consistent: float = 0.1,
     fb_thresh: float = 2.0,
+    _matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Geometric + flow verification of a loop candidate (docs/design.md, "Stage: association").
 
@@ -320,7 +333,7 @@ def verify_pair(
     The essential matrix (K is known) stands in for the fundamental matrix: a revisit with
     parallax is not a homography, and a calibrated model has fewer degenerate fits.
     """
-    pts_a, pts_b = _sift_matches(img_a, img_b)
+    pts_a, pts_b = _matches if _matches is not None else _sift_matches(img_a, img_b)
     n_matches = int(len(pts_a))
     _, h_ratio = _homography(pts_a, pts_b)
     e_ratio = _essential_inlier_ratio(pts_a, pts_b, K)
@@ -373,13 +386,15 @@ def _verify_candidates(
     K: np.ndarray,
     keyframe_threshold_px: float,
     edge_flows: dict[tuple[int, int], dict[str, np.ndarray]],
+    features: Callable[[int], SiftFeatures] | None = None,
     **verify_kw: Any,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """(accepted, rejected) statistics of each candidate pair (a, b, similarity) (keyframe
     positions); the flows of accepted pairs are added to ``edge_flows`` under frame indices."""
     accepted, rejected = [], []
     for a, b, sim in cands:
-        v = verify_pair(kf_images[a], kf_images[b], K, keyframe_threshold_px, **verify_kw)
+        matches = _match_features(features(a), features(b)) if features is not None else None
+        v = verify_pair(kf_images[a], kf_images[b], K, keyframe_threshold_px, _matches=matches, **verify_kw)
         stats = {
             "i": kfs[a],
             "j": kfs[b],
@@ -445,10 +460,18 @@ def build_graph(
 
     sequential = sequential_edges(kfs, taus)
     edge_flows: dict[tuple[int, int], dict[str, np.ndarray]] = {}
+    feats: dict[int, SiftFeatures] = {}
+
+    def features(m: int) -> SiftFeatures:
+        if m not in feats:
+            feats[m] = _sift_features(kf_images[m])
+        return feats[m]
+
     for m in range(n - 1):
         edge_flows[(kfs[m], kfs[m + 1])] = keyframe_pair_flow(
-            kf_images[m], kf_images[m + 1], fb_thresh=fb_thresh
-        )
+            kf_images[m], kf_images[m + 1], fb_thresh=fb_thresh,
+            _matches=_match_features(features(m), features(m + 1)))
+        feats.pop(m - 1, None)  # consecutive pairs need at most two; candidates recompute theirs
 
     if descriptors is None:
         fn = descriptor_fn or global_descriptor
@@ -461,7 +484,7 @@ def build_graph(
 
     cands = candidate_pairs(desc, similarity_threshold, nms=nms, min_separation=sep) if n else []
     accepted, rejected = _verify_candidates(
-        cands, kfs, kf_images, K, keyframe_threshold_px, edge_flows,
+        cands, kfs, kf_images, K, keyframe_threshold_px, edge_flows, features,
         min_inlier_ratio=min_inlier_ratio, min_consistent=min_consistent, fb_thresh=fb_thresh)
     log.debug(
         "graph: %d keyframes, %d sequential, %d loop edges, %d rejected",
