@@ -1,4 +1,4 @@
-"""Global bundle adjustment of the keyframe poses over multi-view point tracks (gtsam).
+"""Global bundle adjustment of the keyframe poses over multi-view point tracks.
 
 What COLMAP has and GCVD lacks: after the pose graph, every keyframe pose is refined jointly with
 3-D points that several keyframes observe, under robust (Cauchy) reprojection factors. The pose
@@ -16,6 +16,11 @@ at that keyframe's optimised depth. Tracks seen by fewer than ``min_views`` keyf
 dropped. Gauge: the first keyframe is fixed; every pose also has a weak prior to its pose-graph
 value, which fixes the global scale (monocular BA has none of its own) without holding the shape.
 
+Two solvers minimise the same cost: :mod:`stages.optimize.ba_solver` (default; analytic Jacobians,
+Schur complement on the landmarks) and gtsam's Levenberg-Marquardt on the factor graph
+(:func:`gtsam_graph`, the reference: its inverse-depth factors differentiate numerically, >10x
+slower on keyframe-heavy clips).
+
 Shapes: flows float32 (H, W, 2) px and bool (H, W) consistency; depth float32 (H, W); K (3, 3);
 poses T_w_k (K, 4, 4) camera-to-world, OpenCV axes.
 """
@@ -23,12 +28,18 @@ poses T_w_k (K, 4, 4) camera-to-world, OpenCV axes.
 from __future__ import annotations
 
 import logging
-from typing import Mapping, Sequence, TypedDict
+from typing import TYPE_CHECKING, Literal, Mapping, Sequence, TypedDict
 
-import gtsam
 import numpy as np
 
+from stages.optimize import ba_solver
+
+if TYPE_CHECKING:
+    import gtsam
+
 log = logging.getLogger(__name__)
+
+GAUGE_SIGMA = 1e-6  # prior sigma on the first keyframe (rad, m): fixes the gauge
 
 
 class BundleResult(TypedDict):
@@ -51,14 +62,6 @@ def _bilinear(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     f = field.astype(np.float64)
     return ((1 - fx) * (1 - fy) * f[y0, x0] + fx * (1 - fy) * f[y0, x0 + 1]
             + (1 - fx) * fy * f[y0 + 1, x0] + fx * fy * f[y0 + 1, x0 + 1])
-
-
-def _median_error(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> float:
-    """Median reprojection error (px) over the projection factors (the mean would be the
-    outliers the robust loss ignores)."""
-    errs = [float(np.linalg.norm(f.unwhitenedError(values))) for f in (graph.at(i) for i in range(graph.size()))
-            if not isinstance(f, gtsam.PriorFactorPose3)]
-    return float(np.median(errs)) if errs else 0.0
 
 
 Track = list[tuple[int, float, float]]  # [(keyframe position, u, v), ...], first = anchor
@@ -127,19 +130,57 @@ def _follow(fwd: np.ndarray, valid: np.ndarray, x: np.ndarray, y: np.ndarray, bo
     return x2, y2, ok
 
 
-def inverse_depth_landmark(u: float, v: float, z: float, Kinv: np.ndarray) -> np.ndarray:
+def inverse_depth_landmark(u: float | np.ndarray, v: float | np.ndarray, z: float | np.ndarray,
+                           Kinv: np.ndarray) -> np.ndarray:
     """(theta, phi, rho) of gtsam_unstable's InvDepthFactorVariant3: the point at depth z
     (metres along the optical axis) on pixel (u, v)'s ray, in its anchor camera's frame:
-    X_c = (cos(phi) sin(theta), sin(phi), cos(phi) cos(theta)) / rho."""
-    X = z * (Kinv @ np.array([u, v, 1.0]))
-    return np.array([np.arctan2(X[0], X[2]), np.arctan2(X[1], np.hypot(X[0], X[2])), 1.0 / np.linalg.norm(X)])
+    X_c = (cos(phi) sin(theta), sin(phi), cos(phi) cos(theta)) / rho. Scalars -> (3,);
+    arrays (N,) -> (N, 3)."""
+    u, v, z = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (u, v, z)))
+    X = z[..., None] * (np.stack([u, v, np.ones_like(u)], -1) @ Kinv.T)
+    return np.stack([np.arctan2(X[..., 0], X[..., 2]), np.arctan2(X[..., 1], np.hypot(X[..., 0], X[..., 2])),
+                     1.0 / np.linalg.norm(X, axis=-1)], -1)
+
+
+def _problem(tracks: list[Track], depths: Sequence[np.ndarray], K: np.ndarray, robust_px: float,
+             T_w_k: np.ndarray, weak_sigmas: np.ndarray) -> tuple[ba_solver.Problem, np.ndarray]:
+    """Tracks -> the problem's arrays and the initial landmarks (L, 3): one landmark per track
+    whose anchor pixel has a depth (> 0), all of the track's views observations of it."""
+    lens = np.fromiter(map(len, tracks), np.int64, len(tracks))
+    flat = np.array([o for t in tracks for o in t], np.float64).reshape(-1, 3)  # (keyframe, u, v)
+    start = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    m, u, v = flat[start, 0].astype(np.int64), flat[start, 1], flat[start, 2]
+    h, w = np.asarray(depths[0]).shape
+    vi, ui = np.clip(np.rint(v).astype(np.int64), 0, h - 1), np.clip(np.rint(u).astype(np.int64), 0, w - 1)
+    z = np.zeros(len(tracks))
+    for k in np.unique(m):  # anchor depths, keyframe by keyframe (no stacked copy of all depth maps)
+        sel = m == k
+        z[sel] = np.asarray(depths[k])[vi[sel], ui[sel]]
+    keep = z > 0
+    obs_keep = np.repeat(keep, lens)
+    n = len(T_w_k)
+    prior_info = np.tile(1.0 / np.asarray(weak_sigmas, np.float64) ** 2, (n, 1))
+    prior_info[0] += 1.0 / GAUGE_SIGMA**2  # the gauge's prior adds to the weak one on keyframe 0
+    problem = ba_solver.Problem(
+        K=np.asarray(K, np.float64), anchor=m[keep], obs_lm=np.repeat(np.arange(int(keep.sum())), lens[keep]),
+        obs_cam=flat[obs_keep, 0].astype(np.int64), uv=flat[obs_keep, 1:], robust_px=float(robust_px),
+        prior_poses=T_w_k.copy(), prior_info=prior_info)
+    return problem, inverse_depth_landmark(u[keep], v[keep], z[keep], np.linalg.inv(K))
+
+
+def _median_error(problem: ba_solver.Problem, poses: np.ndarray, landmarks: np.ndarray) -> float:
+    """Median reprojection error (px) over all observations (the mean would be the outliers the
+    robust loss ignores); a point behind a camera counts gtsam's cheirality error."""
+    r = ba_solver.reprojection(problem, poses, landmarks)  # (2, M)
+    return float(np.median(np.hypot(r[0], r[1]))) if r.shape[1] else 0.0
 
 
 def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                         edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
                         K: np.ndarray, stride: int = 12, track_length: int = 8, min_views: int = 3,
                         robust_px: float = 0.3, prior_rot_sigma: float = 0.05, prior_trans_frac: float = 0.05,
-                        max_iterations: int = 30, consistent_px: float = 0.25) -> BundleResult:
+                        max_iterations: int = 30, consistent_px: float = 0.25,
+                        solver: Literal["schur", "gtsam"] = "schur") -> BundleResult:
     """Refine keyframe poses T_w_k (K, 4, 4) over tracks of the keyframe graph
     (:func:`build_tracks`), landmarks as inverse depth in their first keyframe.
 
@@ -147,78 +188,103 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     median error below ``consistent_px``, they are kept (``skipped``): the tracks hold no evidence
     of drift then, only flow noise (~0.1 px for DIS), which the dense windows average better than
     sparse tracks can. On the synthetic loop, bundle adjustment started at the exact poses moves
-    them to 1.4 mm keyframe ATE (median error 0.11 px); the pose graph gives 1.0 mm."""
-    import gtsam_unstable
+    them to 1.4 mm keyframe ATE (median error 0.11 px); the pose graph gives 1.0 mm.
 
+    ``solver``: "schur" (:mod:`stages.optimize.ba_solver`: analytic Jacobians, Schur complement;
+    >10x faster on keyframe-heavy clips) or "gtsam" (the same factor graph in gtsam's
+    Levenberg-Marquardt, the reference)."""
+    if solver not in ("schur", "gtsam"):
+        raise ValueError(f"unknown bundle adjustment solver {solver!r}")
     T_w_k = np.asarray(T_w_k, np.float64)
     n = len(T_w_k)
     h, w = np.asarray(depths[0]).shape
     tracks = [t for t in build_tracks(edge_flows, keyframes, (h, w), stride, track_length)
               if len(t) >= min_views]
+    none: BundleResult = {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
+                          "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
     if n < 3 or not tracks:
-        return {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
-                "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
+        return none
     med = float(np.median([np.median(d[d > 0]) for d in depths if (d > 0).any()] or [1.0]))
-    cal = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
-    pix = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(robust_px),
-                                         gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
-    graph, values = _pose_priors(T_w_k, prior_rot_sigma, prior_trans_frac * med)
-    Kinv, X, L = np.linalg.inv(K), gtsam.symbol, gtsam.symbol  # pose x_k, landmark l_j
-    n_obs = n_lm = 0
-    anchor: dict[int, int] = {}  # landmark j -> its keyframe
-    for j, track in enumerate(tracks):
-        m, u, v = track[0]
-        z = float(np.asarray(depths[m])[int(round(v)), int(round(u))])
-        if not z > 0:
-            continue
-        values.insert(L("l", j), inverse_depth_landmark(u, v, z, Kinv))
-        n_lm += 1
-        anchor[j] = m
-        graph.add(gtsam_unstable.InvDepthFactorVariant3a(X("x", m), L("l", j), np.array([u, v]), cal, pix))
-        for k, a, b in track[1:]:
-            graph.add(gtsam_unstable.InvDepthFactorVariant3b(X("x", m), X("x", k), L("l", j),
-                                                             np.array([a, b]), cal, pix))
-        n_obs += len(track)
-    e0 = _median_error(graph, values)
+    weak = np.array([prior_rot_sigma] * 3 + [prior_trans_frac * med] * 3)
+    problem, lm0 = _problem(tracks, depths, K, robust_px, T_w_k, weak)
+    n_lm, n_obs = len(lm0), len(problem.uv)
+    if not n_lm:
+        return none
+    e0 = _median_error(problem, T_w_k, lm0)
     if e0 < consistent_px:
-        return {"poses": T_w_k, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
-                "final_median_px": e0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = opt.optimize()
-    poses = np.stack([result.atPose3(X("x", k)).matrix() for k in range(n)])
-    e1 = _median_error(graph, result)
-    log.debug("bundle adjustment: %d landmarks, %d observations, median %.3f -> %.3f px", n_lm, n_obs, e0, e1)
-    return {"poses": poses, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
-            "final_median_px": e1, "iterations": int(opt.iterations()), "skipped": False,
-            "depth_scale": _depth_scale(values, result, anchor, n)}
+        return {**none, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0, "final_median_px": e0}
+    if solver == "schur":
+        res = ba_solver.solve(problem, T_w_k, lm0, max_iterations=max_iterations)
+    else:
+        res = solve_gtsam(problem, T_w_k, lm0, weak, max_iterations=max_iterations)
+    e1 = _median_error(problem, res.poses, res.landmarks)
+    log.debug("bundle adjustment (%s): %d landmarks, %d observations, median %.3f -> %.3f px, %d iterations",
+              solver, n_lm, n_obs, e0, e1, res.iterations)
+    return {"poses": res.poses, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
+            "final_median_px": e1, "iterations": int(res.iterations), "skipped": False,
+            "depth_scale": _depth_scale(lm0[:, 2], res.landmarks[:, 2], problem.anchor, n)}
 
 
-def _depth_scale(before: gtsam.Values, after: gtsam.Values, anchor: dict[int, int], n: int,
+def _depth_scale(rho0: np.ndarray, rho1: np.ndarray, anchor: np.ndarray, n: int,
                  min_landmarks: int = 20) -> np.ndarray:
     """(n,) per keyframe: median ratio of its anchored landmarks' distance after / before the
-    adjustment (inverse depth rho: before / after). Moving a keyframe corrects the local scale
+    adjustment (inverse depth rho (L,): before / after). Moving a keyframe corrects the local scale
     that drift had; its depth map must follow or the frames between keyframes fit depth at the
     old scale against poses at the new one. 1 where fewer than ``min_landmarks`` anchor there."""
-    ratios: dict[int, list[float]] = {}
-    for j, m in anchor.items():
-        r0, r1 = before.atVector(gtsam.symbol("l", j))[2], after.atVector(gtsam.symbol("l", j))[2]
-        if r0 > 0 and r1 > 0:
-            ratios.setdefault(m, []).append(r0 / r1)
-    return np.array([float(np.median(ratios[m])) if len(ratios.get(m, ())) >= min_landmarks else 1.0
-                     for m in range(n)])
+    ok = (rho0 > 0) & (rho1 > 0)
+    out = np.ones(n)
+    for m in range(n):
+        sel = ok & (anchor == m)
+        if sel.sum() >= min_landmarks:
+            out[m] = float(np.median(rho0[sel] / rho1[sel]))
+    return out
 
 
-def _pose_priors(T_w_k: np.ndarray, rot_sigma: float, trans_sigma: float
-                 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """The poses as values, a weak prior to each (global scale: monocular BA has none) and a
-    tight one on the first (the gauge)."""
-    weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([rot_sigma] * 3 + [trans_sigma] * 3))
+def gtsam_graph(problem: ba_solver.Problem, poses: np.ndarray, landmarks: np.ndarray, weak_sigmas: np.ndarray
+                ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """The problem as gtsam's factor graph (the reference the Schur solver reproduces): robust
+    InvDepthFactorVariant3a (anchor view) / 3b (other views) factors, a weak PriorFactorPose3
+    (sigmas (6,) rot rad, trans m) on every pose to its prior and a tight one on the first (the
+    gauge); values: poses x_k, landmarks l_j."""
+    import gtsam
+    import gtsam_unstable
+
+    K = problem.K
+    cal = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
+    pix = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(problem.robust_px),
+                                         gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
+    X = gtsam.symbol
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for k, T in enumerate(T_w_k):
-        values.insert(gtsam.symbol("x", k), gtsam.Pose3(T))
-        graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", k), gtsam.Pose3(T), weak))
-    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(T_w_k[0]),
-                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    weak = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(weak_sigmas, np.float64))
+    for k, (T, P) in enumerate(zip(poses, problem.prior_poses)):
+        values.insert(X("x", k), gtsam.Pose3(T))
+        graph.add(gtsam.PriorFactorPose3(X("x", k), gtsam.Pose3(P), weak))
+    graph.add(gtsam.PriorFactorPose3(X("x", 0), gtsam.Pose3(problem.prior_poses[0]),
+                                     gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))
+    for j, lm in enumerate(landmarks):
+        values.insert(X("l", j), np.asarray(lm, np.float64))
+    for j, k, uv in zip(problem.obs_lm.tolist(), problem.obs_cam.tolist(), problem.uv):
+        m = int(problem.anchor[j])
+        if k == m:
+            graph.add(gtsam_unstable.InvDepthFactorVariant3a(X("x", m), X("l", j), uv, cal, pix))
+        else:
+            graph.add(gtsam_unstable.InvDepthFactorVariant3b(X("x", m), X("x", k), X("l", j), uv, cal, pix))
     return graph, values
+
+
+def solve_gtsam(problem: ba_solver.Problem, poses: np.ndarray, landmarks: np.ndarray, weak_sigmas: np.ndarray,
+                max_iterations: int = 100, relative_tol: float = 1e-5) -> ba_solver.SolveResult:
+    """gtsam's Levenberg-Marquardt (default parameters but these two) on :func:`gtsam_graph`."""
+    import gtsam
+
+    graph, values = gtsam_graph(problem, poses, landmarks, weak_sigmas)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(relative_tol)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = opt.optimize()
+    X = gtsam.symbol
+    out_p = np.stack([result.atPose3(X("x", k)).matrix() for k in range(len(poses))])
+    out_l = np.stack([result.atVector(X("l", j)) for j in range(len(landmarks))]).reshape(-1, 3)
+    return ba_solver.SolveResult(out_p, out_l, int(opt.iterations()), float(graph.error(values)),
+                                 float(graph.error(result)))
