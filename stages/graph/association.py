@@ -413,6 +413,34 @@ def _verify_candidates(
     return accepted, rejected
 
 
+class _FeatureCache:
+    """SIFT features of keyframe positions, computed on first use (a keyframe takes part in its
+    two consecutive pairs and in loop candidates)."""
+
+    def __init__(self, kf_images: list[np.ndarray] | np.ndarray) -> None:
+        self._images, self._feats = kf_images, {}
+
+    def __call__(self, m: int) -> SiftFeatures:
+        if m not in self._feats:
+            self._feats[m] = _sift_features(self._images[m])
+        return self._feats[m]
+
+    def drop(self, m: int) -> None:
+        self._feats.pop(m, None)
+
+
+def _consecutive_flows(kfs: list[int], kf_images: list[np.ndarray] | np.ndarray, features: _FeatureCache,
+                       fb_thresh: float) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+    """{(frame i, frame j): keyframe_pair_flow} of every pair of consecutive keyframes."""
+    out: dict[tuple[int, int], dict[str, np.ndarray]] = {}
+    for m in range(len(kfs) - 1):
+        out[(kfs[m], kfs[m + 1])] = keyframe_pair_flow(
+            kf_images[m], kf_images[m + 1], fb_thresh=fb_thresh,
+            _matches=_match_features(features(m), features(m + 1)))
+        features.drop(m - 1)  # the walk needs at most two at a time; loop candidates recompute theirs
+    return out
+
+
 def build_graph(
     kf_indices: list[int],
     kf_images: list[np.ndarray] | np.ndarray,
@@ -459,19 +487,8 @@ def build_graph(
     sep = max(taus) if min_separation is None else int(min_separation)
 
     sequential = sequential_edges(kfs, taus)
-    edge_flows: dict[tuple[int, int], dict[str, np.ndarray]] = {}
-    feats: dict[int, SiftFeatures] = {}
-
-    def features(m: int) -> SiftFeatures:
-        if m not in feats:
-            feats[m] = _sift_features(kf_images[m])
-        return feats[m]
-
-    for m in range(n - 1):
-        edge_flows[(kfs[m], kfs[m + 1])] = keyframe_pair_flow(
-            kf_images[m], kf_images[m + 1], fb_thresh=fb_thresh,
-            _matches=_match_features(features(m), features(m + 1)))
-        feats.pop(m - 1, None)  # consecutive pairs need at most two; candidates recompute theirs
+    features = _FeatureCache(kf_images)
+    edge_flows = _consecutive_flows(kfs, kf_images, features, fb_thresh)
 
     if descriptors is None:
         fn = descriptor_fn or global_descriptor
