@@ -36,6 +36,57 @@ MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment
 POST = ("depth_fusion", "depth_filter")
 
 
+class TreeMemory:
+    """Peak memory of a process and all its descendants (the map stages' worker processes are
+    children of multiprocessing's forkserver, which wait4 does not count): the sum of their
+    proportional set sizes (Pss in /proc/PID/smaps_rollup: shared pages split between the
+    processes sharing them), sampled every 0.2 s from a thread."""
+
+    def __init__(self, pid: int) -> None:
+        import threading
+
+        self.pid, self.peak_kb = pid, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    @staticmethod
+    def _tree(root: int) -> list[int]:
+        children: dict[int, list[int]] = {}
+        for d in os.listdir("/proc"):
+            if d.isdigit():
+                try:
+                    ppid = int(open(f"/proc/{d}/stat").read().rsplit(")", 1)[1].split()[1])
+                except (OSError, IndexError, ValueError):
+                    continue
+                children.setdefault(ppid, []).append(int(d))
+        out, todo = [], [root]
+        while todo:
+            p = todo.pop()
+            out.append(p)
+            todo.extend(children.get(p, []))
+        return out
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.2):
+            total = 0
+            for p in self._tree(self.pid):
+                try:
+                    for line in open(f"/proc/{p}/smaps_rollup"):
+                        if line.startswith("Pss:"):
+                            total += int(line.split()[1])
+                            break
+                except OSError:
+                    pass
+            self.peak_kb = max(self.peak_kb, total)
+
+    def stop(self) -> float:
+        """Peak in MB."""
+        self._stop.set()
+        self._thread.join()
+        return self.peak_kb / 1024
+
+
 def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str) -> list[float]:
     """Wall seconds of ``copies`` cold runs of ``clip`` started together."""
     import time
@@ -87,13 +138,15 @@ def _cold_run(clip: Path, work: Path, extra: list[str]) -> dict:
            str(work / "cache"), "--json", *extra]
     with open(work / "out.json", "w") as fo, open(work / "err.txt", "w") as fe:
         p = subprocess.Popen(cmd, cwd=ROOT, stdout=fo, stderr=fe, env=dict(os.environ, CI="1"))
+        tree = TreeMemory(p.pid)
         _, status, usage = os.wait4(p.pid, 0)  # this child's own peak RSS (KiB on Linux)
+        tree_mb = tree.stop()
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit((work / "err.txt").read_text()[-3000:])
     doc = json.loads((work / "out.json").read_text())
     cams = json.loads((work / "run" / "cameras.json").read_text())
     return {"seconds": doc["seconds"], "stages": {s["name"]: s["seconds"] for s in doc["stages"]},
-            "peak_rss_mb": usage.ru_maxrss / 1024, "keyframes": len(cams["keyframes"]),
+            "peak_rss_mb": usage.ru_maxrss / 1024, "peak_tree_pss_mb": tree_mb, "keyframes": len(cams["keyframes"]),
             "frames": len((work / "run" / "poses.txt").read_text().splitlines())}
 
 
@@ -114,12 +167,14 @@ def real_clips(repeat: int) -> list[dict]:
             row = {"clip": name, "frames": n, "keyframes": runs[0]["keyframes"],
                    "keyframe_share": runs[0]["keyframes"] / n, "total_s_all": [r["seconds"] for r in runs],
                    "s_per_frame": med / n, "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+                   "peak_tree_pss_mb": max(r["peak_tree_pss_mb"] for r in runs),
                    "stages_s": {k: statistics.median(r["stages"][k] for r in runs) for k in runs[0]["stages"]}}
             rows.append(row)
             top = sorted(row["stages_s"].items(), key=lambda kv: -kv[1])[:5]
             print(f"{name}: {n} frames, {row['keyframes']} keyframes ({100 * row['keyframe_share']:.0f} %), "
                   f"median {med:.1f} s = {row['s_per_frame']:.3f} s/frame (runs "
-                  f"{', '.join(f'{r:.1f}' for r in row['total_s_all'])} s), peak {row['peak_rss_mb']:.0f} MB; "
+                  f"{', '.join(f'{r:.1f}' for r in row['total_s_all'])} s), peak {row['peak_rss_mb']:.0f} MB "
+                  f"(with workers {row['peak_tree_pss_mb']:.0f} MB Pss); "
                   + ", ".join(f"{k} {v:.1f} s" for k, v in top), file=sys.stderr, flush=True)
     return rows
 
@@ -156,8 +211,10 @@ def main() -> None:
             out_f, err_f = Path(tmp) / f"out{n}.json", Path(tmp) / f"err{n}.txt"
             with open(out_f, "w") as fo, open(err_f, "w") as fe:
                 p = subprocess.Popen(cmd, cwd=ROOT, stdout=fo, stderr=fe, env=dict(os.environ, CI="1"))
+                tree = TreeMemory(p.pid)
                 # wait4 gives this child's own peak RSS (KiB on Linux)
                 _, status, usage = os.wait4(p.pid, 0)
+                tree_mb = tree.stop()
             if os.waitstatus_to_exitcode(status) != 0:
                 raise SystemExit(err_f.read_text()[-3000:])
             peak_kb = usage.ru_maxrss
@@ -167,12 +224,12 @@ def main() -> None:
                    "main_s_per_frame": sum(secs[k] for k in MAIN) / n,
                    "post_s_per_frame": sum(secs[k] for k in POST) / n,
                    "total_s_per_frame": doc["seconds"] / n,
-                   "peak_rss_mb": peak_kb / 1024,
+                   "peak_rss_mb": peak_kb / 1024, "peak_tree_pss_mb": tree_mb,
                    "stages": secs}
             rows.append(row)
             print(f"{n:5d} frames: pre {row['pre_s_per_frame']:.3f}  main {row['main_s_per_frame']:.3f}  "
                   f"post {row['post_s_per_frame']:.3f}  total {row['total_s_per_frame']:.3f} s/frame  "
-                  f"peak {row['peak_rss_mb'] or float('nan'):.0f} MB", file=sys.stderr, flush=True)
+                  f"peak {row['peak_rss_mb'] or float('nan'):.0f} MB (with workers {tree_mb:.0f} MB Pss)", file=sys.stderr, flush=True)
     if a.json:
         print(json.dumps(rows, indent=1))
         return
