@@ -180,11 +180,7 @@ def resolve_jobs(jobs: int | None) -> int:
     if jobs is not None and jobs >= 1:
         return int(jobs)
     env = os.environ.get(JOBS_ENV, "").strip()
-    if env:
-        n = parse_jobs(env, f"${JOBS_ENV}")
-        if n >= 1:
-            return n
-    return usable_cores()
+    return (parse_jobs(env, f"${JOBS_ENV}") if env else 0) or usable_cores()
 
 
 class InProcessExecutor:

@@ -497,7 +497,7 @@ class Runner:
                 prog.update()
             else:
                 todo.append(t)
-        run_exec = executor if len(todo) > 1 and len(todo) >= getattr(executor, "min_items", 1) else InProcessExecutor()
+        run_exec = executor if len(todo) >= max(2, getattr(executor, "min_items", 2)) else InProcessExecutor()
         try:
             for res in run_exec.run(self._with_inputs(todo)):
                 outputs[res.index] = res.output
