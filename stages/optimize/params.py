@@ -71,6 +71,9 @@ class KeyframeSettings:
     taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)")
     flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
                                     "from the tau = 1 flows (the authors use tau = 1 only)")
+    photo_warp: Literal["pixel", "centre"] = _f("pixel", "photometric 3x3 patches: every pixel warped with its own "
+                                                "depth (paper), or the centre warped and the patch shifted "
+                                                "with it (a ninth of the geometry per step)")
     mesh_shape_lr_frac: float = _f(0.1, "spatial mesh vertex lr = lr * mesh_lr_mult * this: on point-sampled "
                                    "losses a fast spatial mesh bends the depth along flow noise, while poses "
                                    "need a fast per-frame scale")

@@ -130,7 +130,8 @@ class Window:
     grad_mult: float = 1.0
 
 
-_OFFS = torch.tensor([(dv, du) for dv in (-1, 0, 1) for du in (-1, 0, 1)])
+_OFFS = torch.tensor([(dv, du) for dv in (-1, 0, 1) for du in (-1, 0, 1)])  # 3x3 patch (row, column) offsets
+_OFFS_UV = _OFFS.flip(-1).to(torch.float32)  # the same offsets as (u, v) pixel shifts
 
 
 class Solver:
@@ -218,11 +219,7 @@ class Solver:
         nu = (u0[..., None] + _OFFS[:, 1]).clamp(0, w - 1)
         nv = (v0[..., None] + _OFFS[:, 0]).clamp(0, h - 1)
         nidx = (nv * w + nu).reshape(npair, M * 9)
-        d_a = depth.reshape(-1)[self.pa_offset + nidx]  # (npair, M * 9)
-        X = self.rays[nidx] * d_a[..., None]
-        Xb = G.transform(T_b_a, X)
-        uv, z = G.project(Xb, win.K.to(torch.float32))
-        uvc, zc = uv.reshape(npair, M, 9, 2)[:, :, 4], z.reshape(npair, M, 9)[:, :, 4]
+        uv, uvc, zc = self._warp(depth, T_b_a, idx, nidx)
         img_b, inside = G.sample_bilinear(self.img_pb, uv)
         img_a = G.gather_pixels(self.img_pa, nidx)
         d_b, _ = G.sample_bilinear(depth[self.pb][:, None], uvc)
@@ -249,6 +246,29 @@ class Solver:
         if use_mesh and lw.w_mesh > 0:
             total = total + lw.w_mesh * L.mesh_smoothness_loss(self.mesh, win.dyn_mesh).mean()
         return total
+
+    def _warp(self, depth: torch.Tensor, T_b_a: torch.Tensor, idx: torch.Tensor, nidx: torch.Tensor,
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Where the sampled points of frame a land in frame b: depth (n, h, w), T_b_a (npair, 4, 4),
+        idx (npair, M) flat pixel indices of the points in a, nidx (npair, M * 9) of their 3x3
+        patches -> (uv (npair, M * 9, 2) px in b of the patch pixels, uvc (npair, M, 2) px and zc
+        (npair, M) depth in camera b of the centres).
+
+        ``photo_warp="pixel"`` (the paper) lifts every patch pixel with its own depth;
+        ``"centre"`` lifts only the centre and shifts the patch with it (the patch is 3 pixels
+        wide at loss resolution, where the frame-to-frame rotation and foreshortening inside it
+        are far below a pixel): a ninth of the lifting, transform and projection, forward and
+        backward."""
+        npair, M = idx.shape
+        K = self.w.K.to(torch.float32)
+        if self.kf.photo_warp == "centre":
+            d_a = depth.reshape(-1)[self.pa_offset + idx]  # (npair, M)
+            uvc, zc = G.project(G.transform(T_b_a, self.rays[idx] * d_a[..., None]), K)
+            uv = (uvc[:, :, None, :] + _OFFS_UV).reshape(npair, M * 9, 2)
+            return uv, uvc, zc
+        d_a = depth.reshape(-1)[self.pa_offset + nidx]  # (npair, M * 9)
+        uv, z = G.project(G.transform(T_b_a, self.rays[nidx] * d_a[..., None]), K)
+        return uv, uv.reshape(npair, M, 9, 2)[:, :, 4], z.reshape(npair, M, 9)[:, :, 4]
 
     def step(self, gen: torch.Generator) -> float:
         self.opt.zero_grad(set_to_none=True)
