@@ -689,12 +689,27 @@ class _FlowDicts:
         return _flow_dict(self._items[i])
 
 
+class _ScaledDepths:
+    """depths[k] * scale[k] on access: the keyframe depths in bundle adjustment's scale without
+    a second copy of all of them."""
+
+    def __init__(self, depths: Any, scale: np.ndarray):
+        self._depths, self._scale = depths, scale
+
+    def __len__(self) -> int:
+        return len(self._depths)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return np.asarray(self._depths[k], np.float32) * self._scale[k]
+
+
 def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """All frames with keyframe poses frozen -> {poses (N,4,4) T_w_c, depths [N x (H,W)]}.
 
     Images, priors and masks are read one window at a time (lazily stacked fields) and flows
-    through a window-sized cache of decoded items: memory stays flat in the clip length (at
-    256x192 one flow pair is ~0.9 MB; a 1000-frame clip would hold ~0.9 GB)."""
+    through a window-sized cache of decoded items, and each window's depth maps go to the store
+    as soon as they are final (``ctx.put``): memory stays flat in the clip length (at 256x192
+    one flow pair is ~0.9 MB, one depth map 0.19 MB)."""
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
     from stages.optimize import segments as opt_segments
 
@@ -703,11 +718,11 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     res = opt_segments.optimize_segments(
         frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
         np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
-        np.asarray(ba["poses"]), np.stack(okf["depths"]) * np.asarray(ba["depth_scale"], np.float32)[:, None, None],
+        np.asarray(ba["poses"]), _ScaledDepths(okf["depths"], np.asarray(ba["depth_scale"], np.float32)),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
-        seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"])
-    return {"poses": np.asarray(res["poses"], np.float64),
-            "depths": [np.asarray(d, np.float32) for d in res["depths"]]}
+        seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"], depth_sink=lambda i, d: ctx.put(d))
+    # depths: one handle per frame, each depth map stored when its window finished
+    return {"poses": np.asarray(res["poses"], np.float64), "depths": res["depths"]}
 
 
 OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,

@@ -126,6 +126,33 @@ def test_keyframes_pose_net_and_ablation_switches(tiny: dict) -> None:
     assert r2["depths"].tobytes() != _kf_run(tiny, steps=3)["depths"].tobytes()
 
 
+def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
+    """photo_warp="centre": each 3x3 patch lands in frame b as its centre's projection plus the
+    pixel offsets (the paper's "pixel" warps every patch pixel with its own depth); both train."""
+    from stages.optimize.solver import Solver
+
+    captured = {}
+    orig = Solver._warp
+
+    def spy(self, depth, T_b_a, idx, nidx):
+        out = orig(self, depth, T_b_a, idx, nidx)
+        captured[self.kf.photo_warp] = out
+        return out
+
+    Solver._warp = spy
+    try:
+        centre, pixel = _kf_run(tiny, photo_warp="centre", steps=2), _kf_run(tiny, steps=2)
+    finally:
+        Solver._warp = orig
+    uv, uvc, _ = captured["centre"]
+    offs = torch.tensor([(du, dv) for dv in (-1, 0, 1) for du in (-1, 0, 1)], dtype=torch.float32)
+    assert torch.equal(uv.reshape(*uvc.shape[:2], 9, 2), uvc[:, :, None, :] + offs)
+    uv_p, uvc_p, _ = captured["pixel"]
+    assert torch.equal(uv_p.reshape(*uvc_p.shape[:2], 9, 2)[:, :, 4], uvc_p)
+    assert not torch.equal(uv_p.reshape(*uvc_p.shape[:2], 9, 2), uvc_p[:, :, None, :] + offs)
+    assert np.isfinite(centre["depths"]).all() and centre["poses"].tobytes() != pixel["poses"].tobytes()
+
+
 def _seg_run(t: dict, kres: dict, ck=None) -> dict:
     c = t["clip"]
     return optimize_segments(
@@ -150,6 +177,63 @@ def test_segments_frozen_keyframes_determinism_and_resume(tiny: dict) -> None:
         assert ck.shard_names == shards  # finished windows' depth as shards, not the whole clip
         ck.interrupt_after = None
         _assert_same(_seg_run(tiny, kres, ck), ref)
+
+
+class _DictSink:
+    """Stands in for the engine's ``ctx.put``: keeps each depth map under a handle and counts
+    how many the stage handed over."""
+
+    def __init__(self) -> None:
+        self.stored: dict[int, np.ndarray] = {}
+        self.calls = 0
+
+    def __call__(self, i: int, d: np.ndarray) -> int:
+        self.calls += 1
+        h = len(self.stored)
+        self.stored[h] = np.array(d, copy=True)
+        return h
+
+
+class _HandleCheckpointer(MemCheckpointer):
+    """MemCheckpointer whose shards hold sink handles, resolved on load as the engine does."""
+
+    def __init__(self, sink: _DictSink, interrupt_after: int | None = None) -> None:
+        super().__init__(interrupt_after)
+        self.sink = sink
+
+    def save(self, tensors: dict[str, torch.Tensor], meta: dict, shards: dict | None = None) -> None:
+        assert all(isinstance(h, int) for t in (shards or {}).values() for h in t["depth"])  # handles only
+        resolved = {n: {"depth": torch.as_tensor(np.stack([self.sink.stored[h] for h in t["depth"]]))}
+                    for n, t in (shards or {}).items()}
+        super().save(tensors, meta, resolved)
+
+
+def test_segments_depth_sink_and_resume(tiny: dict) -> None:
+    """With a depth sink the stage keeps handles, not depth maps: same result, every frame
+    handed over, and an interrupted run resumes (re-sinking the finished windows) to the same
+    depths."""
+    kres = _kf_run(tiny, steps=2)
+    ref = _seg_run(tiny, kres)
+    c = tiny["clip"]
+
+    def run(sink: _DictSink, ck=None) -> dict:
+        return optimize_segments(c.frames, tiny["prior"], tiny["masks"], c.K, tiny["adj"], tiny["kf"], kres["poses"],
+                                 kres["depths"], kf=SMALL, seg=SMALL_SEG, seed=0, checkpointer=ck,
+                                 state=kres["state"], depth_sink=sink)
+
+    sink = _DictSink()
+    out = run(sink)
+    assert len(out["depths"]) == 24 and all(isinstance(h, int) for h in out["depths"])
+    assert np.array_equal(np.stack([sink.stored[h] for h in out["depths"]]), ref["depths"])
+    assert np.array_equal(out["poses"], ref["poses"])
+    assert sink.calls >= 24  # each frame once, boundary keyframes once per window
+    sink = _DictSink()
+    ck = _HandleCheckpointer(sink, interrupt_after=3)
+    with pytest.raises(KeyboardInterrupt):
+        run(sink, ck)
+    ck.interrupt_after = None
+    out = run(sink, ck)
+    assert np.array_equal(np.stack([sink.stored[h] for h in out["depths"]]), ref["depths"])
 
 
 def test_edge_recovers_perturbed_relative_pose(tiny: dict) -> None:

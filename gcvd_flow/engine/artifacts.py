@@ -59,6 +59,17 @@ class Tensors:
     arrays: dict[str, np.ndarray]
 
 
+@dataclass(frozen=True)
+class Stored:
+    """A part of a value already written to the store while the stage ran (``ctx.put``): its
+    manifest node and the objects (digest -> size) it points at. A stage that produces more than
+    fits in memory (one depth map per frame of a long clip) stores each part as soon as it is
+    final and returns these handles; the encoder writes only the node into the manifest."""
+
+    node: Any
+    objects: dict[str, int]
+
+
 # -------------------------------------------------------------------------------- encoding
 
 
@@ -118,6 +129,9 @@ class Encoder:
         return d
 
     def tree(self, v: Any, path: str = "$") -> Any:
+        if isinstance(v, Stored):
+            self.objects.update(v.objects)
+            return v.node
         if isinstance(v, np.ndarray) and _png_friendly(v):
             v = Png(v)
         if isinstance(v, np.ndarray):
@@ -148,6 +162,11 @@ class Encoder:
         if v is None or isinstance(v, (bool, int, float, str)):
             return v
         raise ArtifactError(f"{path}: cannot store a value of type {type(v).__name__}")
+
+    def stored(self, value: Any) -> Stored:
+        """Write ``value``'s objects now (a fresh encoder's); the handle stands for the value in
+        a later manifest."""
+        return Stored(self.tree(value), dict(self.objects))
 
     def manifest(self, kind: str, value: Any, **extra: Any) -> str:
         doc = {"kind": kind, "value": self.tree(value), **extra}

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
 from gcvd_flow.engine import keys
-from gcvd_flow.engine.artifacts import (Encoder, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value,
+from gcvd_flow.engine.artifacts import (Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value,
                                         validate)
 from gcvd_flow.engine.dag import Const, DepsView, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
@@ -123,8 +123,9 @@ class Checkpointer:
         enc = Encoder(self.store)
         value: dict[str, Any] = {"tensors": Tensors(self._arrays(tensors)), "meta": meta}
         if shards:
-            # views, encoded one at a time: never more than one shard's bytes in memory
-            value["shards"] = {name: Tensors(self._arrays(t)) for name, t in shards.items()}
+            # views, encoded one at a time: never more than one shard's bytes in memory; a shard
+            # of handles (``StageContext.put``) points at objects the stage already stored
+            value["shards"] = {name: t if _has_stored(t) else Tensors(self._arrays(t)) for name, t in shards.items()}
         out = enc.manifest("checkpoint", value)
         self.store.put_record(self.key, {"record_kind": "checkpoint", "stage": self.stage, "preimage": self.preimage,
                                          "outputs": out, "objects": enc.objects})
@@ -146,16 +147,34 @@ class Checkpointer:
         self.store.delete_record(self.key)
 
 
+def _has_stored(shard: dict[str, Any]) -> bool:
+    return any(isinstance(v, Stored) or (isinstance(v, list) and any(isinstance(x, Stored) for x in v))
+               for v in shard.values())
+
+
 class StageContext:
-    """The ``ctx`` a whole stage sees: name, seed, logger, checkpointer and resources."""
+    """The ``ctx`` a whole stage sees: name, seed, logger, checkpointer, resources, and ``put``
+    to store part of its output before it returns."""
 
     def __init__(self, stage: Stage, seed: int, log: Callable[[str], None],
-                 checkpointer: Checkpointer | None, params: Any = None, params_key: str = ""):
+                 checkpointer: Checkpointer | None, params: Any = None, params_key: str = "",
+                 store: Store | None = None):
         self.stage = stage.name
         self.seed = seed
         self._log = log
         self.checkpointer = checkpointer
         self._resources, self._params, self._params_key = stage.resources, params, params_key
+        self._store = store
+
+    def put(self, value: Any) -> Stored:
+        """Store ``value`` (arrays, lists, dicts) now and return a handle the stage may put in
+        its output (or a checkpoint shard) in its place: memory stays at one part, not the
+        whole output. The objects are written like the output's (content-addressed,
+        atomically); until the stage's record exists they are unreferenced, like any object
+        of an interrupted stage."""
+        if self._store is None:
+            raise RuntimeError(f"{self.stage}: this context has no store to put values in")
+        return Encoder(self._store).stored(value)
 
     def log(self, msg: str) -> None:
         self._log(f"{self.stage}: {msg}")
@@ -398,11 +417,17 @@ class Runner:
     def run(self, target: str | None = None) -> list[StageReport]:
         executor = self.shared_executor or make_executor(self.jobs, self.pipeline.worker_init,
                                                          self.executor_kind, self.scheduler)
+        stages = list(self.pipeline.upto(target))
+        last_reader = {d: k for k, st in enumerate(stages) for d in st.deps}
         try:
-            for stage in self.pipeline.upto(target):
+            for k, stage in enumerate(stages):
                 self.reports[stage.name] = rep = self._run_stage(stage, executor)
                 if self.records is not None:  # write-through (`run --push`)
                     self.records.stage_done(rep.key, rep.executed)
+                # decoded outputs no later stage reads are dropped (decoded again if asked
+                # for): a long clip's keyframe depths need not live until the last stage
+                for name in [n for n in self._values if last_reader.get(n, -1) <= k]:
+                    del self._values[name]
         finally:
             if executor is not self.shared_executor:
                 executor.close()
@@ -445,7 +470,7 @@ class Runner:
                 inputs = {d: self.value(d) for d in stage.deps}
                 ckpt = Checkpointer(self.store, key, stage.name, self.log)
                 params = self.stage_params(stage)
-                ctx = StageContext(stage, self.seed, self.log, ckpt, params, keys.key_of(f["params"]))
+                ctx = StageContext(stage, self.seed, self.log, ckpt, params, keys.key_of(f["params"]), self.store)
                 value = stage.fn(inputs, params, ctx)
                 enc = Encoder(self.store)
                 out = enc.manifest(stage.kind, value)

@@ -321,16 +321,17 @@ def fill_small_holes(depth: np.ndarray, sigma: float = 1.0, min_density: float =
 
 
 def transfer_depths(
-    init: np.ndarray, kf: Sequence[int], kpos: np.ndarray, kd: np.ndarray, priors: np.ndarray, K: np.ndarray,
-    frames: Sequence[int],
+    init: np.ndarray, kf: Sequence[int], kpos: np.ndarray, kd: np.ndarray | Sequence[np.ndarray], priors: np.ndarray,
+    K: np.ndarray, frames: Sequence[int],
 ) -> np.ndarray:
     """Depth targets (len(frames), H, W) float32 for the segment stage: keyframe depth at
     keyframes; for the other frames the z-buffered reprojection of the two bracketing keyframes
     (nearer one first), with the frame's own prior (scaled to agree) in the remaining holes.
     init (N, 4, 4) initial T_w_c of all frames; kf (Kf,) keyframe indices, kpos (Kf, 4, 4) their
-    T_w_c, kd (Kf, H, W) their depths; priors (len(frames), H, W) those frames' priors."""
-    out = np.zeros((len(frames),) + kd.shape[1:], np.float32)
+    T_w_c, kd (Kf, H, W) their depths (or a sequence of (H, W) arrays, read one at a time);
+    priors (len(frames), H, W) those frames' priors."""
     pri = normalised_prior(priors)
+    out = np.zeros((len(frames),) + pri.shape[1:], np.float32)
     for n, i in enumerate(frames):
         j = int(np.searchsorted(kf, i, side="right")) - 1
         if j >= 0 and kf[j] == i:
@@ -338,7 +339,7 @@ def transfer_depths(
         else:
             cand = [c for c in (j, j + 1) if 0 <= c < len(kf)]
             cand.sort(key=lambda c: abs(kf[c] - i))
-            d = np.zeros(kd.shape[1:], np.float32)
+            d = np.zeros(pri.shape[1:], np.float32)
             for c in cand:
                 T_i_c = np.linalg.inv(init[i]) @ kpos[c]  # keyframe c's camera -> camera i
                 sp = fill_small_holes(splat_depth(kd[c], K, T_i_c))

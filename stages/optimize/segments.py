@@ -39,6 +39,9 @@ _STAGE = "segments"  # checkpoint meta["stage"]
 
 # window_priors(a, b) -> the depth model's prior input (b - a + 1, H, W) of frames a..b
 WindowPriors = Callable[[int, int], np.ndarray]
+# depth_sink(i, depth (H, W) float32) -> a handle standing for frame i's final depth (see
+# ``optimize_segments``)
+DepthSink = Callable[[int, np.ndarray], Any]
 
 
 def optimize_segments(
@@ -57,17 +60,24 @@ def optimize_segments(
     seed: int = 0,
     checkpointer: Checkpointer | None = None,
     state: Mapping[str, np.ndarray] | None = None,
+    depth_sink: DepthSink | None = None,
 ) -> dict[str, Any]:
     """Non-keyframe poses + all depths, keyframe poses frozen.
 
     images (N, H, W, 3) uint8; priors (N, H, W); static_masks (N, H, W); K (3, 3);
     adjacent_flows[i]: flow dict of (i, i+1); keyframe_indices (Kf,) sorted frame indices;
     keyframe_poses (Kf, 4, 4) T_w_c (frozen); keyframe_depths (Kf, H, W) initial depth of the
-    keyframes (same scale as the poses); state: optional ``optimize_keyframes`` state (head
+    keyframes (same scale as the poses; a lazy sequence of (H, W) float32 arrays will do); state: optional ``optimize_keyframes`` state (head
     weights) to start the depth head from (with ``prior="prior"``). Images, priors and masks may
     be lazy sequences: only one window (or chunk) of them is ever materialised. Pose / mesh
     learning rates, points, taus and flow_taus come from ``kf``.
     Returns dict(poses (N, 4, 4) float64 T_w_c, depths (N, H, W) float32).
+
+    depth_sink: called with (frame, depth (H, W) float32) as soon as a window is final (a window's
+    boundary keyframe again by the next window, which overrides it); the stage then keeps only
+    the returned handles, returned as ``depths`` (a list of N handles) and given to the
+    checkpointer as the finished windows' shards. The caller (the engine) stores each depth map
+    at once, so memory does not grow with the clip by a depth map per frame.
     """
     N = len(images)
     H, W = np.asarray(images[0]).shape[:2]
@@ -81,7 +91,7 @@ def optimize_segments(
             net.load_trainable_state({k: torch.as_tensor(np.asarray(v)) for k, v in state.items() if k.startswith("head.")})
         init = _initial_poses(N, kfi, kpos, keyframe_depths, adjacent_flows, K, seg.init)
         h, w, _ = loss_size(H, W, seg.loss_scale)
-        kd_all = np.asarray(keyframe_depths, np.float32)
+        kd_all = keyframe_depths  # indexed one keyframe at a time
         if seg.prior == "transfer":
             # the depth model now starts from the keyframe stage's depth (not the raw prior), so
             # the keyframe head, trained on the raw prior's features, is not reused
@@ -96,11 +106,12 @@ def optimize_segments(
         is_kf[kfi] = True
         clip = _Clip(images, window_priors, static_masks, adjacent_flows, is_kf, K, (h, w), gshape)
         # g_pose shares memory with init: later windows' transfer depths see the updated poses
-        run = _Progress.start(torch.as_tensor(init), mesh_init.clone(), windows, (H, W), net, checkpointer, gen)
+        run = _Progress.start(torch.as_tensor(init), mesh_init.clone(), windows, (H, W), net, checkpointer, gen,
+                              depth_sink)
         for wi in range(run.w_start, len(windows)):
             _optimise_window(wi, run, net, clip, depth, losses, kf, seg, gen, checkpointer)
         poses = run.g_pose.numpy().astype(np.float64)
-    return {"poses": poses, "depths": run.out_depth}
+    return {"poses": poses, "depths": run.out_depth if depth_sink is None else run.handles}
 
 
 def _initial_poses(
@@ -123,7 +134,6 @@ def _initial_poses(
         else:
             init[i] = interp_pose(kpos[j], kpos[j + 1], (i - kfi[j]) / (kfi[j + 1] - kfi[j]))
     if init_mode == "pnp":
-        kd_np = np.asarray(keyframe_depths, np.float32)
         for j in range(len(kfi) - 1):
             inner = list(range(kfi[j] + 1, kfi[j + 1]))
             if not inner:
@@ -131,8 +141,9 @@ def _initial_poses(
             # PnP against both bracketing keyframes, blended by position (geodesically): with a
             # hard switch at the middle, the two halves' registrations met with a jump of up to
             # 3 cm between neighbouring frames on ICL, which the window's steps did not remove
-            from_a = pnp_init(adjacent_flows, kfi[j], kpos[j], kd_np[j], inner, K)
-            from_b = pnp_init(adjacent_flows, kfi[j + 1], kpos[j + 1], kd_np[j + 1], inner, K)
+            from_a = pnp_init(adjacent_flows, kfi[j], kpos[j], np.asarray(keyframe_depths[j], np.float32), inner, K)
+            from_b = pnp_init(adjacent_flows, kfi[j + 1], kpos[j + 1], np.asarray(keyframe_depths[j + 1], np.float32),
+                              inner, K)
             for i in inner:
                 a, b = from_a.get(i), from_b.get(i)
                 if a is not None and b is not None:
@@ -143,7 +154,7 @@ def _initial_poses(
 
 
 def _transfer_priors(
-    init: np.ndarray, kfi: list[int], kpos: np.ndarray, kd_all: np.ndarray, priors: Any, K: np.ndarray,
+    init: np.ndarray, kfi: list[int], kpos: np.ndarray, kd_all: Sequence[np.ndarray], priors: Any, K: np.ndarray,
     a: int, b: int,
 ) -> np.ndarray:
     """Prior input (b - a + 1, H, W) float32 of frames a..b: the inverse of their transferred
@@ -175,7 +186,7 @@ def _transfer_mesh_init(
 
 
 def _prior_mesh_init(
-    net: DepthNet, images: Any, priors: Any, kfi: list[int], kd_all: np.ndarray, N: int, hw: tuple[int, int],
+    net: DepthNet, images: Any, priors: Any, kfi: list[int], kd_all: Sequence[np.ndarray], N: int, hw: tuple[int, int],
     gshape: tuple[int, int],
 ) -> torch.Tensor:
     """Meshes (N, gh, gw) float32 with the priors as input: keyframe meshes fit
@@ -184,7 +195,7 @@ def _prior_mesh_init(
     h, w = hw
     # the loaded keyframe head is not zero: evaluate the network itself
     kref = torch.as_tensor(full_depth(net, images[kfi], priors[kfi], torch.zeros(len(kfi), 2, 2), False))
-    kd = torch.as_tensor(kd_all)
+    kd = torch.as_tensor(np.stack([np.asarray(d, np.float32) for d in kd_all]))
     ratio = torch.log(kd.clamp(min=1e-6) / kref.clamp(min=1e-6))
     ratio = torch.where(kd > 0, ratio, torch.nan)
     fill = torch.nanmedian(ratio.flatten(1), 1).values
@@ -238,8 +249,10 @@ class _Progress:
 
     g_pose: torch.Tensor  # (N, 4, 4) float64 T_w_c
     g_mesh: torch.Tensor  # (N, gh, gw) float32 log-scale meshes
-    out_depth: np.ndarray  # (N, H, W) float32, filled window by window
+    out_depth: np.ndarray | None  # (N, H, W) float32, filled window by window (no sink)
     windows: list[tuple[int, int]]
+    sink: DepthSink | None = None
+    handles: list[Any] | None = None  # (N,) the sink's handles of finished frames
     w_start: int = 0  # first window to run
     s_start: int = 0  # its first step
     resume: dict[str, torch.Tensor] | None = None  # checkpointed tensors, until consumed
@@ -247,11 +260,15 @@ class _Progress:
     @classmethod
     def start(
         cls, g_pose: torch.Tensor, g_mesh: torch.Tensor, windows: list[tuple[int, int]], hw: tuple[int, int],
-        net: DepthNet, checkpointer: Checkpointer | None, gen: torch.Generator,
+        net: DepthNet, checkpointer: Checkpointer | None, gen: torch.Generator, sink: DepthSink | None = None,
     ) -> "_Progress":
         """Fresh, or from the checkpointer's last segment state (restores the generator, the
         finished windows' depth and, at a window boundary, the depth head)."""
-        run = cls(g_pose, g_mesh, np.zeros((len(g_pose),) + hw, np.float32), windows)
+        n = len(g_pose)
+        if sink is None:
+            run = cls(g_pose, g_mesh, np.zeros((n,) + hw, np.float32), windows)
+        else:
+            run = cls(g_pose, g_mesh, None, windows, sink, [None] * n)
         if checkpointer is None:
             return run
         ck = load_checkpoint(checkpointer)
@@ -259,10 +276,9 @@ class _Progress:
             return run
         t, meta = ck
         run.g_pose, run.g_mesh = t["g_pose"].clone(), t["g_mesh"].clone()
-        for k, v in t.items():  # finished windows' depth, one shard per window
-            if k.startswith("depth") and k.endswith("/depth"):
-                wa, wb = windows[int(k[len("depth") : -len("/depth")])]
-                run.out_depth[wa : wb + 1] = v.numpy()
+        shards = sorted(k for k in t if k.startswith("depth") and k.endswith("/depth"))
+        for k in shards:  # finished windows' depth, one shard per window, in window order
+            run.set_depth(windows[int(k[len("depth") : -len("/depth")])][0], t.pop(k).numpy())
         run.w_start, run.s_start, run.resume = int(meta["window"]), int(meta["step"]), t
         gen.set_state(t["rng"].clone())
         if "head.0.weight" in t and meta["step"] == 0:
@@ -272,10 +288,23 @@ class _Progress:
     def checkpoint(self, gen: torch.Generator) -> dict[str, torch.Tensor]:
         return {"g_pose": self.g_pose.clone(), "g_mesh": self.g_mesh.clone(), "rng": gen.get_state()}
 
-    def depth_shards(self, n_done: int) -> dict[str, dict[str, torch.Tensor]]:
+    def set_depth(self, a: int, depth: np.ndarray) -> None:
+        """Frames a .. a + len(depth) - 1 are final with depth (n, H, W): into ``out_depth``, or
+        handed to the sink (only its handles are kept)."""
+        if self.sink is None:
+            self.out_depth[a : a + len(depth)] = depth  # type: ignore[index]
+            return
+        for j, d in enumerate(np.asarray(depth, np.float32)):
+            self.handles[a + j] = self.sink(a + j, d)  # type: ignore[index]
+
+    def depth_shards(self, n_done: int) -> dict[str, dict[str, Any]]:
         """The depth of each finished window as its own shard: unchanged shards are stored once,
-        so a checkpoint never copies (or rewrites) the whole clip's depth."""
-        return {f"depth{k:04d}": {"depth": torch.as_tensor(self.out_depth[wa : wb + 1])}
+        so a checkpoint never copies (or rewrites) the whole clip's depth. With a sink, a shard
+        holds the sink's handles of its frames."""
+        if self.sink is not None:
+            return {f"depth{k:04d}": {"depth": self.handles[wa : wb + 1]}  # type: ignore[index]
+                    for k, (wa, wb) in enumerate(self.windows[:n_done])}
+        return {f"depth{k:04d}": {"depth": torch.as_tensor(self.out_depth[wa : wb + 1])}  # type: ignore[index]
                 for k, (wa, wb) in enumerate(self.windows[:n_done])}
 
 
@@ -311,7 +340,7 @@ def _optimise_window(
                  for k in range(a, b)}
     pairs = _segment_pairs(n, a, seg_flows, kf, seg.pair_power)
     if not pairs:
-        run.out_depth[a : b + 1] = full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh)
+        run.set_depth(a, full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh))
         return
     pose_train = torch.as_tensor((~clip.is_kf[a : b + 1]).astype(np.float64))
     win = Window(
@@ -336,7 +365,7 @@ def _optimise_window(
     with torch.no_grad():
         run.g_pose[a : b + 1] = solver.poses().detach()
         run.g_mesh[a : b + 1] = solver.meshes().detach().clone()
-    run.out_depth[a : b + 1] = full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh, fr.enc)
+    run.set_depth(a, full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh, fr.enc))
     del fr, imgs_w, pri_w, seg_flows, pairs, win, solver
     if checkpointer is not None and wi + 1 < len(run.windows):
         t = run.checkpoint(gen)
