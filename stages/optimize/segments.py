@@ -97,14 +97,17 @@ def optimize_segments(
             # the keyframe head, trained on the raw prior's features, is not reused
             net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
             window_priors: WindowPriors = partial(_transfer_priors, init, kfi, kpos, kd_all, priors, K)
-            mesh_init = _transfer_mesh_init(net, window_priors, N, (h, w), gshape)
+            # fitted per window from the window's transferred priors (computed once, when the
+            # window starts): see _optimise_window
+            mesh_init = torch.zeros(N, *gshape)
         else:
             window_priors = partial(_own_priors, priors)
             mesh_init = _prior_mesh_init(net, images, priors, kfi, kd_all, N, (h, w), gshape)
         windows = _segment_windows(kfi, N, seg.window)
         is_kf = np.zeros(N, bool)
         is_kf[kfi] = True
-        clip = _Clip(images, window_priors, static_masks, adjacent_flows, is_kf, K, (h, w), gshape)
+        clip = _Clip(images, window_priors, static_masks, adjacent_flows, is_kf, K, (h, w), gshape,
+                     seg.prior == "transfer")
         # g_pose shares memory with init: later windows' transfer depths see the updated poses
         run = _Progress.start(torch.as_tensor(init), mesh_init.clone(), windows, (H, W), net, checkpointer, gen,
                               depth_sink)
@@ -168,21 +171,15 @@ def _own_priors(priors: Any, a: int, b: int) -> np.ndarray:
     return np.asarray(priors[a : b + 1])
 
 
-def _transfer_mesh_init(
-    net: DepthNet, window_priors: WindowPriors, N: int, hw: tuple[int, int], gshape: tuple[int, int]
-) -> torch.Tensor:
-    """Meshes (N, gh, gw) float32 that make the untrained network reproduce the transferred
-    depths: fit of log(target / network depth) at loss resolution hw, in chunks of 32 frames."""
+def _transfer_mesh_init(net: DepthNet, pri_w: np.ndarray, hw: tuple[int, int], gshape: tuple[int, int]) -> torch.Tensor:
+    """Meshes (n, gh, gw) float32 that make the untrained network reproduce the transferred
+    depths 1 / pri_w (n, H, W): fit of log(target / network depth) at loss resolution hw (per
+    frame: the same whichever frames are fitted together)."""
     h, w = hw
-    mesh_init = torch.zeros(N, *gshape)
-    for a in range(0, N, 32):
-        b = min(a + 32, N) - 1
-        pri_w = window_priors(a, b)
-        target = torch.as_tensor(1.0 / pri_w)
-        ref = torch.as_tensor(init_depth_full(net, None, pri_w))
-        ratio = torch.log(target.clamp(min=1e-6) / ref.clamp(min=1e-6))
-        mesh_init[a : b + 1] = fit_mesh(area_resize(ratio.numpy(), h, w), gshape)
-    return mesh_init
+    target = torch.as_tensor(1.0 / pri_w)
+    ref = torch.as_tensor(init_depth_full(net, None, pri_w))
+    ratio = torch.log(target.clamp(min=1e-6) / ref.clamp(min=1e-6))
+    return fit_mesh(area_resize(ratio.numpy(), h, w), gshape)
 
 
 def _prior_mesh_init(
@@ -240,6 +237,7 @@ class _Clip:
     K: np.ndarray  # (3, 3) float64 at working resolution
     loss_hw: tuple[int, int]  # loss resolution (h, w)
     gshape: tuple[int, int]  # mesh grid (gh, gw)
+    fit_meshes: bool = False  # initial meshes fitted to the window priors when a window starts
 
 
 @dataclass
@@ -333,6 +331,11 @@ def _optimise_window(
     h, w = clip.loss_hw
     n = b - a + 1
     imgs_w, pri_w = np.asarray(clip.images[a : b + 1]), clip.window_priors(a, b)
+    if clip.fit_meshes:
+        # frames after the boundary keyframe (which keeps the previous window's mesh) start from
+        # the fit; on a resumed window this recomputes what the checkpoint already holds
+        first = 0 if wi == 0 else 1
+        run.g_mesh[a + first : b + 1] = _transfer_mesh_init(net, pri_w[first:], (h, w), clip.gshape)
     fr = prepare_frames(net, imgs_w, pri_w, np.asarray(clip.static_masks[a : b + 1]), clip.K, seg.loss_scale,
                         clip.gshape)
     fl = clip.adjacent_flows
