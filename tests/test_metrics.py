@@ -219,6 +219,31 @@ def test_run_eval_against_a_synth_folder(tmp_path):
     assert "ATE RMSE" in format_metrics(res) and "AbsRel" in format_metrics(res)
 
 
+def test_run_eval_confident_pixels(tmp_path):
+    """With confidence maps, eval also scores the confident pixels alone: wrong depth that the
+    run marked unconfident leaves abs_rel_confident at ~0 while abs_rel sees it."""
+    from gcvd_flow.evaluate.run_eval import evaluate, format_metrics
+    from gcvd_flow.evaluate.synth import render_clip
+    from gcvd_flow.io.formats import write_generic_layout
+
+    clip = render_clip(n_frames=4, trajectory="orbit", size=(48, 32), seed=0)
+    write_generic_layout(tmp_path / "clip", clip)
+    run = _fake_run(tmp_path, clip, [0, 1, 2, 3])
+    assert "abs_rel_confident" not in evaluate(run, tmp_path / "clip")  # run dir without confidence
+    (run / "confidence").mkdir()
+    for i in range(4):
+        d = np.load(run / "depth" / f"{i:06d}.npy")
+        d[:, :12] *= 3.0  # a quarter of the frame badly wrong ...
+        np.save(run / "depth" / f"{i:06d}.npy", d)
+        conf = np.ones_like(d)
+        conf[:, :12] = 0.2  # ... and marked unconfident
+        np.save(run / "confidence" / f"{i:06d}.npy", conf)
+    res = evaluate(run, tmp_path / "clip")
+    assert res["abs_rel"] > 0.2 and res["abs_rel_confident"] < 1e-3 and res["delta1_confident"] == 1.0
+    assert res["confident_fraction"] == pytest.approx(0.75, abs=0.02) and res["min_confidence"] == 0.5
+    assert "AbsRel conf" in format_metrics(res)
+
+
 def test_run_eval_bad_ground_truth_names_the_file(tmp_path):
     from gcvd_flow.engine.errors import UsageError
     from gcvd_flow.evaluate.run_eval import evaluate, load_gt

@@ -161,12 +161,18 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     return res
 
 
-def depth_errors(run: Path, m: Matched, max_depth: float) -> dict[str, Any]:
+def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float = 0.5) -> dict[str, Any]:
     """Aggregated depth metrics of run/depth/NNNNNN.npy against the ground-truth PNGs (frames
-    without either are skipped); {} when no frame has both."""
+    without either are skipped); {} when no frame has both.
+
+    Where the run has confidence maps, also the errors of its confident pixels only
+    (confidence >= ``min_confidence``, the default of the exports' masks): ``abs_rel_confident``
+    and ``delta1_confident`` (per-frame median scaling over those pixels, as a user who masks
+    by confidence would see them) and ``confident_fraction`` (mean share of the frame's pixels
+    with valid ground truth that are kept)."""
     import cv2
 
-    per_frame = []
+    per_frame, confident, kept = [], [], []
     for i, gpath in zip(m.frame_indices, m.depth_files):
         pred_path = run / "depth" / f"{i:06d}.npy"
         if gpath is None or not pred_path.exists():
@@ -176,9 +182,21 @@ def depth_errors(run: Path, m: Matched, max_depth: float) -> dict[str, Any]:
         if g.shape != pred.shape:  # compare at the run's working resolution
             g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
         per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))
+        conf_path = run / "confidence" / f"{i:06d}.npy"
+        if conf_path.exists():
+            conf = np.load(conf_path, allow_pickle=False)
+            ok = conf >= min_confidence
+            confident.append(metrics.depth_metrics(np.where(ok, pred, 0.0), g, max_depth=max_depth))
+            valid = (g > 0) & (g <= max_depth)
+            kept.append(float((ok & valid).sum() / max(valid.sum(), 1)))
     if not per_frame:
         return {}
-    return {**metrics.aggregate_depth_metrics(per_frame), "depth_frames": len(per_frame)}
+    out = {**metrics.aggregate_depth_metrics(per_frame), "depth_frames": len(per_frame)}
+    if confident and len(confident) == len(per_frame):
+        agg = metrics.aggregate_depth_metrics(confident)
+        out.update(abs_rel_confident=agg["abs_rel"], delta1_confident=agg["delta1"],
+                   confident_fraction=float(np.mean(kept)), min_confidence=min_confidence)
+    return out
 
 
 def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -> dict[str, Any]:
@@ -204,7 +222,8 @@ def format_metrics(res: dict[str, Any]) -> str:
     """The metrics as a small table (what `gcvd-flow eval` prints without --json)."""
     rows = [("ATE RMSE", "ate_rmse", "m"), ("ATE / path", "ate_percent_of_path", "%"),
             ("RPE trans", "rpe_trans", "m"), ("RPE rot", "rpe_rot", "deg"), ("AbsRel", "abs_rel", ""),
-            ("SqRel", "sq_rel", ""), ("RMSE", "rmse", "m"), ("delta<1.25", "delta1", "")]
+            ("SqRel", "sq_rel", ""), ("RMSE", "rmse", "m"), ("delta<1.25", "delta1", ""),
+            ("AbsRel conf", "abs_rel_confident", ""), ("conf. share", "confident_fraction", "")]
     lines = [f"{label:<12} {res[k]:10.4f} {unit}" for label, k, unit in rows if k in res]
     lines.append(f"{'frames':<12} {res['frames']:10d}")
     if "keyframes" in res:
@@ -223,8 +242,8 @@ def write_metrics(run_dir: str | Path, res: dict[str, Any]) -> Path:
 
 # lower is better; delta1 is compared as its complement (the share of pixels failing delta < 1.25)
 LOWER_IS_BETTER = ("ate_rmse", "ate_mean", "ate_median", "ate_percent_of_path", "rpe_trans", "rpe_rot",
-                   "abs_rel", "sq_rel", "rmse")
-HIGHER_IS_BETTER = ("delta1",)
+                   "abs_rel", "sq_rel", "rmse", "abs_rel_confident")
+HIGHER_IS_BETTER = ("delta1", "delta1_confident")
 
 
 def parse_tolerance(text: str) -> float:
