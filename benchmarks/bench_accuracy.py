@@ -106,12 +106,15 @@ def main() -> None:
     if a.json:
         print(json.dumps(results, indent=1))
         return
+    # AbsRel conf / share: the pixels with confidence >= 0.5 alone, and their share (gcvd-flow eval)
     print(f"\n{'dataset':<8} {'setting':<26} {'ATE[m]':>8} {'ATE%path':>9} {'RPEt[m]':>9} {'RPEr[deg]':>10} "
-          f"{'AbsRel':>7} {'d<1.25':>7} {'time[s]':>8}")
+          f"{'AbsRel':>7} {'d<1.25':>7} {'AbsRel conf':>11} {'share':>6} {'time[s]':>8}")
+    nan = float("nan")
     for m in results:
         print(f"{m['dataset']:<8} {m['row']:<26} {m['ate_rmse']:8.5f} {m['ate_percent_of_path']:9.3f} "
-              f"{m['rpe_trans']:9.4f} {m['rpe_rot']:10.3f} {m.get('abs_rel', float('nan')):7.4f} "
-              f"{m.get('delta1', float('nan')):7.3f} {m['seconds']:8.0f}")
+              f"{m['rpe_trans']:9.4f} {m['rpe_rot']:10.3f} {m.get('abs_rel', nan):7.4f} "
+              f"{m.get('delta1', nan):7.3f} {m.get('abs_rel_confident', nan):11.4f} "
+              f"{m.get('confident_fraction', nan):6.3f} {m['seconds']:8.0f}")
 
 
 if __name__ == "__main__":
