@@ -67,8 +67,9 @@ def optimize_segments(
     images (N, H, W, 3) uint8; priors (N, H, W); static_masks (N, H, W); K (3, 3);
     adjacent_flows[i]: flow dict of (i, i+1); keyframe_indices (Kf,) sorted frame indices;
     keyframe_poses (Kf, 4, 4) T_w_c (frozen); keyframe_depths (Kf, H, W) initial depth of the
-    keyframes (same scale as the poses; a lazy sequence of (H, W) float32 arrays will do); state: optional ``optimize_keyframes`` state (head
-    weights) to start the depth head from (with ``prior="prior"``). Images, priors and masks may
+    keyframes (same scale as the poses; a lazy sequence of (H, W) float32 arrays will do);
+    state: optional ``optimize_keyframes`` state (head weights) to start the depth head from
+    (with ``prior="prior"``). Images, priors and masks may
     be lazy sequences: only one window (or chunk) of them is ever materialised. Pose / mesh
     learning rates, points, taus and flow_taus come from ``kf``.
     Returns dict(poses (N, 4, 4) float64 T_w_c, depths (N, H, W) float32).
