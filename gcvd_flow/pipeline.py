@@ -557,15 +557,19 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     frames, priors_, masks_ = inputs["ingest"], inputs["priors"], inputs["masks"]
     K = np.asarray(frames.summary["K"])
     flows = {(e["i"], e["j"]): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
+    graph_edges = [(int(e["i"]), int(e["j"])) for e in inputs["association"]["graph"].get("nonsequential_edges", [])]
+
+    def calls():  # built lazily: only the edges in flight are in memory
+        for n, (i, j) in enumerate(graph_edges):
+            yield dict(img_a=frames[i]["image"], img_b=frames[j]["image"], prior_a=priors_[i]["inv_depth"],
+                       prior_b=priors_[j]["inv_depth"], mask_a=masks_[i]["static"], mask_b=masks_[j]["static"], K=K,
+                       flow=flows[(i, j)], init_T_b_a=_inv(T_w_k[pos[j]]) @ T_w_k[pos[i]], depth=b.depth,
+                       losses=b.losses, kf=b.optimize_keyframes, edge=b.optimize_edges, seed=ctx.seed + n)
+
     edges = []
-    for n, e in enumerate(inputs["association"]["graph"].get("nonsequential_edges", [])):
-        i, j = int(e["i"]), int(e["j"])
-        a, c = pos[i], pos[j]
-        res = opt_edges.optimize_edge(
-            frames[i]["image"], frames[j]["image"], priors_[i]["inv_depth"], priors_[j]["inv_depth"],
-            masks_[i]["static"], masks_[j]["static"], K, flows[(i, j)], _inv(T_w_k[c]) @ T_w_k[a],
-            depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, edge=b.optimize_edges, seed=ctx.seed + n)
-        edges.append({"a": a, "b": c, "i": i, "j": j, "T_b_a": np.asarray(res["T_b_a"], np.float64),
+    # the edges are independent: side by side on the run's workers (same result wherever)
+    for (i, j), res in zip(graph_edges, ctx.map(opt_edges.optimize_edge_call, calls())):
+        edges.append({"a": pos[i], "b": pos[j], "i": i, "j": j, "T_b_a": np.asarray(res["T_b_a"], np.float64),
                       "loss": float(res["loss"])})
     return {"edges": edges}
 
@@ -706,10 +710,11 @@ class _ScaledDepths:
 def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """All frames with keyframe poses frozen -> {poses (N,4,4) T_w_c, depths [N x (H,W)]}.
 
-    Images, priors and masks are read one window at a time (lazily stacked fields) and flows
-    through a window-sized cache of decoded items, and each window's depth maps go to the store
-    as soon as they are final (``ctx.put``): memory stays flat in the clip length (at 256x192
-    one flow pair is ~0.9 MB, one depth map 0.19 MB)."""
+    The windows are solved side by side on the run's worker processes (``ctx.map``; the result
+    does not depend on where). Images, priors and masks are read one window at a time (lazily
+    stacked fields) and flows through a window-sized cache of decoded items, and each window's
+    depth maps go to the store as soon as they are final (``ctx.put``): memory stays flat in the
+    clip length (at 256x192 one flow pair is ~0.9 MB, one depth map 0.19 MB)."""
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
     from stages.optimize import segments as opt_segments
 
@@ -720,7 +725,8 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
         np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
         np.asarray(ba["poses"]), _ScaledDepths(okf["depths"], np.asarray(ba["depth_scale"], np.float32)),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
-        seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"], depth_sink=lambda i, d: ctx.put(d))
+        seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"], depth_sink=lambda i, d: ctx.put(d),
+        window_map=ctx.map)
     # depths: one handle per frame, each depth map stored when its window finished
     return {"poses": np.asarray(res["poses"], np.float64), "depths": res["depths"]}
 

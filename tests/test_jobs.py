@@ -99,3 +99,52 @@ def test_gcvd_map_stages_on_workers_are_bit_identical_to_in_process(tmp_path):
         outs.append(out)
     assert set(outs[0]) >= {"flow", "flow_far", "masks", "priors"}
     assert outs[0] == outs[1]
+
+
+def _pid_and_square(x: int) -> tuple[int, int]:
+    return os.getpid(), x * x
+
+
+def test_stage_map_calls_run_in_order_on_the_workers_building_arguments_lazily():
+    """``ctx.map`` of a whole stage (segment windows, loop edges): results in argument order,
+    computed by the worker processes, with only a few arguments built ahead (a window's job
+    holds tens of MB); a handful of calls stays in this process."""
+    from gcvd_flow.engine.executors import MIN_CALLS
+
+    ex = ProcessPoolItemExecutor(2)
+    try:
+        built: list[int] = []
+
+        def args():
+            for i in range(9):
+                built.append(i)
+                yield i
+
+        it = ex.map_calls(_pid_and_square, args())
+        first = next(it)
+        assert first[1] == 0 and len(built) <= 2 * 2 + 1 < 9  # not all arguments built at once
+        rest = list(it)
+        assert [r[1] for r in [first, *rest]] == [i * i for i in range(9)]
+        assert {r[0] for r in [first, *rest]} - {os.getpid()} and os.getpid() not in {r[0] for r in rest}
+        few = list(ex.map_calls(_pid_and_square, range(MIN_CALLS - 1)))
+        assert [r[0] for r in few] == [os.getpid()] * (MIN_CALLS - 1)
+    finally:
+        ex.close()
+
+
+def test_gcvd_segment_windows_on_workers_are_bit_identical_to_in_process(tmp_path):
+    """optimize_segments' windows (here 9 of them) run on the workers with --jobs 2 (``ctx.map``)
+    and in this process with --jobs 1: the same bits (each window is seeded by its own number
+    and runs on its own torch thread count, whoever computes it). The clip's one loop edge runs
+    in-process either way (tests/test_optimize.py checks an edge on a worker)."""
+    clip = tmp_path / "clip"
+    cli("synth", str(clip), "--frames", "40", "--trajectory", "loop", "--size", "128x96", check=True)
+    quick = ["optimize_keyframes.steps=10", "optimize_edges.steps=5", "optimize_segments.steps=5",
+             "optimize_segments.window=8"]
+    outs = []
+    for jobs in ("1", "2"):
+        cli_json("run", str(clip), "--out", str(tmp_path / f"o{jobs}"), "--cache", str(tmp_path / f"c{jobs}"),
+                 "--until", "optimize_segments", "--jobs", jobs, *[a for s in quick for a in ("--set", s)])
+        run = json.loads((tmp_path / f"o{jobs}" / "run.json").read_text())["stages"]
+        outs.append({k: run[k]["output"] for k in ("optimize_keyframes", "optimize_segments")})
+    assert outs[0] == outs[1]

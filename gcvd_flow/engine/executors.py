@@ -8,10 +8,12 @@ re-checks the record first, which is what makes two concurrent runs compute each
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
 import time
 import uuid
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
@@ -183,6 +185,18 @@ def resolve_jobs(jobs: int | None) -> int:
     return (parse_jobs(env, f"${JOBS_ENV}") if env else 0) or usable_cores()
 
 
+# A whole stage's ``ctx.map`` with fewer calls than this runs them in the calling process:
+# starting workers costs more than two calls save.
+MIN_CALLS = 3
+
+
+def _few_calls(args: Iterable[Any]) -> tuple[list[Any], Iterator[Any]]:
+    """The first MIN_CALLS arguments (fewer if that is all) and an iterator over all of them."""
+    it = iter(args)
+    head = list(itertools.islice(it, MIN_CALLS))
+    return head, itertools.chain(head, it)
+
+
 class InProcessExecutor:
     jobs = 1
     min_items = 1
@@ -191,8 +205,42 @@ class InProcessExecutor:
         for t in tasks:
             yield compute_item(t)
 
+    def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
+        return map(fn, args)
+
     def close(self) -> None:
         pass
+
+
+def _wait_any(futures: list[Future]) -> None:
+    wait(futures, return_when=FIRST_COMPLETED)
+
+
+def _ordered(submit: Callable[[Any], Any], args: Iterator[Any], jobs: int,
+             wait_any: Callable[[list[Any]], None] = _wait_any) -> Iterator[Any]:
+    """Results of ``submit(arg)`` in argument order, with at most ``jobs + 1`` calls unfinished
+    (one queued, so that a worker that finishes starts the next call at once rather than wait
+    for the caller to build its argument) and ``2 * jobs + 1`` unreturned: an argument is only
+    built when it is submitted (a stage's window jobs hold megabytes), and finished results
+    wait for the earlier ones to be taken."""
+    pending: deque[Any] = deque()  # futures, in argument order
+    exhausted = False
+    try:
+        while True:
+            while not exhausted and len(pending) <= 2 * jobs and sum(not f.done() for f in pending) <= jobs:
+                try:
+                    pending.append(submit(next(args)))
+                except StopIteration:
+                    exhausted = True
+            if not pending:
+                return
+            if pending[0].done():
+                yield pending.popleft().result()
+            else:
+                wait_any([f for f in pending if not f.done()])
+    finally:
+        for f in pending:
+            f.cancel()
 
 
 def _worker_init(pipeline_init: Callable[[], None] | None) -> None:
@@ -236,6 +284,14 @@ class ProcessPoolItemExecutor:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
                 yield f.result()
+
+    def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
+        """``fn(arg)`` for each argument on the workers, in argument order (see ``_ordered``);
+        fewer than MIN_CALLS calls run here."""
+        head, it = _few_calls(args)
+        if len(head) < MIN_CALLS:
+            return map(fn, it)
+        return _ordered(lambda a: self._pool.submit(fn, a), it, self.jobs)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -319,6 +375,17 @@ class DaskItemExecutor:
             if nxt is not None:
                 ac.add(self._submit(nxt))
             yield res
+
+    def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
+        """``fn(arg)`` for each argument as Dask tasks, in argument order; the arguments travel to
+        the workers (they are a stage's own inputs, not store digests)."""
+        head, it = _few_calls(args)
+        if len(head) < MIN_CALLS:
+            return map(fn, it)
+        from distributed import wait as dask_wait
+
+        return _ordered(lambda a: self._client.submit(fn, a, pure=False, retries=2), it, self.jobs,
+                        lambda fs: dask_wait(fs, return_when="FIRST_COMPLETED"))
 
     def _submit(self, task: ItemTask):
         # A unique task key per submission: the item's lock and record re-check decide whether

@@ -12,7 +12,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import (Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest,
@@ -153,18 +153,30 @@ def _has_stored(shard: dict[str, Any]) -> bool:
 
 
 class StageContext:
-    """The ``ctx`` a whole stage sees: name, seed, logger, checkpointer, resources, and ``put``
-    to store part of its output before it returns."""
+    """The ``ctx`` a whole stage sees: name, seed, logger, checkpointer, resources, ``put`` to
+    store part of its output before it returns, and ``map`` to spread independent calls over the
+    run's worker processes."""
 
     def __init__(self, stage: Stage, seed: int, log: Callable[[str], None],
                  checkpointer: Checkpointer | None, params: Any = None, params_key: str = "",
-                 store: Store | None = None):
+                 store: Store | None = None, executor: Any = None):
         self.stage = stage.name
         self.seed = seed
         self._log = log
         self.checkpointer = checkpointer
         self._resources, self._params, self._params_key = stage.resources, params, params_key
         self._store = store
+        self._executor = executor
+
+    def map(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
+        """``fn(arg)`` for each argument, results in argument order: on the run's workers
+        (``--jobs``; a few calls, or no workers, run here). ``fn`` must be a module-level
+        function and the arguments picklable; the stage's output must not depend on where the
+        calls ran (its key does not hold the job count). Arguments are built lazily, a few
+        at a time, so an iterator of large per-call inputs costs memory for those in flight."""
+        if self._executor is None:
+            return map(fn, args)
+        return self._executor.map_calls(fn, args)
 
     def put(self, value: Any) -> Stored:
         """Store ``value`` (arrays, lists, dicts) now and return a handle the stage may put in
@@ -457,12 +469,12 @@ class Runner:
         if stage.is_map:
             self._run_map(stage, f, key, rep, executor)
         else:
-            self._run_whole(stage, f, key, rep)
+            self._run_whole(stage, f, key, rep, executor)
         rep.output = self._outputs[stage.name]
         rep.seconds = time.perf_counter() - t0
         return rep
 
-    def _run_whole(self, stage: Stage, f: dict[str, Any], key: str, rep: StageReport) -> None:
+    def _run_whole(self, stage: Stage, f: dict[str, Any], key: str, rep: StageReport, executor: Any = None) -> None:
         t0 = time.perf_counter()
         with self.store.lock(key):
             rec = self.store.get_record(key)
@@ -470,7 +482,8 @@ class Runner:
                 inputs = {d: self.value(d) for d in stage.deps}
                 ckpt = Checkpointer(self.store, key, stage.name, self.log)
                 params = self.stage_params(stage)
-                ctx = StageContext(stage, self.seed, self.log, ckpt, params, keys.key_of(f["params"]), self.store)
+                ctx = StageContext(stage, self.seed, self.log, ckpt, params, keys.key_of(f["params"]), self.store,
+                                   executor)
                 value = stage.fn(inputs, params, ctx)
                 enc = Encoder(self.store)
                 out = enc.manifest(stage.kind, value)

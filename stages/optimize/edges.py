@@ -19,7 +19,7 @@ from stages.optimize.init import sample_np, triangulate, two_view_pose
 from stages.optimize.params import DepthModel, EdgeSettings, KeyframeSettings, LossWeights
 from stages.optimize.solver import Pair, Solver, Window, deterministic, run_solver, torch_threads
 
-__all__ = ["optimize_edge"]
+__all__ = ["optimize_edge", "optimize_edge_call"]
 
 
 def optimize_edge(
@@ -53,7 +53,7 @@ def optimize_edge(
     K = np.asarray(K, np.float64)
     T_b_a0 = np.asarray(init_T_b_a, np.float64)
     gshape = mesh_shape(*loss_size(H, W, kf.loss_scale)[:2], depth.mesh_vertices)
-    with torch_threads(kf.threads), deterministic(seed) as gen:
+    with torch_threads(edge.threads), deterministic(seed) as gen:
         if edge.essential_init:
             T_b_a0 = _two_view_init(flow, mask_a, K, T_b_a0)
         net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
@@ -72,6 +72,12 @@ def optimize_edge(
         loss = run_solver(solver, gen, edge.steps, 0, None)
         T_w_c = solver.poses().detach().numpy()
     return {"T_b_a": np.linalg.inv(T_w_c[1]) @ T_w_c[0], "loss": float(loss)}
+
+
+def optimize_edge_call(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``optimize_edge(**kwargs)``: the edges are independent, and a process pool's map passes
+    one argument."""
+    return optimize_edge(**kwargs)
 
 
 def _two_view_init(flow: Mapping[str, np.ndarray], mask_a: np.ndarray, K: np.ndarray, T_b_a0: np.ndarray) -> np.ndarray:

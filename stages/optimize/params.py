@@ -88,6 +88,8 @@ class EdgeSettings:
     essential_init: bool = _f(True, "re-estimate the edge's rotation / translation direction by two-view "
                               "geometry on its flow (the keyframe-chain init carries the chain's drift); "
                               "|t| is kept")
+    threads: int = _f(1, "torch threads per edge; the edges are independent and run side by side on the "
+                      "run's worker processes (--jobs) (results are bit-identical only for the same count)", ge=1)
 
 
 @dataclass(frozen=True)
@@ -104,3 +106,6 @@ class SegmentSettings:
                                         "or geodesic interpolation")
     prior: Literal["transfer", "prior"] = _f("transfer", "depth model input: keyframe depths reprojected "
                                              "into the frames (own prior only in holes), or the priors")
+    threads: int = _f(1, "torch threads per window; the windows are independent and run side by side on "
+                      "the run's worker processes (--jobs), so one thread each keeps every core busy "
+                      "(results are bit-identical only for the same count, whatever --jobs is)", ge=1)

@@ -8,16 +8,19 @@ reprojected into every frame (``prior="transfer"``) or from the priors (``"prior
 
 Poses are T_w_c (camera-to-world, 4x4 float64).
 
-Resume: a ``checkpointer`` receives every ``checkpoint_every`` steps the global state, the
-window's solver state and the depth of each finished window as its own shard; a restarted call
-resumes from it bit-exactly.
+Windows are independent of each other (keyframe poses are frozen, and each window starts its
+own depth head, meshes and generator), so they may be solved in parallel (``window_map``).
+
+Resume: a ``checkpointer`` receives after each finished window (in window order) all frames'
+poses and the depth of each finished window as its own shard; a restarted call continues with
+the next window (a window's own steps are not checkpointed: it takes seconds) and gives the same
+bits.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -33,12 +36,12 @@ from stages.optimize.solver import (
     Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads,
 )
 
-__all__ = ["optimize_segments"]
+__all__ = ["optimize_segments", "solve_window", "WindowJob", "WindowResult", "window_seed"]
 
 _STAGE = "segments"  # checkpoint meta["stage"]
 
-# window_priors(a, b) -> the depth model's prior input (b - a + 1, H, W) of frames a..b
-WindowPriors = Callable[[int, int], np.ndarray]
+# window_map(solve_window, jobs) -> the results in job order (``map``, or a process pool's)
+WindowMap = Callable[[Callable[["WindowJob"], "WindowResult"], Iterable["WindowJob"]], Iterable["WindowResult"]]
 # depth_sink(i, depth (H, W) float32) -> a handle standing for frame i's final depth (see
 # ``optimize_segments``)
 DepthSink = Callable[[int, np.ndarray], Any]
@@ -61,6 +64,7 @@ def optimize_segments(
     checkpointer: Checkpointer | None = None,
     state: Mapping[str, np.ndarray] | None = None,
     depth_sink: DepthSink | None = None,
+    window_map: WindowMap = map,
 ) -> dict[str, Any]:
     """Non-keyframe poses + all depths, keyframe poses frozen.
 
@@ -69,10 +73,14 @@ def optimize_segments(
     keyframe_poses (Kf, 4, 4) T_w_c (frozen); keyframe_depths (Kf, H, W) initial depth of the
     keyframes (same scale as the poses; a lazy sequence of (H, W) float32 arrays will do);
     state: optional ``optimize_keyframes`` state (head weights) to start the depth head from
-    (with ``prior="prior"``). Images, priors and masks may
-    be lazy sequences: only one window (or chunk) of them is ever materialised. Pose / mesh
-    learning rates, points, taus and flow_taus come from ``kf``.
-    Returns dict(poses (N, 4, 4) float64 T_w_c, depths (N, H, W) float32).
+    (with ``prior="prior"``). Images, priors and masks may be lazy sequences: only the windows
+    in flight are ever materialised. Pose / mesh learning rates, points, taus and flow_taus come
+    from ``kf``. Returns dict(poses (N, 4, 4) float64 T_w_c, depths (N, H, W) float32).
+
+    The windows are independent (keyframe poses are frozen; each window starts its own depth
+    head, meshes and random generator from the seed and its number, on ``seg.threads`` torch
+    threads), so ``window_map(solve_window, jobs)`` may compute them anywhere and in any order
+    (the engine's worker processes): the result does not depend on it.
 
     depth_sink: called with (frame, depth (H, W) float32) as soon as a window is final (a window's
     boundary keyframe again by the next window, which overrides it); the stage then keeps only
@@ -85,91 +93,103 @@ def optimize_segments(
     K = np.asarray(K, np.float64)
     kfi = [int(k) for k in keyframe_indices]
     kpos = np.asarray(keyframe_poses, np.float64)
-    gshape = mesh_shape(*loss_size(H, W, seg.loss_scale)[:2], depth.mesh_vertices)
-    with torch_threads(kf.threads), deterministic(seed) as gen:
-        net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
-        if state is not None:
-            net.load_trainable_state({k: torch.as_tensor(np.asarray(v)) for k, v in state.items() if k.startswith("head.")})
-        init = _initial_poses(N, kfi, kpos, keyframe_depths, adjacent_flows, K, seg.init)
-        h, w, _ = loss_size(H, W, seg.loss_scale)
-        kd_all = keyframe_depths  # indexed one keyframe at a time
-        if seg.prior == "transfer":
-            # the depth model now starts from the keyframe stage's depth (not the raw prior), so
-            # the keyframe head, trained on the raw prior's features, is not reused
-            net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
-            window_priors: WindowPriors = partial(_transfer_priors, init, kfi, kpos, kd_all, priors, K)
-            # fitted per window from the window's transferred priors (computed once, when the
-            # window starts): see _optimise_window
-            mesh_init = torch.zeros(N, *gshape)
-        else:
-            window_priors = partial(_own_priors, priors)
-            mesh_init = _prior_mesh_init(net, images, priors, kfi, kd_all, N, (h, w), gshape)
-        windows = _segment_windows(kfi, N, seg.window)
-        is_kf = np.zeros(N, bool)
-        is_kf[kfi] = True
-        clip = _Clip(images, window_priors, static_masks, adjacent_flows, is_kf, K, (h, w), gshape,
-                     seg.prior == "transfer")
-        # g_pose shares memory with init: later windows' transfer depths see the updated poses
-        run = _Progress.start(torch.as_tensor(init), mesh_init.clone(), windows, (H, W), net, checkpointer, gen,
-                              depth_sink)
+    h, w, _ = loss_size(H, W, seg.loss_scale)
+    gshape = mesh_shape(h, w, depth.mesh_vertices)
+    head, mesh_init = (None, None) if seg.prior == "transfer" else _prior_start(
+        images, priors, kfi, keyframe_depths, state, depth, seg, seed, (h, w), gshape)
+    windows = _segment_windows(kfi, N, seg.window)
+    settings = _Settings(depth, losses, kf, seg, seed, (h, w), gshape)
+    is_kf = np.zeros(N, bool)
+    is_kf[kfi] = True
+    g_pose = torch.zeros(N, 4, 4, dtype=torch.float64)  # every frame is in a window, which sets it
+    run = _Progress.start(g_pose, windows, (H, W), checkpointer, depth_sink)
+
+    def jobs() -> Iterator[WindowJob]:  # built lazily: only the windows in flight are in memory
         for wi in range(run.w_start, len(windows)):
-            _optimise_window(wi, run, net, clip, depth, losses, kf, seg, gen, checkpointer)
-        poses = run.g_pose.numpy().astype(np.float64)
+            a, b = windows[wi]
+            yield WindowJob(
+                wi, np.asarray(images[a : b + 1]), np.asarray(priors[a : b + 1]), np.asarray(static_masks[a : b + 1]),
+                [adjacent_flows[k] for k in range(a, b)], is_kf[a : b + 1], K,
+                *_window_keyframes(kfi, kpos, keyframe_depths, a, b),
+                None if mesh_init is None else mesh_init[a : b + 1], head, settings)
+
+    for wi, res in zip(range(run.w_start, len(windows)), window_map(solve_window, jobs())):
+        a, b = windows[wi]
+        run.g_pose[a : b + 1] = torch.as_tensor(res.poses)
+        run.set_depth(a, res.depth)
+        if checkpointer is not None and wi + 1 < len(windows):
+            checkpointer.save({"g_pose": run.g_pose.clone()}, {"stage": _STAGE, "window": wi + 1},
+                              run.depth_shards(wi + 1))
+    poses = run.g_pose.numpy().astype(np.float64)
     return {"poses": poses, "depths": run.out_depth if depth_sink is None else run.handles}
 
 
+def _prior_start(
+    images: Any, priors: Any, kfi: list[int], kd_all: Sequence[np.ndarray], state: Mapping[str, np.ndarray] | None,
+    depth: DepthModel, seg: SegmentSettings, seed: int, hw: tuple[int, int], gshape: tuple[int, int],
+) -> tuple[dict[str, np.ndarray] | None, np.ndarray]:
+    """With prior="prior": the keyframe stage's depth head (or None) and the initial meshes
+    (N, gh, gw) of all frames (``_prior_mesh_init``)."""
+    head = None
+    with torch_threads(seg.threads), deterministic(seed):
+        net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
+        if state is not None:
+            head = {k: np.asarray(v) for k, v in state.items() if k.startswith("head.")}
+            net.load_trainable_state({k: torch.as_tensor(v) for k, v in head.items()})
+        return head, _prior_mesh_init(net, images, priors, kfi, kd_all, len(images), hw, gshape).numpy()
+
+
+def _window_keyframes(
+    kfi: list[int], kpos: np.ndarray, kd_all: Sequence[np.ndarray], a: int, b: int,
+) -> tuple[list[int], np.ndarray, list[np.ndarray]]:
+    """The keyframes frames a..b are registered against and whose depths are transferred into
+    them (those inside and the nearest on either side): frame indices relative to a, T_w_c
+    (m, 4, 4), depths [(H, W)]."""
+    lo = max(int(np.searchsorted(kfi, a, side="right")) - 1, 0)
+    hi = min(int(np.searchsorted(kfi, b, side="right")), len(kfi) - 1)
+    sel = range(lo, hi + 1)
+    return [kfi[j] - a for j in sel], kpos[lo : hi + 1], [np.asarray(kd_all[j], np.float32) for j in sel]
+
+
 def _initial_poses(
-    N: int, kfi: list[int], kpos: np.ndarray, keyframe_depths: np.ndarray,
-    adjacent_flows: Sequence[Mapping[str, np.ndarray]], K: np.ndarray, init_mode: str,
+    n: int, kfl: list[int], kpos: np.ndarray, kd: Sequence[np.ndarray], flows: Sequence[Mapping[str, np.ndarray]],
+    K: np.ndarray, init_mode: str,
 ) -> np.ndarray:
-    """Initial T_w_c (N, 4, 4) float64: keyframes exact; others interpolated between the
-    bracketing keyframes (extrapolated = nearest keyframe), then with ``init_mode="pnp"``
-    registered by PnP against each bracketing keyframe and blended by position (where only one
-    registration succeeds, that one)."""
-    init = np.zeros((N, 4, 4))
-    for i in range(N):
-        j = int(np.searchsorted(kfi, i, side="right")) - 1
-        if j >= 0 and kfi[j] == i:
+    """Initial T_w_c (n, 4, 4) float64 of a window's frames 0..n-1: keyframes exact; others
+    interpolated between the bracketing keyframes (extrapolated = nearest keyframe), then with
+    ``init_mode="pnp"`` registered by PnP against each bracketing keyframe and blended by
+    position (where only one registration succeeds, that one). kfl: window-relative keyframe
+    indices (sorted; they may lie outside the window), kpos (m, 4, 4) and kd [(H, W)] theirs;
+    flows[i]: flow dict of (i, i + 1). Windows are cut at keyframes, so the keyframes around a
+    window's inner frames are inside it and their flows are the window's."""
+    init = np.zeros((n, 4, 4))
+    for i in range(n):
+        j = int(np.searchsorted(kfl, i, side="right")) - 1
+        if j >= 0 and kfl[j] == i:
             init[i] = kpos[j]
         elif j < 0:
             init[i] = kpos[0]
-        elif j >= len(kfi) - 1:
+        elif j >= len(kfl) - 1:
             init[i] = kpos[-1]
         else:
-            init[i] = interp_pose(kpos[j], kpos[j + 1], (i - kfi[j]) / (kfi[j + 1] - kfi[j]))
+            init[i] = interp_pose(kpos[j], kpos[j + 1], (i - kfl[j]) / (kfl[j + 1] - kfl[j]))
     if init_mode == "pnp":
-        for j in range(len(kfi) - 1):
-            inner = list(range(kfi[j] + 1, kfi[j + 1]))
-            if not inner:
+        for j in range(len(kfl) - 1):
+            inner = list(range(max(kfl[j] + 1, 0), min(kfl[j + 1], n)))
+            if not inner or kfl[j] < 0 or kfl[j + 1] >= n:
                 continue
             # PnP against both bracketing keyframes, blended by position (geodesically): with a
             # hard switch at the middle, the two halves' registrations met with a jump of up to
             # 3 cm between neighbouring frames on ICL, which the window's steps did not remove
-            from_a = pnp_init(adjacent_flows, kfi[j], kpos[j], np.asarray(keyframe_depths[j], np.float32), inner, K)
-            from_b = pnp_init(adjacent_flows, kfi[j + 1], kpos[j + 1], np.asarray(keyframe_depths[j + 1], np.float32),
-                              inner, K)
+            from_a = pnp_init(flows, kfl[j], kpos[j], kd[j], inner, K)
+            from_b = pnp_init(flows, kfl[j + 1], kpos[j + 1], kd[j + 1], inner, K)
             for i in inner:
-                a, b = from_a.get(i), from_b.get(i)
-                if a is not None and b is not None:
-                    init[i] = interp_pose(a, b, (i - kfi[j]) / (kfi[j + 1] - kfi[j]))
-                elif a is not None or b is not None:
-                    init[i] = a if a is not None else b
+                pa, pb = from_a.get(i), from_b.get(i)
+                if pa is not None and pb is not None:
+                    init[i] = interp_pose(pa, pb, (i - kfl[j]) / (kfl[j + 1] - kfl[j]))
+                elif pa is not None or pb is not None:
+                    init[i] = pa if pa is not None else pb
     return init
-
-
-def _transfer_priors(
-    init: np.ndarray, kfi: list[int], kpos: np.ndarray, kd_all: Sequence[np.ndarray], priors: Any, K: np.ndarray,
-    a: int, b: int,
-) -> np.ndarray:
-    """Prior input (b - a + 1, H, W) float32 of frames a..b: the inverse of their transferred
-    keyframe depths (``init.transfer_depths``)."""
-    target = transfer_depths(init, kfi, kpos, kd_all, priors[a : b + 1], K, range(a, b + 1))
-    return (1.0 / np.maximum(target, 1e-6)).astype(np.float32)
-
-
-def _own_priors(priors: Any, a: int, b: int) -> np.ndarray:
-    """Prior input (b - a + 1, H, W) of frames a..b: their own priors."""
-    return np.asarray(priors[a : b + 1])
 
 
 def _transfer_mesh_init(net: DepthNet, pri_w: np.ndarray, hw: tuple[int, int], gshape: tuple[int, int]) -> torch.Tensor:
@@ -226,66 +246,83 @@ def _segment_windows(kfi: list[int], N: int, max_len: int) -> list[tuple[int, in
     return windows
 
 
-@dataclass
-class _Clip:
-    """The clip's inputs as the windows read them (images, masks, flows may be lazy sequences)."""
+@dataclass(frozen=True)
+class _Settings:
+    """What every window shares (picklable)."""
 
-    images: Any  # (N, H, W, 3) uint8
-    window_priors: WindowPriors  # depth model prior input of frames a..b
-    static_masks: Any  # (N, H, W) 1 = static
-    adjacent_flows: Sequence[Mapping[str, np.ndarray]]  # [i]: flow dict of pair (i, i+1)
-    is_kf: np.ndarray  # (N,) bool, True = keyframe (pose frozen)
-    K: np.ndarray  # (3, 3) float64 at working resolution
+    depth: DepthModel
+    losses: LossWeights
+    kf: KeyframeSettings
+    seg: SegmentSettings
+    seed: int
     loss_hw: tuple[int, int]  # loss resolution (h, w)
     gshape: tuple[int, int]  # mesh grid (gh, gw)
-    fit_meshes: bool = False  # initial meshes fitted to the window priors when a window starts
+
+
+@dataclass
+class WindowJob:
+    """Everything one window (n frames starting at frame a) needs; picklable, so that it can be
+    solved in a worker process."""
+
+    index: int  # window number: seeds the window's generator
+    images: np.ndarray  # (n, H, W, 3) uint8
+    priors: np.ndarray  # (n, H, W) the frames' own priors (relative inverse depth)
+    static: np.ndarray  # (n, H, W) 1 = static
+    flows: list[Mapping[str, np.ndarray]]  # (n - 1) flow dicts of the pairs (i, i + 1)
+    is_kf: np.ndarray  # (n,) bool, True = keyframe (pose frozen)
+    K: np.ndarray  # (3, 3) float64 at working resolution
+    # the keyframes the frames are registered against (and, prior="transfer", whose depths are
+    # transferred into them): window-relative frame indices, T_w_c (m, 4, 4), depths [(H, W)]
+    keyframes: list[int]
+    keyframe_poses: np.ndarray
+    keyframe_depths: list[np.ndarray]
+    mesh_init: np.ndarray | None  # (n, gh, gw) initial meshes (prior="prior"); else fitted
+    head: dict[str, np.ndarray] | None  # depth head to start from (prior="prior")
+    settings: _Settings
+
+
+@dataclass
+class WindowResult:
+    poses: np.ndarray  # (n, 4, 4) float64 T_w_c
+    depth: np.ndarray  # (n, H, W) float32 at working resolution
 
 
 @dataclass
 class _Progress:
-    """Global state: all frames' poses, meshes and finished windows' depth; where a resumed run
+    """Global state: all frames' poses and finished windows' depth; where a resumed run
     continues."""
 
     g_pose: torch.Tensor  # (N, 4, 4) float64 T_w_c
-    g_mesh: torch.Tensor  # (N, gh, gw) float32 log-scale meshes
     out_depth: np.ndarray | None  # (N, H, W) float32, filled window by window (no sink)
     windows: list[tuple[int, int]]
     sink: DepthSink | None = None
     handles: list[Any] | None = None  # (N,) the sink's handles of finished frames
     w_start: int = 0  # first window to run
-    s_start: int = 0  # its first step
-    resume: dict[str, torch.Tensor] | None = None  # checkpointed tensors, until consumed
 
     @classmethod
     def start(
-        cls, g_pose: torch.Tensor, g_mesh: torch.Tensor, windows: list[tuple[int, int]], hw: tuple[int, int],
-        net: DepthNet, checkpointer: Checkpointer | None, gen: torch.Generator, sink: DepthSink | None = None,
+        cls, g_pose: torch.Tensor, windows: list[tuple[int, int]], hw: tuple[int, int],
+        checkpointer: Checkpointer | None, sink: DepthSink | None = None,
     ) -> "_Progress":
-        """Fresh, or from the checkpointer's last segment state (restores the generator, the
-        finished windows' depth and, at a window boundary, the depth head)."""
+        """Fresh, or from the checkpointer's last segment state (the finished windows' poses and
+        depth)."""
         n = len(g_pose)
         if sink is None:
-            run = cls(g_pose, g_mesh, np.zeros((n,) + hw, np.float32), windows)
+            run = cls(g_pose, np.zeros((n,) + hw, np.float32), windows)
         else:
-            run = cls(g_pose, g_mesh, None, windows, sink, [None] * n)
+            run = cls(g_pose, None, windows, sink, [None] * n)
         if checkpointer is None:
             return run
         ck = load_checkpoint(checkpointer)
         if ck is None or ck[1].get("stage") != _STAGE:
             return run
         t, meta = ck
-        run.g_pose, run.g_mesh = t["g_pose"].clone(), t["g_mesh"].clone()
+        run.g_pose = t["g_pose"].clone()
         shards = sorted(k for k in t if k.startswith("depth") and k.endswith("/depth"))
         for k in shards:  # finished windows' depth, one shard per window, in window order
             run.set_depth(windows[int(k[len("depth") : -len("/depth")])][0], t.pop(k).numpy())
-        run.w_start, run.s_start, run.resume = int(meta["window"]), int(meta["step"]), t
-        gen.set_state(t["rng"].clone())
-        if "head.0.weight" in t and meta["step"] == 0:
-            net.load_trainable_state(dict(t))
+        run.w_start = int(meta["window"])
         return run
-
-    def checkpoint(self, gen: torch.Generator) -> dict[str, torch.Tensor]:
-        return {"g_pose": self.g_pose.clone(), "g_mesh": self.g_mesh.clone(), "rng": gen.get_state()}
 
     def set_depth(self, a: int, depth: np.ndarray) -> None:
         """Frames a .. a + len(depth) - 1 are final with depth (n, H, W): into ``out_depth``, or
@@ -322,56 +359,46 @@ def _segment_pairs(
     return pairs
 
 
-def _optimise_window(
-    wi: int, run: _Progress, net: DepthNet, clip: _Clip, depth: DepthModel, losses: LossWeights,
-    kf: KeyframeSettings, seg: SegmentSettings, gen: torch.Generator, checkpointer: Checkpointer | None,
-) -> None:
-    """Optimise window ``wi`` (from a checkpoint when resuming) and store its poses, meshes and
-    working-resolution depth in ``run``; checkpoint at its end unless it is the last window."""
-    a, b = run.windows[wi]
-    h, w = clip.loss_hw
-    n = b - a + 1
-    imgs_w, pri_w = np.asarray(clip.images[a : b + 1]), clip.window_priors(a, b)
-    if clip.fit_meshes:
-        # frames after the boundary keyframe (which keeps the previous window's mesh) start from
-        # the fit; on a resumed window this recomputes what the checkpoint already holds
-        first = 0 if wi == 0 else 1
-        run.g_mesh[a + first : b + 1] = _transfer_mesh_init(net, pri_w[first:], (h, w), clip.gshape)
-    fr = prepare_frames(net, imgs_w, pri_w, np.asarray(clip.static_masks[a : b + 1]), clip.K, seg.loss_scale,
-                        clip.gshape)
-    fl = clip.adjacent_flows
-    seg_flows = {k: (flow_at_loss_res(fl[k], "fwd", h, w, fr.f), flow_at_loss_res(fl[k], "bwd", h, w, fr.f))
-                 for k in range(a, b)}
-    pairs = _segment_pairs(n, a, seg_flows, kf, seg.pair_power)
-    if not pairs:
-        run.set_depth(a, full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh))
-        return
-    pose_train = torch.as_tensor((~clip.is_kf[a : b + 1]).astype(np.float64))
-    win = Window(
-        fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, run.g_pose[a : b + 1].clone(), pose_train,
-        run.g_mesh[a : b + 1].clone(), torch.ones(n), None, seg.grad_mult,
-    )
-    solver = Solver(win, net, None, seg.lr, depth, losses, kf)
-    start = 0
-    if run.resume is not None:
-        if int(run.s_start) > 0:
-            solver.load(run.resume)
-            start = run.s_start
-        run.resume = None
+def window_seed(seed: int, index: int) -> int:
+    """The seed of window ``index``'s generator: a function of the run's seed and the window
+    alone, so a window's result does not depend on which windows ran before it (31 bits: OpenCV takes a C int)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
 
-    def save(step_done: int) -> None:
-        t = run.checkpoint(gen)
-        t.update(solver.state())
-        checkpointer.save(t, {"stage": _STAGE, "window": wi, "step": step_done},  # type: ignore[union-attr]
-                          run.depth_shards(wi))
 
-    run_solver(solver, gen, seg.steps, start, save if checkpointer is not None else None)
-    with torch.no_grad():
-        run.g_pose[a : b + 1] = solver.poses().detach()
-        run.g_mesh[a : b + 1] = solver.meshes().detach().clone()
-    run.set_depth(a, full_depth(net, imgs_w, pri_w, run.g_mesh[a : b + 1], depth.mesh, fr.enc))
-    del fr, imgs_w, pri_w, seg_flows, pairs, win, solver
-    if checkpointer is not None and wi + 1 < len(run.windows):
-        t = run.checkpoint(gen)
-        t.update(net.trainable_state())
-        checkpointer.save(t, {"stage": _STAGE, "window": wi + 1, "step": 0}, run.depth_shards(wi + 1))
+def solve_window(job: WindowJob) -> WindowResult:
+    """Optimise one window from its job: a fresh depth head (or the keyframe head), meshes fitted
+    to the transferred keyframe depths (or given), ``seg.steps`` Adam steps on
+    ``seg.threads`` torch threads -> its poses and working-resolution depth."""
+    st = job.settings
+    n = len(job.images)
+    h, w = st.loss_hw
+    with torch_threads(st.seg.threads), deterministic(window_seed(st.seed, job.index)) as gen:
+        poses0 = _initial_poses(n, job.keyframes, job.keyframe_poses, job.keyframe_depths, job.flows, job.K,
+                                st.seg.init)
+        net = DepthNet(layer_norm=st.depth.layer_norm, mesh=st.depth.mesh, seed=st.seed)
+        if job.head is not None:
+            net.load_trainable_state({k: torch.as_tensor(v) for k, v in job.head.items()})
+        if st.seg.prior == "transfer":
+            # the depth model starts from the keyframe depths reprojected into the frames (its
+            # input is their inverse) and meshes that reproduce them with the untrained head
+            target = transfer_depths(poses0, job.keyframes, job.keyframe_poses, job.keyframe_depths, job.priors,
+                                     job.K, range(n))
+            pri_w = (1.0 / np.maximum(target, 1e-6)).astype(np.float32)
+            mesh = _transfer_mesh_init(net, pri_w, (h, w), st.gshape)
+        else:
+            pri_w, mesh = job.priors, torch.as_tensor(job.mesh_init)
+        fr = prepare_frames(net, job.images, pri_w, job.static, job.K, st.seg.loss_scale, st.gshape)
+        seg_flows = {k: (flow_at_loss_res(fl, "fwd", h, w, fr.f), flow_at_loss_res(fl, "bwd", h, w, fr.f))
+                     for k, fl in enumerate(job.flows)}
+        pairs = _segment_pairs(n, 0, seg_flows, st.kf, st.seg.pair_power)
+        if not pairs:
+            return WindowResult(poses0, full_depth(net, job.images, pri_w, mesh, st.depth.mesh))
+        win = Window(
+            fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, torch.as_tensor(poses0),
+            torch.as_tensor((~job.is_kf).astype(np.float64)), mesh, torch.ones(n), None, st.seg.grad_mult,
+        )
+        solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf)
+        run_solver(solver, gen, st.seg.steps, 0, None)
+        with torch.no_grad():
+            poses, meshes = solver.poses().numpy(), solver.meshes().clone()
+        return WindowResult(poses, full_depth(net, job.images, pri_w, meshes, st.depth.mesh, fr.enc))
