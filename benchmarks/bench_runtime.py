@@ -16,7 +16,8 @@ then sleep) as the peer, median of ``--repeat`` rounds.
 ``--real``: the issue-13 clips, each run ``--repeat`` times cold: the ICL-NUIM living room
 (../shared/data, 211 frames 640x480) and a keyframe-heavy synthetic scan (200 frames rendered
 at 640x480, ``synth --trajectory scan``); median seconds per frame, per-stage medians, keyframe
-share and peak RSS.
+share and peak RSS. ``--peer CHECKOUT`` times another commit's code too, alternating with this
+one round by round, and reports the ratio (the machine's speed drifts between runs).
 """
 
 from __future__ import annotations
@@ -130,17 +131,19 @@ def side_by_side(frames: int, size: str, trajectory: str, repeat: int) -> dict:
 ICL = ROOT.parent / "shared" / "data" / "icl_livingroom1_micro"
 
 
-def _cold_run(clip: Path, work: Path, extra: list[str]) -> dict:
-    """One cold run in its own process: {seconds, stages {name: s}, peak_rss_mb, keyframes, frames}."""
+def _cold_run(clip: Path, work: Path, extra: list[str], tree: Path = ROOT) -> dict:
+    """One cold run in its own process of the code in ``tree`` (this checkout, or a peer's):
+    {seconds, stages {name: s}, peak_rss_mb, keyframes, frames}."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     cmd = [sys.executable, "-m", "gcvd_flow", "run", str(clip), "--out", str(work / "run"), "--cache",
            str(work / "cache"), "--json", *extra]
     with open(work / "out.json", "w") as fo, open(work / "err.txt", "w") as fe:
-        p = subprocess.Popen(cmd, cwd=ROOT, stdout=fo, stderr=fe, env=dict(os.environ, CI="1"))
-        tree = TreeMemory(p.pid)
+        # cwd first on sys.path: ``-m gcvd_flow`` imports the code of ``tree``
+        p = subprocess.Popen(cmd, cwd=tree, stdout=fo, stderr=fe, env=dict(os.environ, CI="1"))
+        mem = TreeMemory(p.pid)
         _, status, usage = os.wait4(p.pid, 0)  # this child's own peak RSS (KiB on Linux)
-        tree_mb = tree.stop()
+        tree_mb = mem.stop()
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit((work / "err.txt").read_text()[-3000:])
     doc = json.loads((work / "out.json").read_text())
@@ -150,9 +153,32 @@ def _cold_run(clip: Path, work: Path, extra: list[str]) -> dict:
             "frames": len((work / "run" / "poses.txt").read_text().splitlines())}
 
 
-def real_clips(repeat: int) -> list[dict]:
+def _summary(name: str, runs: list[dict]) -> dict:
     import statistics
 
+    n = runs[0]["frames"]
+    med = statistics.median(r["seconds"] for r in runs)
+    return {"clip": name, "frames": n, "keyframes": runs[0]["keyframes"],
+            "keyframe_share": runs[0]["keyframes"] / n, "total_s_all": [r["seconds"] for r in runs],
+            "s_per_frame": med / n, "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+            "peak_tree_pss_mb": max(r["peak_tree_pss_mb"] for r in runs),
+            "stages_s": {k: statistics.median(r["stages"][k] for r in runs) for k in runs[0]["stages"]}}
+
+
+def _print_row(row: dict, tag: str = "") -> None:
+    top = sorted(row["stages_s"].items(), key=lambda kv: -kv[1])[:5]
+    print(f"{row['clip']}{tag}: {row['frames']} frames, {row['keyframes']} keyframes "
+          f"({100 * row['keyframe_share']:.0f} %), median {row['s_per_frame'] * row['frames']:.1f} s = "
+          f"{row['s_per_frame']:.3f} s/frame (runs {', '.join(f'{r:.1f}' for r in row['total_s_all'])} s), "
+          f"peak {row['peak_rss_mb']:.0f} MB (with workers {row['peak_tree_pss_mb']:.0f} MB Pss); "
+          + ", ".join(f"{k} {v:.1f} s" for k, v in top), file=sys.stderr, flush=True)
+
+
+def real_clips(repeat: int, peer: Path | None = None) -> list[dict]:
+    """ICL and the scan, ``repeat`` cold runs each; with ``peer`` (a checkout of another commit)
+    each round runs the peer's code and then this checkout's, alternately, so that both see the
+    same machine (its speed drifts by tens of percent over an hour here), and reports the ratio
+    of the medians."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-real-") as tmp_s:
         tmp = Path(tmp_s)
@@ -161,21 +187,21 @@ def real_clips(repeat: int) -> list[dict]:
                         "--trajectory", "scan", "--size", "640x480"], cwd=ROOT, check=True, capture_output=True)
         for name, clip, extra in (("icl", ICL, ["--intrinsics", "525,525,319.5,239.5"]),
                                   ("scan-640x480", scan, [])):
-            runs = [_cold_run(clip, tmp / f"{name}-{r}", extra) for r in range(repeat)]
-            n = runs[0]["frames"]
-            med = statistics.median(r["seconds"] for r in runs)
-            row = {"clip": name, "frames": n, "keyframes": runs[0]["keyframes"],
-                   "keyframe_share": runs[0]["keyframes"] / n, "total_s_all": [r["seconds"] for r in runs],
-                   "s_per_frame": med / n, "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
-                   "peak_tree_pss_mb": max(r["peak_tree_pss_mb"] for r in runs),
-                   "stages_s": {k: statistics.median(r["stages"][k] for r in runs) for k in runs[0]["stages"]}}
+            runs, peer_runs = [], []
+            for r in range(repeat):
+                if peer is not None:
+                    peer_runs.append(_cold_run(clip, tmp / f"{name}-peer-{r}", extra, peer))
+                runs.append(_cold_run(clip, tmp / f"{name}-{r}", extra))
+            row = _summary(name, runs)
+            if peer is not None:
+                row["peer"] = _summary(name, peer_runs)
+                row["peer"]["tree"] = str(peer)
+                row["ratio_to_peer"] = row["s_per_frame"] / row["peer"]["s_per_frame"]
+                _print_row(row["peer"], " (peer)")
+            _print_row(row)
+            if peer is not None:
+                print(f"{name}: this / peer = {row['ratio_to_peer']:.3f}", file=sys.stderr, flush=True)
             rows.append(row)
-            top = sorted(row["stages_s"].items(), key=lambda kv: -kv[1])[:5]
-            print(f"{name}: {n} frames, {row['keyframes']} keyframes ({100 * row['keyframe_share']:.0f} %), "
-                  f"median {med:.1f} s = {row['s_per_frame']:.3f} s/frame (runs "
-                  f"{', '.join(f'{r:.1f}' for r in row['total_s_all'])} s), peak {row['peak_rss_mb']:.0f} MB "
-                  f"(with workers {row['peak_tree_pss_mb']:.0f} MB Pss); "
-                  + ", ".join(f"{k} {v:.1f} s" for k, v in top), file=sys.stderr, flush=True)
     return rows
 
 
@@ -189,10 +215,13 @@ def main() -> None:
     ap.add_argument("--trajectory", default="loop")
     ap.add_argument("--real", action="store_true",
                     help="the ICL clip and a keyframe-heavy 640x480 scan, --repeat cold runs each, instead")
+    ap.add_argument("--peer", type=Path, metavar="CHECKOUT",
+                    help="with --real: also time the code of this checkout (e.g. `git worktree add /tmp/peer "
+                         "HEAD~1`), alternating runs, and report the ratio")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     if a.real:
-        doc = real_clips(a.repeat)
+        doc = real_clips(a.repeat, a.peer.resolve() if a.peer else None)
         print(json.dumps(doc, indent=1) if a.json else "")
         return
     if a.side_by_side:
