@@ -383,3 +383,26 @@ def test_stage_puts_parts_before_returning(tmp_path):
     assert [np.asarray(a).tolist() for a in tensors["w0/depth"]] == [p.tolist() for p in parts[:2]]
     with pytest.raises(RuntimeError, match="no store"):
         StageContext(Stage("demo", lambda i, p, c: None), 0, lambda m: None, None).put(parts[0])
+
+
+def test_runner_drops_decoded_outputs_no_later_stage_reads(tmp_path, monkeypatch):
+    """A stage's decoded output is dropped once the last stage that reads it has run (a long
+    clip's keyframe depths need not live until the last stage), and decoded again if asked
+    for (the run dir's outputs are written after the last stage)."""
+    from gcvd_flow.engine.runner import Runner
+
+    held: dict[str, list[str]] = {}
+    run_stage = Runner._run_stage
+
+    def spy(self, stage, executor):
+        held[stage.name] = sorted(self._values)  # decoded outputs held when the stage starts
+        return run_stage(self, stage, executor)
+
+    monkeypatch.setattr(Runner, "_run_stage", spy)
+    inp = make_toy_input(tmp_path / "in", n=6)
+    api.run(api.Invocation(input=str(inp), out=str(tmp_path / "o"), cache=str(tmp_path / "c"), pipeline="toy"),
+            log=lambda m: None)
+    # toy: decode -> transform -> summarize -> threshold -> report, each read only by the next
+    assert list(held) == ["decode", "transform", "summarize", "threshold", "report"]
+    assert all(v == [] for v in held.values()), held
+    assert json.loads((tmp_path / "o" / "run.json").read_text())["stages"]["report"]["output"]
