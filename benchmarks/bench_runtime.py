@@ -174,7 +174,7 @@ def _print_row(row: dict, tag: str = "") -> None:
           + ", ".join(f"{k} {v:.1f} s" for k, v in top), file=sys.stderr, flush=True)
 
 
-def real_clips(repeat: int, peer: Path | None = None) -> list[dict]:
+def real_clips(repeat: int, peer: Path | None = None, only: str | None = None) -> list[dict]:
     """ICL and the scan, ``repeat`` cold runs each; with ``peer`` (a checkout of another commit)
     each round runs the peer's code and then this checkout's, alternately, so that both see the
     same machine (its speed drifts by tens of percent over an hour here), and reports the ratio
@@ -183,10 +183,11 @@ def real_clips(repeat: int, peer: Path | None = None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="bench-real-") as tmp_s:
         tmp = Path(tmp_s)
         scan = tmp / "scan"
-        subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(scan), "--frames", "200",
-                        "--trajectory", "scan", "--size", "640x480"], cwd=ROOT, check=True, capture_output=True)
-        for name, clip, extra in (("icl", ICL, ["--intrinsics", "525,525,319.5,239.5"]),
-                                  ("scan-640x480", scan, [])):
+        if only != "icl":
+            subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(scan), "--frames", "200",
+                            "--trajectory", "scan", "--size", "640x480"], cwd=ROOT, check=True, capture_output=True)
+        clips = (("icl", ICL, ["--intrinsics", "525,525,319.5,239.5"]), ("scan-640x480", scan, []))
+        for name, clip, extra in [c for c in clips if only is None or c[0].startswith(only)]:
             runs, peer_runs = [], []
             for r in range(repeat):
                 if peer is not None:
@@ -218,10 +219,11 @@ def main() -> None:
     ap.add_argument("--peer", type=Path, metavar="CHECKOUT",
                     help="with --real: also time the code of this checkout (e.g. `git worktree add /tmp/peer "
                          "HEAD~1`), alternating runs, and report the ratio")
+    ap.add_argument("--only", choices=["icl", "scan"], help="with --real: one of the two clips")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     if a.real:
-        doc = real_clips(a.repeat, a.peer.resolve() if a.peer else None)
+        doc = real_clips(a.repeat, a.peer.resolve() if a.peer else None, a.only)
         print(json.dumps(doc, indent=1) if a.json else "")
         return
     if a.side_by_side:
