@@ -141,3 +141,20 @@ def test_ctrl_c_with_dask_exits_130_cleanly_and_a_rerun_completes(reference, tmp
     cli_json("run", str(inp), "--out", str(out), "--cache", str(cache), "--pipeline", "toy", "--executor", "dask",
              "--jobs", "2")
     assert _outputs(out) == ref
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def test_stage_map_calls_as_dask_tasks_come_back_in_order():
+    """A whole stage's ``ctx.map`` (segment windows, loop edges) on the Dask executor: each call
+    a task on the cluster, results in argument order, a few calls in this process."""
+    from gcvd_flow.engine.executors import MIN_CALLS, DaskItemExecutor
+
+    ex = DaskItemExecutor(2)
+    try:
+        assert list(ex.map_calls(_square, iter(range(11)))) == [i * i for i in range(11)]
+        assert list(ex.map_calls(_square, range(MIN_CALLS - 1))) == [i * i for i in range(MIN_CALLS - 1)]
+    finally:
+        ex.close()

@@ -51,8 +51,9 @@ class LossWeights:
 @dataclass(frozen=True)
 class KeyframeSettings:
     """Keyframe windows, and the solver settings all three optimisations share (pose_lr,
-    mesh_lr_mult, mesh_shape_lr_frac, points, taus, flow_taus, checkpoint_every, threads;
-    the edge optimisation also uses loss_scale)."""
+    mesh_lr_mult, mesh_shape_lr_frac, points, taus, flow_taus, photo_warp; checkpoint_every
+    for the keyframe windows; the edge optimisation also uses loss_scale; edges and segments
+    have their own ``threads``)."""
 
     window: int = _f(40, "keyframes per optimisation window")
     overlap: int = _f(8, "keyframes shared by consecutive windows (their poses are held fixed)")
@@ -66,7 +67,7 @@ class KeyframeSettings:
     init: Literal["essential", "identity"] = _f("essential", "initial keyframe poses: essential-matrix "
                                                 "chain or identity")
     checkpoint_every: int = _f(50, "steps between checkpoints")
-    threads: int = _f(2, "torch threads of the optimisation stages (results are bit-identical only "
+    threads: int = _f(2, "torch threads of the keyframe windows (results are bit-identical only "
                       "for the same count)", ge=1)
     taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)")
     flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
