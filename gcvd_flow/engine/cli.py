@@ -66,8 +66,8 @@ def _add_run_args(p: argparse.ArgumentParser, input_required: bool = True) -> No
     p.add_argument("--out", required=input_required, metavar="RUN_DIR", help="run directory for the results")
     _add_config_args(p)
     p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",
-                   help="map items in N worker processes (default auto: $GCVD_FLOW_JOBS, else one per usable "
-                   "core; results do not depend on it)")
+                   help="map items (and a stage's independent calls) in N worker processes (default auto: "
+                   "$GCVD_FLOW_JOBS, else one per usable core; results do not depend on it)")
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
