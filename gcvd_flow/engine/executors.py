@@ -190,11 +190,15 @@ def resolve_jobs(jobs: int | None) -> int:
 MIN_CALLS = 3
 
 
-def _few_calls(args: Iterable[Any]) -> tuple[list[Any], Iterator[Any]]:
-    """The first MIN_CALLS arguments (fewer if that is all) and an iterator over all of them."""
+def _map_calls(fn: Callable[[Any], Any], args: Iterable[Any], submit: Callable[[Any], Any], jobs: int,
+               wait_any: Callable[[list[Any]], None] | None = None) -> Iterator[Any]:
+    """``fn(arg)`` for each argument through ``submit`` (see ``_ordered``), or here when there
+    are fewer than MIN_CALLS arguments (only that many are looked at to decide)."""
     it = iter(args)
     head = list(itertools.islice(it, MIN_CALLS))
-    return head, itertools.chain(head, it)
+    if len(head) < MIN_CALLS:
+        return map(fn, head)
+    return _ordered(submit, itertools.chain(head, it), jobs, wait_any or _wait_any)
 
 
 class InProcessExecutor:
@@ -288,10 +292,7 @@ class ProcessPoolItemExecutor:
     def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
         """``fn(arg)`` for each argument on the workers, in argument order (see ``_ordered``);
         fewer than MIN_CALLS calls run here."""
-        head, it = _few_calls(args)
-        if len(head) < MIN_CALLS:
-            return map(fn, it)
-        return _ordered(lambda a: self._pool.submit(fn, a), it, self.jobs)
+        return _map_calls(fn, args, lambda a: self._pool.submit(fn, a), self.jobs)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -379,13 +380,10 @@ class DaskItemExecutor:
     def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
         """``fn(arg)`` for each argument as Dask tasks, in argument order; the arguments travel to
         the workers (they are a stage's own inputs, not store digests)."""
-        head, it = _few_calls(args)
-        if len(head) < MIN_CALLS:
-            return map(fn, it)
         from distributed import wait as dask_wait
 
-        return _ordered(lambda a: self._client.submit(fn, a, pure=False, retries=2), it, self.jobs,
-                        lambda fs: dask_wait(fs, return_when="FIRST_COMPLETED"))
+        return _map_calls(fn, args, lambda a: self._client.submit(fn, a, pure=False, retries=2), self.jobs,
+                          lambda fs: dask_wait(fs, return_when="FIRST_COMPLETED"))
 
     def _submit(self, task: ItemTask):
         # A unique task key per submission: the item's lock and record re-check decide whether

@@ -344,16 +344,14 @@ class _Progress:
                 for k, (wa, wb) in enumerate(self.windows[:n_done])}
 
 
-def _segment_pairs(
-    n: int, a: int, seg_flows: Mapping[int, FlowPair], kf: KeyframeSettings, pair_power: float
-) -> list[Pair]:
-    """Pairs (i, i + tau) and (i + tau, i) of a window of n frames starting at frame a
-    (window-local indices), weight tau ** pair_power, with flows where tau is in flow_taus."""
+def _segment_pairs(n: int, seg_flows: Mapping[int, FlowPair], kf: KeyframeSettings, pair_power: float) -> list[Pair]:
+    """Pairs (i, i + tau) and (i + tau, i) of a window of n frames (window-local indices; seg_flows
+    keyed by them too), weight tau ** pair_power, with flows where tau is in flow_taus."""
     pairs = []
     for tau in kf.taus:
         wt = float(tau) ** pair_power
         for i in range(n - tau):
-            f1 = chained_flow(seg_flows, a + i, tau) if tau in kf.flow_taus else None
+            f1 = chained_flow(seg_flows, i, tau) if tau in kf.flow_taus else None
             pairs.append(Pair(i, i + tau, tau, wt, *(f1[0] if f1 else (None, None))))
             pairs.append(Pair(i + tau, i, tau, wt, *(f1[1] if f1 else (None, None))))
     return pairs
@@ -390,7 +388,7 @@ def solve_window(job: WindowJob) -> WindowResult:
         fr = prepare_frames(net, job.images, pri_w, job.static, job.K, st.seg.loss_scale, st.gshape)
         seg_flows = {k: (flow_at_loss_res(fl, "fwd", h, w, fr.f), flow_at_loss_res(fl, "bwd", h, w, fr.f))
                      for k, fl in enumerate(job.flows)}
-        pairs = _segment_pairs(n, 0, seg_flows, st.kf, st.seg.pair_power)
+        pairs = _segment_pairs(n, seg_flows, st.kf, st.seg.pair_power)
         if not pairs:
             return WindowResult(poses0, full_depth(net, job.images, pri_w, mesh, st.depth.mesh))
         win = Window(
