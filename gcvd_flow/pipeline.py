@@ -464,7 +464,8 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     if not p.enabled:
         kw["descriptors"] = np.eye(len(kf), dtype=np.float32)  # nothing similar: no loop edges
         kw["similarity_threshold"] = 2.0
-    graph, edge_flows = association_mod.build_graph(kf, images, K, inputs["keyframes"]["threshold_px"] or 1e9, **kw)
+    graph, edge_flows = association_mod.build_graph(kf, images, K, inputs["keyframes"]["threshold_px"] or 1e9,
+                                                    call_map=ctx.map, **kw)
     flows_out = [{"i": int(a), "j": int(b), **{k: v for k, v in fl.items() if k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}}
                  for (a, b), fl in sorted(edge_flows.items())]
     return {"graph": graph, "edge_flows": flows_out}

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -116,9 +118,15 @@ def test_loop_closes_end_to_start(loop_clip) -> None:
     by_pos = flows_by_keyframe_position(kfs, flows)
     assert sorted(by_pos) == [(m, m + 1) for m in range(n - 1)]
     assert by_pos[(0, 1)] is flows[(kfs[0], kfs[1])]
-    # Deterministic.
-    graph2, _ = build_graph(kfs, [frames[i] for i in kfs], K, sel["threshold_px"])
+    # Deterministic, also with its SIFT, pair flows and candidate checks run on worker processes
+    # (the pipeline passes the engine's ctx.map as call_map): the same graph and flow bits
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:
+        graph2, flows2 = build_graph(kfs, [frames[i] for i in kfs], K, sel["threshold_px"], call_map=pool.map)
     assert json.dumps(graph2) == json.dumps(graph)
+    assert sorted(flows2) == sorted(flows)
+    for key, fl in flows.items():
+        for name, arr in fl.items():
+            assert np.array_equal(flows2[key][name], arr), (key, name)
 
 
 def test_forward_clip_has_no_loop_edge() -> None:

@@ -54,6 +54,11 @@ def test_fb_rejects_out_of_view_and_occlusion():
     valid2 = fb_consistency(fwd, bwd2, 1.0)
     assert not valid2[12:18, 16:24].any()
     assert valid2[30:, :20].all()
+    # non-finite flow (a backend's failure) is never valid, nor are pixels whose target lands on it
+    fwd3 = fwd.copy()
+    fwd3[0, 0, 0], fwd3[1, 1, 1], fwd3[2, 2, 0], fwd3[3, 3, 1] = np.nan, np.inf, -np.inf, np.nan
+    valid3 = fb_consistency(fwd3, bwd, 1.0)
+    assert not valid3[[0, 1, 2, 3], [0, 1, 2, 3]].any() and valid3[4:, : w - 5].all()
 
 
 def test_fb_on_real_clip_rejects_occluded(orbit):

@@ -87,6 +87,40 @@ def test_sample_bilinear_and_gather() -> None:
     assert g[0, 1, 0] == 2 * 1 + 3 * 1 and g[0, 2, 1] == (w - 1) - (h - 1)
 
 
+def test_sample_frames_equals_sampling_the_stacked_frames_values_and_gradients() -> None:
+    # the solver samples depth of frame pb[p] at uv[p] from the (n, h, w) stack; the reference is
+    # grid_sample on the (P, 1, h, w) stack, including points outside (border clamp)
+    g = torch.Generator().manual_seed(0)
+    field = torch.rand(5, 7, 9, generator=g, dtype=torch.float64, requires_grad=True)
+    frame = torch.tensor([3, 0, 3, 4])
+    uv = (torch.rand(4, 30, 2, generator=g, dtype=torch.float64) * torch.tensor([11.0, 9.0]) - 1.0).requires_grad_(True)
+    ours = G.sample_frames(field, frame, uv)
+    ref = G.sample_bilinear(field[frame][:, None], uv)[0][..., 0]
+    assert ours.shape == (4, 30) and (uv[..., 0] > 8).any() and (uv[..., 1] < 0).any()
+    assert torch.allclose(ours, ref, atol=1e-12)
+    for a, b in zip(torch.autograd.grad((ours ** 2).sum(), [field, uv]), torch.autograd.grad((ref ** 2).sum(), [field, uv])):
+        assert torch.allclose(a, b, atol=1e-12)
+
+
+def test_depth_net_head_as_matrix_products_equals_its_convolutions() -> None:
+    # decode evaluates the 1x1-convolution head as two matrix products (faster on CPU): same values
+    # and gradients as running the nn.Sequential of convolutions on the feature maps
+    imgs, prior = _img_prior()
+    net = DepthNet(seed=0)
+    with torch.no_grad():
+        net.head[2].weight.normal_(0, 0.1)
+        net.head[2].bias.fill_(0.2)
+    enc = net.encode(imgs, prior)
+    conv = net.head(torch.cat([enc.feat, enc.log_prior], 1))[:, 0]
+    mm = net.head_residual(net.head_input(enc)).view_as(conv)
+    assert torch.allclose(mm, conv, atol=1e-5) and conv.abs().max() > 0.05
+    g_mm = torch.autograd.grad((mm ** 2).sum(), list(net.head.parameters()))
+    g_conv = torch.autograd.grad((conv ** 2).sum(), list(net.head.parameters()))
+    for a, b in zip(g_mm, g_conv):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-4)
+    assert torch.equal(net.decode(enc, head_in=net.head_input(enc)), net.decode(enc))
+
+
 def _img_prior(b: int = 2, h: int = 24, w: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(0)
     imgs = torch.rand(b, 3, h, w, generator=g)

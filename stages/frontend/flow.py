@@ -71,8 +71,10 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
     if squeeze:
         f = f[..., None]
     h, w = f.shape[:2]
-    x = np.clip(coords[..., 0].astype(np.float64), 0.0, w - 1.0)
-    y = np.clip(coords[..., 1].astype(np.float64), 0.0, h - 1.0)
+    # clamped like np.clip, but NaN -> 0 (fmax ignores NaN): a non-finite coordinate samples a
+    # border pixel instead of indexing with a garbage integer
+    x = np.minimum(np.fmax(coords[..., 0].astype(np.float64), 0.0), w - 1.0)
+    y = np.minimum(np.fmax(coords[..., 1].astype(np.float64), 0.0), h - 1.0)
     x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros_like(x, np.int64)
     y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros_like(y, np.int64)
     x1 = np.minimum(x0 + 1, w - 1)
@@ -103,8 +105,13 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 def _inside(tgt: np.ndarray, h: int, w: int) -> np.ndarray:
     """Finite target coordinates (H, W, 2) inside an h x w image: bool (H, W)."""
+    # no isfinite test needed: every comparison with NaN is False, and +-inf fails one bound
     u, v = tgt[..., 0], tgt[..., 1]
-    return np.isfinite(tgt).all(-1) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    out = u >= 0
+    out &= u <= w - 1
+    out &= v >= 0
+    out &= v <= h - 1
+    return out
 
 
 def _grid(h: int, w: int) -> np.ndarray:

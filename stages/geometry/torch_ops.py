@@ -29,6 +29,7 @@ __all__ = [
     "project",
     "rigid_flow",
     "sample_bilinear",
+    "sample_frames",
     "gather_pixels",
 ]
 
@@ -189,6 +190,30 @@ def sample_bilinear(img: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, 
     out = F.grid_sample(img, grid.to(img.dtype), mode="bilinear", padding_mode="border", align_corners=True)
     inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
     return out[:, :, 0].transpose(1, 2), inside
+
+
+def sample_frames(field: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample frame ``frame[p]`` of a stack field (n, H, W) at pixel points uv (P, M, 2)
+    -> (P, M), with ``sample_bilinear``'s conventions (border clamp, pixel-centre grid).
+
+    The same values as ``sample_bilinear(field[frame][:, None], uv)`` without building the (P, H, W)
+    stack ``field[frame]``: four gathers from the flat field, so the cost and the backward
+    (a scatter into n * H * W values instead of P * H * W) are O(P * M), not O(P * H * W)."""
+    n, h, w = field.shape
+    x = uv[..., 0].clamp(0, w - 1)
+    y = uv[..., 1].clamp(0, h - 1)
+    x0 = x.detach().floor().clamp(max=max(w - 2, 0))
+    y0 = y.detach().floor().clamp(max=max(h - 2, 0))
+    ax, ay = x - x0, y - y0
+    i00 = (frame[:, None] * (h * w) + y0.long() * w + x0.long()).reshape(-1)
+    dx, dy = min(1, w - 1), min(1, h - 1) * w
+    flat = field.reshape(-1)
+    # gather rather than flat[i]: the same values, a cheaper backward (scatter-add vs index_put)
+    f00, f01 = flat.gather(0, i00).view_as(x), flat.gather(0, i00 + dx).view_as(x)
+    f10, f11 = flat.gather(0, i00 + dy).view_as(x), flat.gather(0, i00 + dx + dy).view_as(x)
+    top = f00 + (f01 - f00) * ax
+    bottom = f10 + (f11 - f10) * ax
+    return top + (bottom - top) * ay
 
 
 def gather_pixels(img: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:

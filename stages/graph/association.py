@@ -29,7 +29,7 @@ Pure functions; deterministic (cv2.setRNGSeed before every RANSAC call, DIS is d
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import cv2
 import numpy as np
@@ -379,6 +379,27 @@ def sequential_edges(kfs: list[int], taus: tuple[int, ...]) -> list[dict[str, An
     return out
 
 
+# call_map(fn, args) -> [fn(a) for a in args] in argument order: ``map``, or the run's worker
+# processes (``fn`` module-level, arguments picklable); every call is a pure function of its
+# arguments, so the graph does not depend on where the calls ran
+CallMap = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
+
+
+def _pair_flow_call(args: tuple[np.ndarray, np.ndarray, SiftFeatures, SiftFeatures, float]) -> dict[str, np.ndarray]:
+    """One consecutive keyframe pair: (img_a, img_b, features a, features b, fb_thresh) ->
+    :func:`keyframe_pair_flow`."""
+    img_a, img_b, fa, fb, fb_thresh = args
+    return keyframe_pair_flow(img_a, img_b, fb_thresh=fb_thresh, _matches=_match_features(fa, fb))
+
+
+def _verify_call(args: tuple[np.ndarray, np.ndarray, SiftFeatures, SiftFeatures, np.ndarray, float, dict[str, Any]],
+                 ) -> dict[str, Any]:
+    """One loop candidate: (img_a, img_b, features a, features b, K, keyframe threshold px,
+    verify_pair keywords) -> :func:`verify_pair`."""
+    img_a, img_b, fa, fb, K, threshold_px, kw = args
+    return verify_pair(img_a, img_b, K, threshold_px, _matches=_match_features(fa, fb), **kw)
+
+
 def _verify_candidates(
     cands: list[tuple[int, int, float]],
     kfs: list[int],
@@ -386,15 +407,16 @@ def _verify_candidates(
     K: np.ndarray,
     keyframe_threshold_px: float,
     edge_flows: dict[tuple[int, int], dict[str, np.ndarray]],
-    features: Callable[[int], SiftFeatures] | None = None,
+    features: list[SiftFeatures],
+    call_map: CallMap = map,
     **verify_kw: Any,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """(accepted, rejected) statistics of each candidate pair (a, b, similarity) (keyframe
     positions); the flows of accepted pairs are added to ``edge_flows`` under frame indices."""
     accepted, rejected = [], []
-    for a, b, sim in cands:
-        matches = _match_features(features(a), features(b)) if features is not None else None
-        v = verify_pair(kf_images[a], kf_images[b], K, keyframe_threshold_px, _matches=matches, **verify_kw)
+    calls = ((kf_images[a], kf_images[b], features[a], features[b], K, keyframe_threshold_px, verify_kw)
+             for a, b, _ in cands)
+    for (a, b, sim), v in zip(cands, call_map(_verify_call, calls)):
         stats = {
             "i": kfs[a],
             "j": kfs[b],
@@ -413,32 +435,11 @@ def _verify_candidates(
     return accepted, rejected
 
 
-class _FeatureCache:
-    """SIFT features of keyframe positions, computed on first use (a keyframe takes part in its
-    two consecutive pairs and in loop candidates)."""
-
-    def __init__(self, kf_images: list[np.ndarray] | np.ndarray) -> None:
-        self._images, self._feats = kf_images, {}
-
-    def __call__(self, m: int) -> SiftFeatures:
-        if m not in self._feats:
-            self._feats[m] = _sift_features(self._images[m])
-        return self._feats[m]
-
-    def drop(self, m: int) -> None:
-        self._feats.pop(m, None)
-
-
-def _consecutive_flows(kfs: list[int], kf_images: list[np.ndarray] | np.ndarray, features: _FeatureCache,
-                       fb_thresh: float) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+def _consecutive_flows(kfs: list[int], kf_images: list[np.ndarray] | np.ndarray, features: list[SiftFeatures],
+                       fb_thresh: float, call_map: CallMap = map) -> dict[tuple[int, int], dict[str, np.ndarray]]:
     """{(frame i, frame j): keyframe_pair_flow} of every pair of consecutive keyframes."""
-    out: dict[tuple[int, int], dict[str, np.ndarray]] = {}
-    for m in range(len(kfs) - 1):
-        out[(kfs[m], kfs[m + 1])] = keyframe_pair_flow(
-            kf_images[m], kf_images[m + 1], fb_thresh=fb_thresh,
-            _matches=_match_features(features(m), features(m + 1)))
-        features.drop(m - 1)  # the walk needs at most two at a time; loop candidates recompute theirs
-    return out
+    calls = ((kf_images[m], kf_images[m + 1], features[m], features[m + 1], fb_thresh) for m in range(len(kfs) - 1))
+    return {(kfs[m], kfs[m + 1]): fl for m, fl in enumerate(call_map(_pair_flow_call, calls))}
 
 
 def build_graph(
@@ -455,6 +456,7 @@ def build_graph(
     min_inlier_ratio: float = 0.5,
     min_consistent: float = 0.1,
     fb_thresh: float = 2.0,
+    call_map: CallMap = map,
 ) -> tuple[dict[str, Any], dict[tuple[int, int], dict[str, np.ndarray]]]:
     """Build the keyframe graph: sequential edges + verified non-sequential edges.
 
@@ -469,6 +471,10 @@ def build_graph(
         nms, min_separation: see :func:`candidate_pairs`; min_separation defaults to max(taus).
         descriptors: (K, D) precomputed descriptors (e.g. ResNet-18); else computed with
             ``descriptor_fn`` (default :func:`global_descriptor`).
+        call_map: runs the independent calls (SIFT per keyframe, flow per consecutive pair,
+            verification per loop candidate), e.g. on worker processes; results are the same.
+            Every keyframe's SIFT features are held until the graph is built (~0.3 MB each at
+            the working size; the consecutive flows the graph returns are ~1 MB per pair).
 
     Returns:
         (graph, edge_flows). ``graph`` is JSON-able: {keyframes, similarity_threshold,
@@ -487,8 +493,8 @@ def build_graph(
     sep = max(taus) if min_separation is None else int(min_separation)
 
     sequential = sequential_edges(kfs, taus)
-    features = _FeatureCache(kf_images)
-    edge_flows = _consecutive_flows(kfs, kf_images, features, fb_thresh)
+    features = list(call_map(_sift_features, kf_images))
+    edge_flows = _consecutive_flows(kfs, kf_images, features, fb_thresh, call_map)
 
     if descriptors is None:
         fn = descriptor_fn or global_descriptor
@@ -501,7 +507,7 @@ def build_graph(
 
     cands = candidate_pairs(desc, similarity_threshold, nms=nms, min_separation=sep) if n else []
     accepted, rejected = _verify_candidates(
-        cands, kfs, kf_images, K, keyframe_threshold_px, edge_flows, features,
+        cands, kfs, kf_images, K, keyframe_threshold_px, edge_flows, features, call_map,
         min_inlier_ratio=min_inlier_ratio, min_consistent=min_consistent, fb_thresh=fb_thresh)
     log.debug(
         "graph: %d keyframes, %d sequential, %d loop edges, %d rejected",

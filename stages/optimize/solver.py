@@ -187,6 +187,7 @@ class Solver:
         # vector, and the prior's gradients for the gradient-orientation loss
         self.img_pa, self.img_pb = win.imgs[self.pa], win.imgs[self.pb]
         self.pa_offset = (self.pa * hw)[:, None]
+        self.head_in = self.net.head_input(win.enc)  # (n * h * w, C + 1)
         self.prior_grads = L.prior_gradients(torch.exp(win.enc.log_prior[:, 0]), 3, win.static)
 
     def poses(self) -> torch.Tensor:
@@ -210,7 +211,7 @@ class Solver:
         use_mesh = self.depth.mesh
         h, w = self.h, self.w_
         hw = h * w
-        depth = self.net.decode(win.enc, self.meshes() if use_mesh else None)  # (n, h, w)
+        depth = self.net.decode(win.enc, self.meshes() if use_mesh else None, self.head_in)  # (n, h, w)
         T_w_c = self.poses()
         npair, M = len(win.pairs), self.kf.points
         T_b_a = G.relative_pose(T_w_c[self.pa], T_w_c[self.pb]).to(torch.float32)  # (npair, 4, 4)
@@ -222,7 +223,7 @@ class Solver:
         uv, uvc, zc = self._warp(depth, T_b_a, idx, nidx)
         img_b, inside = G.sample_bilinear(self.img_pb, uv)
         img_a = G.gather_pixels(self.img_pa, nidx)
-        d_b, _ = G.sample_bilinear(depth[self.pb][:, None], uvc)
+        d_b = G.sample_frames(depth, self.pb, uvc)  # (npair, M)
         ins_c = inside.reshape(npair, M, 9)[:, :, 4]
         wgt = self.amask.gather(1, idx) * ins_c.float() * (zc > 1e-3).float()
         pair_loss = torch.zeros(npair)
@@ -231,7 +232,7 @@ class Solver:
             pb_ = img_b.reshape(npair, M, 9, 3)
             pair_loss = pair_loss + lw.w_photo * L.photometric_loss(pa_, pb_, wgt)
         if lw.w_depth > 0:
-            pair_loss = pair_loss + lw.w_depth * L.depth_consistency_loss(zc, d_b[..., 0], wgt)
+            pair_loss = pair_loss + lw.w_depth * L.depth_consistency_loss(zc, d_b, wgt)
         if lw.w_flow > 0 and len(self.flow_idx):
             fi = self.flow_idx
             fidx = idx[fi]
@@ -266,7 +267,7 @@ class Solver:
             uvc, zc = G.project(G.transform(T_b_a, self.rays[idx] * d_a[..., None]), K)
             uv = (uvc[:, :, None, :] + _OFFS_UV).reshape(npair, M * 9, 2)
             return uv, uvc, zc
-        d_a = depth.reshape(-1)[self.pa_offset + nidx]  # (npair, M * 9)
+        d_a = depth.reshape(-1).gather(0, (self.pa_offset + nidx).reshape(-1)).view(npair, M * 9)
         uv, z = G.project(G.transform(T_b_a, self.rays[nidx] * d_a[..., None]), K)
         return uv, uv.reshape(npair, M, 9, 2)[:, :, 4], z.reshape(npair, M, 9)[:, :, 4]
 
