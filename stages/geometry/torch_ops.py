@@ -155,10 +155,10 @@ def transform(T: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
 
 def project(X: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera points (..., 3) -> (pixels (..., 2), z (...)); z is clamped to 1e-6 for the division."""
-    z = X[..., 2]
+    x, y, z = X.unbind(-1)  # one backward (a stack) instead of three zero-filled selects
     zc = z.clamp(min=_EPS)
-    u = K[0, 0] * X[..., 0] / zc + K[0, 2]
-    v = K[1, 1] * X[..., 1] / zc + K[1, 2]
+    u = K[0, 0] * x / zc + K[0, 2]
+    v = K[1, 1] * y / zc + K[1, 2]
     return torch.stack([u, v], -1), z
 
 
