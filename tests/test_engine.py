@@ -316,6 +316,32 @@ def test_ctrl_c_exits_130_and_leaves_a_consistent_cache(toy_input, tmp_path, job
         assert res["transform"]["cached"] > 0
 
 
+def test_ctrl_c_during_a_stages_calls_on_the_workers_exits_130_and_stops_them(toy_input, tmp_path):
+    """Ctrl-C while a whole stage's ``ctx.map`` calls run on the worker processes (as
+    optimize_segments' windows do): exit 130, no traceback, no worker left behind (they hold the
+    run's stderr, so communicate() would not return), a consistent cache, and a rerun that
+    computes the interrupted stage."""
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    cmd = [sys.executable, "-m", "gcvd_flow", "run", str(toy_input), "--out", str(out), "--cache", str(cache),
+           "--pipeline", "toy", "--set", "summarize.sleep=0.3", "--jobs", "2"]
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # decode and transform (40 items each) recorded: summarize's 40 calls (6 s on 2 workers) run
+    deadline = time.time() + 60
+    while len(list((cache / "records").glob("*/*.json"))) < 82 and p.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    assert p.poll() is None, "the run ended before it could be interrupted"
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    _verify_cache(cache)
+    res = by_stage(cli_json("run", str(toy_input), "--out", str(out), "--cache", str(cache), "--pipeline", "toy",
+                            "--set", "summarize.sleep=0.01"))
+    assert res["summarize"]["executed"] == 1 and res["transform"]["cached"] == 40
+
+
 def test_push_pull_shares_a_run_and_refuses_tampered_objects(toy_input, tmp_path):
     a_cache, b_cache, remote = tmp_path / "a", tmp_path / "b", tmp_path / "remote"
     run_toy(toy_input, tmp_path / "oa", a_cache)

@@ -45,10 +45,21 @@ def transform_item(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, A
     return {"values": _scaled(x, params.scale), "mean": float(x.mean())}
 
 
+def _slow_mean(args: tuple[np.ndarray, float]) -> float:
+    values, sleep = args
+    time.sleep(sleep)
+    return float(values.mean())
+
+
 def summarize(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, Any]:
-    """Mean of every transformed item, rounded to ``params.digits`` decimals."""
+    """Mean of every transformed item, rounded to ``params.digits`` decimals. With
+    ``params.sleep`` each mean is a ``ctx.map`` call that sleeps first (a whole stage's calls
+    on the workers, for tests that interrupt them); the values are the same."""
     items = inputs["transform"]
-    means = [float(items[i]["values"].mean()) for i in range(len(items))]
+    if params.sleep:
+        means = list(ctx.map(_slow_mean, ((items[i]["values"], params.sleep) for i in range(len(items)))))
+    else:
+        means = [float(items[i]["values"].mean()) for i in range(len(items))]
     return {"means": np.asarray(means, dtype=np.float64),
             "total": round(float(np.sum(means)), params.digits)}
 
@@ -80,6 +91,7 @@ class TransformParams(Section):
 
 class SummarizeParams(Section):
     digits: int = 6
+    sleep: float = 0.0  # per item, as ctx.map calls (tests interrupt a stage's calls on the workers)
 
 
 class ThresholdParams(Section):
