@@ -77,11 +77,11 @@ SMALL_SEG = SegmentSettings(steps=4, window=8, lr=1e-5)
 
 
 def _kf_run(t: dict, ck=None, seed: int = 0, depth: DepthModel = DepthModel(), losses: LossWeights = LossWeights(),
-            **over) -> dict:
+            window_map=map, **over) -> dict:
     c, kf = t["clip"], t["kf"]
     return optimize_keyframes(
         c.frames[kf], t["prior"][kf], t["masks"][kf], c.K, t["kfl"], depth=depth, losses=losses,
-        kf=dataclasses.replace(SMALL, **over), seed=seed, checkpointer=ck,
+        kf=dataclasses.replace(SMALL, **over), seed=seed, checkpointer=ck, window_map=window_map,
     )
 
 
@@ -102,22 +102,93 @@ def test_keyframes_outputs_and_determinism(tiny: dict) -> None:
     assert np.allclose(r1["poses"][0], np.eye(4))
     edges = {(e["a"], e["b"], e["tau"]) for e in r1["rel_poses"]}
     assert edges == {(a, a + t, t) for t in (1, 2) for a in range(nk - t)}
-    e = r1["rel_poses"][3]
+    # within window 0 (keyframes 0..4) the relative poses are the placed poses' (window 1 starts at 3)
+    e = r1["rel_poses"][1]
+    assert (e["a"], e["b"]) == (1, 2)
     assert np.allclose(e["T_b_a"], np.linalg.inv(r1["poses"][e["b"]]) @ r1["poses"][e["a"]])
+    rc = _kf_run(tiny, schedule="chained")
+    e = rc["rel_poses"][3]
+    assert np.allclose(e["T_b_a"], np.linalg.inv(rc["poses"][e["b"]]) @ rc["poses"][e["a"]])
     assert {"head.0.weight", "head.2.weight", "mesh"} <= set(r1["state"])
     r3 = _kf_run(tiny, seed=1)
     assert r3["depths"].tobytes() != r1["depths"].tobytes()
 
 
-@pytest.mark.parametrize("interrupt_after", [2, 3])  # mid-window, and at a window boundary
-def test_keyframes_resume_is_bit_exact(tiny: dict, interrupt_after: int) -> None:
-    ref = _kf_run(tiny)
+@pytest.mark.parametrize("schedule,interrupt_after", [("chained", 2), ("chained", 3),  # mid-window, at a boundary
+                                                      ("independent", 1), ("independent", 2)])  # after window 0, 1
+def test_keyframes_resume_is_bit_exact(tiny: dict, schedule: str, interrupt_after: int) -> None:
+    over = dict(schedule=schedule, window=4 if schedule == "independent" else 5)  # independent: 3 windows
+    ref = _kf_run(tiny, **over)
     ck = MemCheckpointer(interrupt_after)
     with pytest.raises(KeyboardInterrupt):
-        _kf_run(tiny, ck)
+        _kf_run(tiny, ck, **over)
     assert ck.saves == interrupt_after
     ck.interrupt_after = None
-    _assert_same(_kf_run(tiny, ck), ref)
+    res = _kf_run(tiny, ck, **over)
+    _assert_same(res, ref)
+    assert all(a["T_b_a"].tobytes() == b["T_b_a"].tobytes() for a, b in zip(res["rel_poses"], ref["rel_poses"]))
+
+
+def test_keyframes_one_window_independent_equals_chained(tiny: dict) -> None:
+    """A clip of one window: the independent schedule is the chained one, bit for bit."""
+    a, b = _kf_run(tiny, window=40, schedule="independent"), _kf_run(tiny, window=40, schedule="chained")
+    _assert_same(a, b)
+    assert all(x["T_b_a"].tobytes() == y["T_b_a"].tobytes() for x, y in zip(a["rel_poses"], b["rel_poses"]))
+    assert all(a["state"][k].tobytes() == b["state"][k].tobytes() for k in b["state"])
+
+
+def test_keyframe_windows_are_independent_and_placed_onto_the_overlap(tiny: dict) -> None:
+    """schedule=independent: windows solved in reverse order or on a 2-process pool give the same
+    bits; a window's new keyframes keep their optimised relative poses, at the overlap's scale."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    def reverse_map(fn, jobs):
+        jobs = list(jobs)
+        return list(reversed([fn(j) for j in reversed(jobs)]))
+
+    seen: list = []
+
+    def spy_map(fn, jobs):
+        for j in jobs:
+            seen.append(fn(j))
+            yield seen[-1]
+
+    over = dict(window=4, schedule="independent")  # windows 0..3, 2..5, 4..7 (overlap 2)
+    ref = _kf_run(tiny, **over, window_map=spy_map)
+    _assert_same(_kf_run(tiny, **over, window_map=reverse_map), ref)
+    with ProcessPoolExecutor(2) as pool:
+        _assert_same(_kf_run(tiny, **over, window_map=pool.map), ref)
+    assert len(seen) == 3
+    w1 = seen[1]  # keyframes 2..5: 2, 3 shared with window 0, 4, 5 new
+    scale = np.median(ref["depths"][4] / w1.depths[2])
+    rel_own = np.linalg.inv(w1.poses[3]) @ w1.poses[2]
+    rel_placed = np.linalg.inv(ref["poses"][5]) @ ref["poses"][4]
+    np.testing.assert_allclose(rel_placed[:3, :3], rel_own[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(rel_placed[:3, 3], rel_own[:3, 3] * scale, rtol=1e-4, atol=1e-9)
+    # the scale: the overlap's depths (keyframes 2, 3) agree in median with window 0's
+    ratio = np.concatenate([(ref["depths"][k] / (w1.depths[k - 2] * scale)).ravel() for k in (2, 3)])
+    assert abs(np.median(ratio) - 1) < 5e-3  # median of the logs (even count: mean of the middle two)
+    # the overlap keeps window 0's poses; the seam's relative poses come from window 1 itself
+    assert ref["poses"][:4].tobytes() == seen[0].poses.tobytes()
+    e = next(r for r in ref["rel_poses"] if (r["a"], r["b"]) == (3, 4))
+    own = np.linalg.inv(w1.poses[2]) @ w1.poses[1]
+    np.testing.assert_allclose(e["T_b_a"][:3, :3], own[:3, :3], atol=1e-9)
+    assert ref["depths"].tobytes() != _kf_run(tiny, window=4)["depths"].tobytes()  # not the chained result
+
+
+def test_rigid_fit_recovers_a_rigid_motion_of_the_overlap() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from stages.optimize.keyframes import _rigid_fit
+
+    rng = np.random.default_rng(0)
+    src = np.tile(np.eye(4), (5, 1, 1))
+    src[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.2, (5, 3))).as_matrix()
+    src[:, :3, 3] = rng.normal(0, 1, (5, 3))
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec([0.1, -0.3, 0.2]).as_matrix()
+    M[:3, 3] = [0.5, -1.0, 2.0]
+    np.testing.assert_allclose(_rigid_fit(src, M @ src), M, atol=1e-12)
 
 
 def test_keyframes_pose_net_and_ablation_switches(tiny: dict) -> None:

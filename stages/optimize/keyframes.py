@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 import torch
@@ -32,6 +32,7 @@ from stages.optimize.init import essential_chain
 from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
 from stages.optimize.solver import (
     Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads,
+    window_seed,
 )
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 __all__ = ["optimize_keyframes"]
 
 _STAGE = "keyframes"  # checkpoint meta["stage"]
+_STAGE_INDEPENDENT = "keyframes-independent"
 
 
 def optimize_keyframes(
@@ -52,6 +54,7 @@ def optimize_keyframes(
     kf: KeyframeSettings = KeyframeSettings(),
     seed: int = 0,
     checkpointer: Checkpointer | None = None,
+    window_map: KeyframeWindowMap = map,
 ) -> dict[str, Any]:
     """Sliding-window test-time training over keyframes.
 
@@ -61,11 +64,23 @@ def optimize_keyframes(
     depths (K, H, W) float32 (scale of the poses), rel_poses [dict(a, b, tau, T_b_a (4, 4)
     float64 = inv(T_w_b) @ T_w_a)] for every (k, k + tau), tau in taus, state {name: array}:
     trained head weights ``head.*`` and the per-frame meshes ``mesh`` (K, gh, gw)).
+
+    ``kf.schedule="independent"``: the windows are independent jobs (``_independent_windows``),
+    so ``window_map(solve_keyframe_window, jobs)`` may compute them anywhere and in any order
+    (the engine's worker processes) with the same result.
     """
     images = np.asarray(images)
     nk, H, W = images.shape[:3]
     K = np.asarray(K, np.float64)
     gshape = mesh_shape(*loss_size(H, W, kf.loss_scale)[:2], depth.mesh_vertices)
+    flows = [pair_flows[(k, k + 1)] for k in range(nk - 1)]
+    if kf.schedule == "independent":
+        with torch_threads(kf.threads), deterministic(seed):
+            net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
+            init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
+        settings = _WindowSettings(depth, losses, kf, seed, gshape)
+        return _independent_windows(images, priors, static_masks, K, flows, init, mesh_init, settings,
+                                    checkpointer, window_map)
     with torch_threads(kf.threads):
         with deterministic(seed) as gen:
             net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
@@ -73,13 +88,12 @@ def optimize_keyframes(
             fr = prepare_frames(net, images, priors, static_masks, K, kf.loss_scale, gshape)
             h, w = fr.imgs.shape[-2:]
             # initialisation: essential-matrix chain (global, deterministic, recomputed on resume)
-            flows = [pair_flows[(k, k + 1)] for k in range(nk - 1)]
             init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
             codes = posenet.encode(fr.imgs, torch.arange(nk)) if posenet is not None else None
             flows_lr = {k: (flow_at_loss_res(flows[k], "fwd", h, w, fr.f), flow_at_loss_res(flows[k], "bwd", h, w, fr.f))
                         for k in range(nk - 1)}
             run = _Progress.start(init, mesh_init, checkpointer, gen)
-            starts = list(range(0, max(nk - kf.overlap, 1), max(1, kf.window - kf.overlap)))
+            starts = _window_starts(nk, kf)
             for wi in range(run.w_start, len(starts)):
                 fr_idx = list(range(starts[wi], min(starts[wi] + kf.window, nk)))
                 win = _keyframe_window(wi, fr_idx, fr, codes, flows_lr, init, mesh_init, run, kf)
@@ -95,7 +109,20 @@ def optimize_keyframes(
                     _save_boundary(checkpointer, run, gen, solver, wi + 1)
             poses = run.g_base.numpy().astype(np.float64)
             depths = full_depth(net, images, priors, run.g_mesh, depth.mesh, fr.enc)
-        return _results(poses, depths, run.g_mesh, net, posenet, kf.taus)
+        return _results(poses, depths, run.g_mesh, _net_state(net, posenet), kf.taus)
+
+
+def _window_starts(nk: int, kf: KeyframeSettings) -> list[int]:
+    """First keyframe of every window: windows of ``kf.window`` overlapping by ``kf.overlap``."""
+    return list(range(0, max(nk - kf.overlap, 1), max(1, kf.window - kf.overlap)))
+
+
+def _net_state(net: DepthNet, posenet: PoseNet | None) -> dict[str, np.ndarray]:
+    """The trained weights: depth head ``head.*`` (and pose decoder ``posenet.*``)."""
+    state = {k: v.numpy() for k, v in net.trainable_state().items()}
+    if posenet is not None:
+        state.update({f"posenet.{k}": v.detach().numpy() for k, v in posenet.decoder.state_dict().items()})
+    return state
 
 
 @dataclass
@@ -226,19 +253,195 @@ def _save_boundary(checkpointer: Checkpointer, run: _Progress, gen: torch.Genera
 
 
 def _results(
-    poses: np.ndarray, depths: np.ndarray, g_mesh: torch.Tensor, net: DepthNet, posenet: PoseNet | None,
+    poses: np.ndarray, depths: np.ndarray, g_mesh: torch.Tensor, state: dict[str, np.ndarray],
     taus: tuple[int, ...],
 ) -> dict[str, Any]:
     """The stage's output dict (see ``optimize_keyframes``) from poses (K, 4, 4) T_w_c, depths
-    (K, H, W) and meshes (K, gh, gw)."""
+    (K, H, W), meshes (K, gh, gw) and the trained weights."""
     nk = len(poses)
     rel = []
     for tau in taus:
         for a in range(nk - tau):
             b = a + tau
             rel.append({"a": a, "b": b, "tau": tau, "T_b_a": np.linalg.inv(poses[b]) @ poses[a]})
-    state = {k: v.numpy() for k, v in net.trainable_state().items()}
-    state["mesh"] = g_mesh.numpy()
-    if posenet is not None:
-        state.update({f"posenet.{k}": v.detach().numpy() for k, v in posenet.decoder.state_dict().items()})
-    return {"poses": poses, "depths": depths, "rel_poses": rel, "state": state}
+    return {"poses": poses, "depths": depths, "rel_poses": rel, "state": {**state, "mesh": g_mesh.numpy()}}
+
+
+# ------------------------------------------------------------------ independent windows
+# Each window starts from the initial essential-matrix chain (not from the previous window's
+# optimised overlap), with its own depth head and generator, so the windows can be solved side
+# by side; the pose graph and bundle adjustment that follow fix the global placement anyway. A
+# window is then placed onto the frames already placed by a similarity: the scale from the
+# overlap's depths, rotation and translation from the last shared keyframe, so that the new
+# frames keep their optimised relation to it (as the chained schedule keeps them to the fixed
+# overlap). A clip of one window gives exactly the chained schedule's result.
+
+@dataclass(frozen=True)
+class _WindowSettings:
+    """What every keyframe window shares (picklable)."""
+
+    depth: DepthModel
+    losses: LossWeights
+    kf: KeyframeSettings
+    seed: int
+    gshape: tuple[int, int]  # mesh grid (gh, gw)
+
+
+@dataclass
+class KeyframeJob:
+    """Everything one keyframe window of n keyframes needs; picklable (a worker solves it)."""
+
+    index: int  # window number: seeds its generator (window 0: the run's seed)
+    start: int  # its first keyframe's index in the clip's keyframe list (PoseNet frame codes)
+    images: np.ndarray  # (n, H, W, 3) uint8
+    priors: np.ndarray  # (n, H, W) relative inverse depth
+    static: np.ndarray  # (n, H, W) 1 = static
+    K: np.ndarray  # (3, 3) float64 at working resolution
+    flows: list[Mapping[str, np.ndarray]]  # (n - 1) flow dicts of the pairs (k, k + 1)
+    init: np.ndarray  # (n, 4, 4) float64 T_w_c of the essential-matrix chain
+    mesh_init: np.ndarray  # (n, gh, gw) float32
+    settings: _WindowSettings
+
+
+@dataclass
+class KeyframeWindowResult:
+    """A solved window in its own frame (first keyframe where the chain put it, its own scale)."""
+
+    poses: np.ndarray  # (n, 4, 4) float64 T_w_c
+    meshes: np.ndarray  # (n, gh, gw) float32 log-scale meshes (of this window's head)
+    depths: np.ndarray  # (n, H, W) float32, scale of the poses
+    state: dict[str, np.ndarray]  # the window's trained weights (``_net_state``)
+
+
+KeyframeWindowMap = Callable[[Callable[[KeyframeJob], KeyframeWindowResult], Iterable[KeyframeJob]],
+                             Iterable[KeyframeWindowResult]]
+
+
+def solve_keyframe_window(job: KeyframeJob) -> KeyframeWindowResult:
+    """One keyframe window from the initial chain: a fresh depth head (and pose decoder),
+    ``kf.steps`` Adam steps on ``kf.threads`` torch threads, its first pose fixed (the gauge)."""
+    st, kf = job.settings, job.settings.kf
+    n = len(job.images)
+    with torch_threads(kf.threads), deterministic(st.seed if job.index == 0 else window_seed(st.seed, job.index)) as gen:
+        net = DepthNet(layer_norm=st.depth.layer_norm, mesh=st.depth.mesh, seed=st.seed)
+        posenet = PoseNet(seed=st.seed) if kf.pose_param == "net" else None
+        fr = prepare_frames(net, job.images, job.priors, job.static, job.K, kf.loss_scale, st.gshape)
+        h, w = fr.imgs.shape[-2:]
+        codes = posenet.encode(fr.imgs, torch.arange(job.start, job.start + n)) if posenet is not None else None
+        flows_lr = {k: (flow_at_loss_res(fl, "fwd", h, w, fr.f), flow_at_loss_res(fl, "bwd", h, w, fr.f))
+                    for k, fl in enumerate(job.flows)}
+        pairs = _keyframe_pairs(list(range(n)), flows_lr, kf)
+        poses, meshes = torch.as_tensor(job.init).clone(), torch.as_tensor(job.mesh_init).clone()
+        if pairs:
+            pose_train = torch.ones(n, dtype=torch.float64)
+            pose_train[0] = 0  # gauge
+            win = Window(fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, poses, pose_train, meshes,
+                         torch.ones(n), codes)
+            solver = Solver(win, net, posenet, kf.lr, st.depth, st.losses, kf)
+            run_solver(solver, gen, kf.steps, 0, None)
+            with torch.no_grad():
+                poses, meshes = solver.poses().detach().clone(), solver.meshes().detach().clone()
+        depths = full_depth(net, job.images, job.priors, meshes, st.depth.mesh, fr.enc)
+        return KeyframeWindowResult(poses.numpy().astype(np.float64), meshes.numpy(),
+                                    np.asarray(depths, np.float32), _net_state(net, posenet))
+
+
+def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rigid M (4, 4) with M @ src[k] ~ dst[k] over poses (n, 4, 4) T_w_c in least squares: the
+    chordal mean of the rotation differences, then the mean camera-centre offset."""
+    U, _, Vt = np.linalg.svd(sum(d[:3, :3] @ s[:3, :3].T for s, d in zip(src, dst)))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    M = np.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = np.mean(dst[:, :3, 3] - src[:, :3, 3] @ R.T, axis=0)
+    return M
+
+
+class _Placed:
+    """The keyframes placed so far, window by window (``add`` in window order)."""
+
+    def __init__(self, nk: int, spans: list[tuple[int, int]], overlap: int) -> None:
+        self.spans, self.overlap = spans, overlap
+        self.poses = np.zeros((nk, 4, 4))
+        self.meshes: list[np.ndarray | None] = [None] * nk
+        self.depths: list[np.ndarray | None] = [None] * nk
+        self.window_poses: list[np.ndarray] = []  # each window's poses, placed (for rel_poses)
+        self.state: dict[str, np.ndarray] = {}
+
+    def add(self, wi: int, res: KeyframeWindowResult) -> None:
+        a, b = self.spans[wi]
+        n_old = 0 if wi == 0 else min(self.overlap, b - a)
+        scale, M = 1.0, np.eye(4)
+        if n_old > 0:
+            # scale: median log ratio of the overlap's depths; rigid part: the last shared keyframe
+            logs = [np.log(self.depths[a + k][ok] / res.depths[k][ok]) for k in range(n_old)
+                    for ok in [(self.depths[a + k] > 0) & (res.depths[k] > 0)]]
+            logs = np.concatenate(logs)
+            scale = float(np.exp(np.median(logs))) if logs.size else 1.0
+        placed = res.poses.copy()
+        placed[:, :3, 3] *= scale
+        if n_old > 0:
+            M = _rigid_fit(placed[:n_old], self.poses[a : a + n_old])
+        placed = M @ placed
+        self.window_poses.append(placed)
+        for k in range(n_old, b - a):
+            self.poses[a + k] = placed[k]
+            self.depths[a + k] = res.depths[k] * np.float32(scale)
+            self.meshes[a + k] = res.meshes[k] + np.float32(np.log(scale))
+        self.state = res.state  # the last window's weights, as the chained schedule's final net
+
+    def rel_poses(self, taus: tuple[int, ...]) -> list[dict[str, Any]]:
+        """T_b_a of every (a, a + tau) from the last window holding both (its own optimisation;
+        the placed poses where no window holds both: tau > overlap)."""
+        rel = []
+        for tau in taus:
+            for a in range(len(self.poses) - tau):
+                holding = [k for k, (s, e) in enumerate(self.spans) if s <= a and a + tau < e]
+                P, s0 = (self.window_poses[holding[-1]], self.spans[holding[-1]][0]) if holding else (self.poses, 0)
+                rel.append({"a": a, "b": a + tau, "tau": tau,
+                            "T_b_a": np.linalg.inv(P[a + tau - s0]) @ P[a - s0]})
+        return rel
+
+
+def _independent_windows(
+    images: np.ndarray, priors: np.ndarray, static_masks: np.ndarray, K: np.ndarray,
+    flows: list[Mapping[str, np.ndarray]], init: torch.Tensor, mesh_init: torch.Tensor, st: _WindowSettings,
+    checkpointer: Checkpointer | None, window_map: KeyframeWindowMap,
+) -> dict[str, Any]:
+    """The independent schedule: solve the windows through ``window_map``, place them in order
+    (a checkpoint after each, holding every finished window's result as its own shard)."""
+    nk, kf = len(images), st.kf
+    spans = [(s, min(s + kf.window, nk)) for s in _window_starts(nk, kf)]
+    placed = _Placed(nk, spans, kf.overlap)
+    done: list[KeyframeWindowResult] = []
+    ck = load_checkpoint(checkpointer) if checkpointer is not None else None
+    if ck is not None and ck[1].get("stage") == _STAGE_INDEPENDENT:
+        t = ck[0]
+        for wi in range(int(ck[1]["window"])):
+            p = f"win{wi:04d}/"
+            res = KeyframeWindowResult(
+                t[p + "poses"].numpy(), t[p + "meshes"].numpy(), t[p + "depths"].numpy(),
+                {k[len(p) + 6:]: v.numpy() for k, v in t.items() if k.startswith(p + "state.")})
+            done.append(res)
+            placed.add(wi, res)
+
+    def jobs() -> Iterator[KeyframeJob]:  # built lazily: only the windows in flight are in memory
+        for wi in range(len(done), len(spans)):
+            a, b = spans[wi]
+            yield KeyframeJob(wi, a, images[a:b], priors[a:b], static_masks[a:b], K, flows[a : b - 1],
+                              init[a:b].numpy(), mesh_init[a:b].numpy(), st)
+
+    for wi, res in zip(range(len(done), len(spans)), window_map(solve_keyframe_window, jobs())):
+        done.append(res)
+        placed.add(wi, res)
+        if checkpointer is not None and wi + 1 < len(spans):
+            shards = {f"win{k:04d}": {"poses": torch.as_tensor(r.poses), "meshes": torch.as_tensor(r.meshes),
+                                      "depths": torch.as_tensor(r.depths),
+                                      **{f"state.{n}": torch.as_tensor(v) for n, v in r.state.items()}}
+                      for k, r in enumerate(done)}
+            checkpointer.save({"windows_done": torch.tensor(wi + 1)}, {"stage": _STAGE_INDEPENDENT, "window": wi + 1},
+                              shards)
+    out = _results(placed.poses, np.stack(placed.depths), torch.as_tensor(np.stack(placed.meshes)), placed.state,
+                   kf.taus)
+    out["rel_poses"] = placed.rel_poses(kf.taus)
+    return out

@@ -67,6 +67,12 @@ class KeyframeSettings:
     init: Literal["essential", "identity"] = _f("essential", "initial keyframe poses: essential-matrix "
                                                 "chain or identity")
     checkpoint_every: int = _f(50, "steps between checkpoints")
+    schedule: Literal["chained", "independent"] = _f(
+        "chained", "chained (the authors'): each window starts from the previous one's optimised, "
+        "fixed overlap, one after the other; independent: every window starts from the initial "
+        "essential-matrix chain and they run side by side on the workers (3+ windows), each then "
+        "placed onto the previous one by a similarity fitted on the overlap (faster, but the fixed "
+        "overlap no longer carries the scale: see docs/benchmarks.md)")
     threads: int = _f(2, "torch threads of the keyframe windows (results are bit-identical only "
                       "for the same count)", ge=1)
     taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)")

@@ -33,7 +33,7 @@ from stages.optimize.frames import (
 from stages.optimize.init import interp_pose, pnp_init, transfer_depths
 from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights, SegmentSettings
 from stages.optimize.solver import (
-    Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads,
+    Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads, window_seed,
 )
 
 __all__ = ["optimize_segments", "solve_window", "WindowJob", "WindowResult", "window_seed"]
@@ -355,12 +355,6 @@ def _segment_pairs(n: int, seg_flows: Mapping[int, FlowPair], kf: KeyframeSettin
             pairs.append(Pair(i, i + tau, tau, wt, *(f1[0] if f1 else (None, None))))
             pairs.append(Pair(i + tau, i, tau, wt, *(f1[1] if f1 else (None, None))))
     return pairs
-
-
-def window_seed(seed: int, index: int) -> int:
-    """The seed of window ``index``'s generator: a function of the run's seed and the window
-    alone, so a window's result does not depend on which windows ran before it (31 bits: OpenCV takes a C int)."""
-    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
 def solve_window(job: WindowJob) -> WindowResult:

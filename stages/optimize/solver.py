@@ -47,6 +47,7 @@ __all__ = [
     "torch_threads",
     "load_checkpoint",
     "deterministic",
+    "window_seed",
     "Pair",
     "Window",
     "Solver",
@@ -98,6 +99,12 @@ def deterministic(seed: int) -> Iterator[torch.Generator]:
         yield torch.Generator().manual_seed(seed)
     finally:
         torch.use_deterministic_algorithms(prev)
+
+
+def window_seed(seed: int, index: int) -> int:
+    """The seed of window ``index``'s generator: a function of the run's seed and the window
+    alone, so a window's result does not depend on which windows ran before it (31 bits: OpenCV takes a C int)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
 @dataclass
