@@ -130,7 +130,9 @@ def test_ctrl_c_with_dask_exits_130_cleanly_and_a_rerun_completes(reference, tmp
     cmd = [sys.executable, "-m", "gcvd_flow", "run", str(inp), "--out", str(out), "--cache", str(cache), "--pipeline",
            "toy", "--executor", "dask", "--jobs", "2"]
     # SIGINT back to its default in the child (a suite started in the background inherits it ignored)
-    p = subprocess.Popen(cmd + ["--set", "transform.sleep=0.2"], cwd=ROOT, stdout=subprocess.PIPE,
+    # 24 items of 1 s on 2 workers: still running at 4 s on a fast machine (with 0.2 s a fast
+    # machine had finished and was tearing the cluster down when the signal came)
+    p = subprocess.Popen(cmd + ["--set", "transform.sleep=1.0"], cwd=ROOT, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(4.0)  # the cluster is up, items are running (or, on a slow machine, it is starting)
     p.send_signal(signal.SIGINT)
