@@ -747,8 +747,11 @@ class DepthFusionParams(Section):
     preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
     fb_thresh: float = Field(1.0, gt=0, description="forward-backward consistency, px")
     min_angle_deg: float = Field(0.2, ge=0, description="smallest usable triangulation angle")
-    max_log_dev: float = Field(0.3, gt=0, description="measurements further from the optimised "
-                               "depth (|log ratio|) are dropped")
+    max_log_dev: float = Field(0.6, gt=0, description="measurements further from the optimised "
+                               "depth (|log ratio|) are dropped (0.3 until 2026-11-24: AbsRel ICL "
+                               "0.0530 -> 0.0523, loop 0.0419 -> 0.0405)")
+    agree_log_dev: float = Field(0.3, gt=0, description="measurements within this of the optimised "
+                                 "depth count as agreeing in the confidence")
 
 
 def _fusion_items(view, p: DepthFusionParams):
@@ -777,7 +780,7 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
              for fl, d, j in zip(inputs["refs"], inputs["ref_dirs"], inputs["ref_indices"])]
     fused, measured, confidence = depth_fusion.fuse_depth_flows(
         depth, poses[i], flows, np.asarray(inputs["K"]), min_angle_deg=p.min_angle_deg,
-        max_log_dev=p.max_log_dev)
+        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev)
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 

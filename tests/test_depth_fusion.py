@@ -59,3 +59,24 @@ def test_fusion_with_every_triangulation_rejected_keeps_the_depth():
     near[:3, 3] += 1e-4  # 0.1 mm: triangulation angles far below min_angle_deg
     out, measured, _ = fuse_depth(clip.frames[2], d, clip.poses[2], [(clip.frames[2], near)], clip.K)
     assert measured == 0.0 and np.isfinite(out).all() and np.array_equal(out, d)
+
+
+def test_fusion_fuses_within_max_log_dev_but_counts_agreement_within_agree_log_dev():
+    """A region of the optimised depth 50 % too far: with max_log_dev 0.6 its triangulations are
+    fused (the region comes out right), yet they do not count as agreeing (agree_log_dev 0.3), so
+    the region's confidence stays what the 0.3 gate gave; with both at 0.3 the region keeps the
+    wrong depth."""
+    clip = render_clip(30, "loop", size=(128, 96), seed=0)
+    i = 15
+    gt = clip.depth[i]
+    wrong = gt.astype(np.float32).copy()
+    wrong[30:60, 40:80] *= 1.5  # log(1.5) = 0.41: between the two gates
+    refs = [(clip.frames[j], clip.poses[j]) for j in (i - 2, i + 2)]
+    region = (slice(34, 56), slice(44, 76))
+    wide, _, conf_wide = fuse_depth(clip.frames[i], wrong, clip.poses[i], refs, clip.K, max_log_dev=0.6, agree_log_dev=0.3)
+    narrow, _, conf_narrow = fuse_depth(clip.frames[i], wrong, clip.poses[i], refs, clip.K, max_log_dev=0.3, agree_log_dev=0.3)
+    scale = np.median(gt / wide)
+    assert np.median(np.abs(wide[region] * scale / gt[region] - 1)) < 0.05
+    assert np.median(np.abs(narrow[region] * scale / gt[region] - 1)) > 0.3
+    np.testing.assert_array_equal(conf_wide, conf_narrow)  # same agreeing measurements, same confidence
+    assert np.median(conf_wide[region]) < 0.1 < np.median(conf_wide)
