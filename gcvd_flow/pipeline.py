@@ -532,7 +532,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
         _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
         _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seed=ctx.seed, checkpointer=ctx.checkpointer,
-        window_map=ctx.map)  # independent windows side by side on the run's workers
+        window_map=ctx.map)  # schedule=independent: the windows side by side on the run's workers
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
             "depths": [np.asarray(d, np.float32) for d in res["depths"]],
             "rel_poses": [{"a": int(r["a"]), "b": int(r["b"]), "tau": int(r["tau"]),

@@ -130,7 +130,7 @@ def fuse_depth_flows(
     num = np.zeros((h, w))
     den = np.zeros((h, w))
     made = np.zeros((h, w))
-    kept = np.zeros((h, w))  # measurements that agree (within agree_log_dev)
+    agreeing = np.zeros((h, w))  # measurements within agree_log_dev
     den_agree = np.zeros((h, w))  # their summed angle^2
     for v, u, z, wgt in meas:
         dev = np.abs(np.log(z / depth[v, u]) - shift)
@@ -138,12 +138,13 @@ def fuse_depth_flows(
         np.add.at(num, (v[keep], u[keep]), wgt[keep] / z[keep])
         np.add.at(den, (v[keep], u[keep]), wgt[keep])
         np.add.at(made, (v, u), 1.0)
-        np.add.at(kept, (v[agree], u[agree]), 1.0)
+        np.add.at(agreeing, (v[agree], u[agree]), 1.0)
         np.add.at(den_agree, (v[agree], u[agree]), wgt[agree])
     have = den > 0
     fused = np.where(have, den / np.maximum(num, 1e-12), depth * np.exp(shift))
     # 3x3 median: per-pixel flow noise, and seams between measured and kept pixels
     fused = cv2.medianBlur(fused.astype(np.float32), 3)
-    rms_angle = np.sqrt(den_agree / np.maximum(kept, 1.0))  # rms angle of the agreeing measurements
-    confidence = (kept / np.maximum(made, 1.0)) * (kept / max(len(flows), 1)) * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG))
+    rms_angle = np.sqrt(den_agree / np.maximum(agreeing, 1.0))
+    confidence = ((agreeing / np.maximum(made, 1.0)) * (agreeing / max(len(flows), 1))
+                  * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG)))
     return fused, float(have.mean()), confidence.astype(np.float32)

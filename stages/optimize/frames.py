@@ -10,7 +10,7 @@ Pixel convention: the centre of the top-left pixel is (0, 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -28,6 +28,7 @@ __all__ = [
     "normalised_prior",
     "prepare_frames",
     "flow_at_loss_res",
+    "flows_at_loss_res",
     "chained_flow",
     "full_depth",
     "init_depth_full",
@@ -121,6 +122,11 @@ def flow_at_loss_res(fl: Mapping[str, np.ndarray], key: str, h: int, w: int, f: 
     vk = "fwd_valid" if key == "fwd" else "bwd_valid"
     v = (area_resize(np.asarray(fl[vk], np.float32)[None], h, w)[0] > 0.99).float()
     return fw, v
+
+
+def flows_at_loss_res(flows: Sequence[Mapping[str, np.ndarray]], h: int, w: int, f: float) -> dict[int, FlowPair]:
+    """Flow dicts of the pairs (k, k + 1) -> {k: (forward, backward) at loss resolution}."""
+    return {k: (flow_at_loss_res(fl, "fwd", h, w, f), flow_at_loss_res(fl, "bwd", h, w, f)) for k, fl in enumerate(flows)}
 
 
 def chained_flow(flows_lr: Mapping[int, FlowPair], a: int, tau: int) -> FlowPair | None:

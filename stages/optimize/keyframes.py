@@ -26,7 +26,7 @@ import torch
 from stages.models.depth_net import DepthNet, Encoded, mesh_shape
 from stages.models.pose_net import PoseNet
 from stages.optimize.frames import (
-    FlowPair, Frames, chained_flow, flow_at_loss_res, full_depth, init_depth_full, loss_size, prepare_frames,
+    FlowPair, Frames, chained_flow, flows_at_loss_res, full_depth, init_depth_full, loss_size, prepare_frames,
 )
 from stages.optimize.init import essential_chain
 from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
@@ -90,8 +90,7 @@ def optimize_keyframes(
             # initialisation: essential-matrix chain (global, deterministic, recomputed on resume)
             init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
             codes = posenet.encode(fr.imgs, torch.arange(nk)) if posenet is not None else None
-            flows_lr = {k: (flow_at_loss_res(flows[k], "fwd", h, w, fr.f), flow_at_loss_res(flows[k], "bwd", h, w, fr.f))
-                        for k in range(nk - 1)}
+            flows_lr = flows_at_loss_res(flows, h, w, fr.f)
             run = _Progress.start(init, mesh_init, checkpointer, gen)
             starts = _window_starts(nk, kf)
             for wi in range(run.w_start, len(starts)):
@@ -254,27 +253,26 @@ def _save_boundary(checkpointer: Checkpointer, run: _Progress, gen: torch.Genera
 
 def _results(
     poses: np.ndarray, depths: np.ndarray, g_mesh: torch.Tensor, state: dict[str, np.ndarray],
-    taus: tuple[int, ...],
+    taus: tuple[int, ...], rel: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The stage's output dict (see ``optimize_keyframes``) from poses (K, 4, 4) T_w_c, depths
-    (K, H, W), meshes (K, gh, gw) and the trained weights."""
+    (K, H, W), meshes (K, gh, gw) and the trained weights; the relative poses given, or those of
+    ``poses``."""
     nk = len(poses)
-    rel = []
-    for tau in taus:
-        for a in range(nk - tau):
-            b = a + tau
-            rel.append({"a": a, "b": b, "tau": tau, "T_b_a": np.linalg.inv(poses[b]) @ poses[a]})
+    if rel is None:
+        rel = [{"a": a, "b": a + tau, "tau": tau, "T_b_a": np.linalg.inv(poses[a + tau]) @ poses[a]}
+               for tau in taus for a in range(nk - tau)]
     return {"poses": poses, "depths": depths, "rel_poses": rel, "state": {**state, "mesh": g_mesh.numpy()}}
 
 
 # ------------------------------------------------------------------ independent windows
 # Each window starts from the initial essential-matrix chain (not from the previous window's
 # optimised overlap), with its own depth head and generator, so the windows can be solved side
-# by side; the pose graph and bundle adjustment that follow fix the global placement anyway. A
-# window is then placed onto the frames already placed by a similarity: the scale from the
-# overlap's depths, rotation and translation from the last shared keyframe, so that the new
-# frames keep their optimised relation to it (as the chained schedule keeps them to the fixed
-# overlap). A clip of one window gives exactly the chained schedule's result.
+# by side. A window is then placed onto the keyframes already placed by a similarity: the scale
+# from the overlap's depths, rotation and translation fitted to the overlap's poses (least
+# squares); its new keyframes keep their optimised relative poses. A clip of one window gives
+# exactly the chained schedule's result. Opt-in: without the chained schedule's fixed overlap the
+# scale of a panning clip drifts from window to window (docs/benchmarks.md).
 
 @dataclass(frozen=True)
 class _WindowSettings:
@@ -328,8 +326,7 @@ def solve_keyframe_window(job: KeyframeJob) -> KeyframeWindowResult:
         fr = prepare_frames(net, job.images, job.priors, job.static, job.K, kf.loss_scale, st.gshape)
         h, w = fr.imgs.shape[-2:]
         codes = posenet.encode(fr.imgs, torch.arange(job.start, job.start + n)) if posenet is not None else None
-        flows_lr = {k: (flow_at_loss_res(fl, "fwd", h, w, fr.f), flow_at_loss_res(fl, "bwd", h, w, fr.f))
-                    for k, fl in enumerate(job.flows)}
+        flows_lr = flows_at_loss_res(job.flows, h, w, fr.f)
         pairs = _keyframe_pairs(list(range(n)), flows_lr, kf)
         poses, meshes = torch.as_tensor(job.init).clone(), torch.as_tensor(job.mesh_init).clone()
         if pairs:
@@ -373,7 +370,7 @@ class _Placed:
         n_old = 0 if wi == 0 else min(self.overlap, b - a)
         scale, M = 1.0, np.eye(4)
         if n_old > 0:
-            # scale: median log ratio of the overlap's depths; rigid part: the last shared keyframe
+            # scale: median log ratio of the overlap's depths; rigid part: fitted to the overlap's poses
             logs = [np.log(self.depths[a + k][ok] / res.depths[k][ok]) for k in range(n_old)
                     for ok in [(self.depths[a + k] > 0) & (res.depths[k] > 0)]]
             logs = np.concatenate(logs)
@@ -441,7 +438,5 @@ def _independent_windows(
                       for k, r in enumerate(done)}
             checkpointer.save({"windows_done": torch.tensor(wi + 1)}, {"stage": _STAGE_INDEPENDENT, "window": wi + 1},
                               shards)
-    out = _results(placed.poses, np.stack(placed.depths), torch.as_tensor(np.stack(placed.meshes)), placed.state,
-                   kf.taus)
-    out["rel_poses"] = placed.rel_poses(kf.taus)
-    return out
+    return _results(placed.poses, np.stack(placed.depths), torch.as_tensor(np.stack(placed.meshes)), placed.state,
+                    kf.taus, placed.rel_poses(kf.taus))

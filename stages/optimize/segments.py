@@ -27,7 +27,7 @@ import torch
 
 from stages.models.depth_net import DepthNet, mesh_shape
 from stages.optimize.frames import (
-    FlowPair, area_resize, chained_flow, fit_mesh, flow_at_loss_res, full_depth, init_depth_full, loss_size,
+    FlowPair, area_resize, chained_flow, fit_mesh, flows_at_loss_res, full_depth, init_depth_full, loss_size,
     prepare_frames,
 )
 from stages.optimize.init import interp_pose, pnp_init, transfer_depths
@@ -380,8 +380,7 @@ def solve_window(job: WindowJob) -> WindowResult:
         else:
             pri_w, mesh = job.priors, torch.as_tensor(job.mesh_init)
         fr = prepare_frames(net, job.images, pri_w, job.static, job.K, st.seg.loss_scale, st.gshape)
-        seg_flows = {k: (flow_at_loss_res(fl, "fwd", h, w, fr.f), flow_at_loss_res(fl, "bwd", h, w, fr.f))
-                     for k, fl in enumerate(job.flows)}
+        seg_flows = flows_at_loss_res(job.flows, h, w, fr.f)
         pairs = _segment_pairs(n, seg_flows, st.kf, st.seg.pair_power)
         if not pairs:
             return WindowResult(poses0, full_depth(net, job.images, pri_w, mesh, st.depth.mesh))
