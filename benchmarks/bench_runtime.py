@@ -2,7 +2,8 @@
 
 Split like the GCVD paper's Table 4: pre-processing (ingest, flow, flow_far, masks, priors,
 keyframes, association), main (optimize_keyframes, optimize_edges, pose_graph,
-bundle_adjustment, optimize_segments) and post-processing (depth_fusion, depth_filter). Each clip runs cold in a fresh cache
+bundle_adjustment, optimize_segments) and post-processing (depth_fusion, depth_filter,
+depth_consensus). Each clip runs cold in a fresh cache
 in its own process; peak memory is that process's max RSS.
 
     make bench-runtime         # or: .venv/bin/python benchmarks/bench_runtime.py --frames 50 200
@@ -34,7 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PRE = ("ingest", "flow", "flow_far", "masks", "priors", "keyframes", "association")
 MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment", "optimize_segments")
-POST = ("depth_fusion", "depth_filter")
+POST = ("depth_fusion", "depth_filter", "depth_consensus")
 
 
 class TreeMemory:

@@ -4,7 +4,7 @@
     -> priors [map: frame] (reads flow_far) -> keyframes -> association -> optimize_keyframes
     -> optimize_edges -> pose_graph
     -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] (reads flow_far)
-    -> depth_filter [map: frame]
+    -> depth_filter [map: frame] -> depth_consensus [map: frame]
 
 Each block holds everything about one stage: its parameters (a pydantic section: ``--set
 section.key=value``), for a map stage the inputs of each item (typed references: an item of
@@ -37,6 +37,7 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io import run_dir
 from gcvd_flow.io.weights import open_model
 from gcvd_flow.io.sources import Source, open_source as _open_source
+from stages.depth import consensus as depth_consensus
 from stages.depth import filter as depth_filter
 from stages.depth import fusion as depth_fusion
 from stages.frontend import flow
@@ -834,6 +835,60 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
 
 DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=("ingest", "flow", "depth_fusion"), params="depth_filter",
                         kind="depth", items=_filter_items))
+
+
+# ============================================================================== depth_consensus
+@config_section("depth_consensus")
+class DepthConsensusParams(Section):
+    enabled: bool = True
+    offsets: tuple[int, ...] = Field((8, 16, 24, 32, 48, 64), description="references (frames i - k "
+                                     "and i + k) whose filtered depth is carried into frame i with the "
+                                     "final poses")
+    max_log_dev: float = Field(0.4, gt=0, description="a carried depth further from frame i's (|log "
+                               "ratio|) is another surface (occlusion, moving object) and not used")
+    reproj_sigma_px: float = Field(2.0, gt=0, description="round-trip reprojection error scale, px "
+                                   "(weight exp(-(e / sigma)^2), cut at 3 sigma)")
+
+    @field_validator("offsets")
+    @classmethod
+    def _positive_offsets(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if any(k <= 0 for k in v):
+            raise ValueError("offsets are frame distances k > 0 (frames i - k and i + k are used)")
+        return tuple(sorted(set(v)))
+
+
+def _consensus_items(view, p: DepthConsensusParams):
+    n = view.len("ingest")
+    out = []
+    for i in range(n):
+        refs = [j for k in (p.offsets if p.enabled else ()) for j in (i - k, i + k) if 0 <= j < n]
+        out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
+                    "poses": PartRef("optimize_segments", ("poses",)), "depth": ItemRef("depth_filter", i),
+                    "refs": [ItemRef("depth_filter", j) for j in refs], "ref_indices": Const(refs)})
+    return out
+
+
+def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: Any) -> dict[str, Any]:
+    """Frame i's filtered depth averaged with the depths its references see at its pixels ->
+    {depth float32 (H, W), confidence float32 (H, W): depth_filter's, unchanged}."""
+    own = inputs["depth"]
+    depth = np.asarray(own["depth"], np.float32)
+    conf = np.asarray(own.get("confidence", np.zeros_like(depth)), np.float32)
+    if not p.enabled or not inputs["refs"]:
+        return {"depth": depth, "confidence": conf}
+    poses = np.asarray(inputs["poses"], np.float64)
+    refs = [(np.asarray(r["depth"]), np.asarray(r.get("confidence", np.zeros_like(depth))), poses[int(j)])
+            for r, j in zip(inputs["refs"], inputs["ref_indices"])]
+    out = depth_consensus.consensus_depth(depth, conf, poses[int(inputs["index"])], refs, np.asarray(inputs["K"]),
+                                          max_log_dev=p.max_log_dev, reproj_sigma_px=p.reproj_sigma_px)
+    return {"depth": out, "confidence": conf}
+
+
+DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
+                                   deps=("ingest", "optimize_segments", "depth_filter"), params="depth_consensus",
+                                   kind="depth", items=_consensus_items,
+                                   description="filtered depth averaged with what confident views of the "
+                                               "same points say, carried with the final poses"))
 
 
 # ============================================================================== the pipeline

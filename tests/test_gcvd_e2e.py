@@ -53,7 +53,7 @@ def test_outputs_and_metrics(reference_run, loop_clip):
     rj = json.loads((run / "run.json").read_text())
     assert rj["stage_order"] == ["ingest", "flow", "flow_far", "masks", "priors", "keyframes", "association",
                                   "optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment",
-                                  "optimize_segments", "depth_fusion", "depth_filter"]
+                                  "optimize_segments", "depth_fusion", "depth_filter", "depth_consensus"]
     m = cli_json("eval", str(run), "--gt", str(loop_clip))
     # loose bounds for a 40-step CPU run at 128x96 (the full-size figures are in docs/benchmarks.md)
     assert m["ate_percent_of_path"] < 5.0, m  # measured 1.8%
@@ -97,7 +97,7 @@ def test_killed_optimisation_resumes_from_checkpoint(reference_run, loop_clip, t
     a = json.loads((reference_run / "run.json").read_text())["stages"]
     b = json.loads((out / "run.json").read_text())["stages"]
     assert a["optimize_keyframes"]["output"] == b["optimize_keyframes"]["output"]
-    assert a["depth_filter"]["output"] == b["depth_filter"]["output"]
+    assert a["depth_consensus"]["output"] == b["depth_consensus"]["output"]
 
 
 def test_pose_graph_lowers_ate_on_the_loop(reference_run, loop_clip):

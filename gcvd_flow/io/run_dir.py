@@ -59,9 +59,9 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
         d.mkdir(exist_ok=True)
         for old in d.glob("*.npy"):
             old.unlink()
-    filt = runner.value("depth_filter")
+    final = runner.value("depth_consensus")
     for k, i in enumerate(idx):
-        item = filt[k]
+        item = final[k]
         np.save(depth_dir / f"{i:06d}.npy", np.asarray(item["depth"], np.float32), allow_pickle=False)
         if "confidence" in item:  # float32 (H, W) in [0, 1], 0 = unmeasured (stages/depth/fusion.py)
             np.save(conf_dir / f"{i:06d}.npy", np.asarray(item["confidence"], np.float32), allow_pickle=False)

@@ -73,8 +73,10 @@ class KeyframeSettings:
         "essential-matrix chain and they run side by side on the workers (3+ windows), each then "
         "placed onto the previous one by a similarity fitted on the overlap (faster, but the fixed "
         "overlap no longer carries the scale: see docs/benchmarks.md)")
-    threads: int = _f(2, "torch threads of the keyframe windows (results are bit-identical only "
-                      "for the same count)", ge=1)
+    threads: int = _f(1, "torch threads of the keyframe windows (results are bit-identical only "
+                      "for the same count; 2 until 2026-11-24: the second thread bought nothing on a "
+                      "40-keyframe window, ICL's stage 7.2 -> 5.3 s with 1, and a run beside another "
+                      "no longer spins two threads against it)", ge=1)
     taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)")
     flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
                                     "from the tau = 1 flows (the authors use tau = 1 only)")

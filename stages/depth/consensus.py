@@ -1,0 +1,143 @@
+"""Multi-view depth consensus with the final poses (a gcvd-flow addition, after depth_filter).
+
+Why: after fusion every frame's depth is triangulated where its own flows to i+-8 were
+consistent and wide enough (the confident pixels, AbsRel ~0.03 on ICL); elsewhere it is the
+optimised network depth (AbsRel ~0.1). The same surface is usually seen confidently from
+*other* frames: a pixel in a textureless patch at frame i lies on the flow-consistent part of
+frame i+32, or was triangulated with a wider angle from there. With globally consistent poses
+(what GCVD's pose graph gives), frame j's depth map can be carried into frame i exactly, and
+the estimates of one surface point averaged by how much each view trusts it -- what MVS
+fusion (COLMAP's geometric consistency check, depth-map fusion) does, here as a per-frame
+filter so the output stays one depth map per frame.
+
+For frame i and every reference j = i +- offsets (default 8, 16, 24, 32, 48, 64: near ones see
+the same flow errors, far ones are more independent):
+  * back-project pixel p of i with its depth, project into j, sample j's depth and confidence
+    there (bilinear), back-project that and move it into frame i: z_ji(p) (its depth in i) and
+    the round-trip reprojection error e(p) in pixels;
+  * the estimate is used when |log z_ji - log d_i| < ``max_log_dev`` (a different surface:
+    occlusion, a moving object) and e < 3 sigma (``reproj_sigma_px``), with weight
+    (c_j^2 + prior) * exp(-(e / sigma)^2); frame i's own depth has weight c_i^2 + prior.
+The output is the weighted mean in log depth. Confident pixels keep their depth (their weight
+dominates); unconfident ones are pulled to what confident views of the same point say.
+Measured (one pass, the defaults): AbsRel ICL 0.0523 -> 0.0493, synthetic loop 0.0405 -> 0.0378.
+
+Pure function, numpy/OpenCV only. Shapes: depth float32 (H, W) in the poses' scale (0 =
+invalid); confidence float32 (H, W) in [0, 1]; poses (4, 4) camera-to-world; K (3, 3).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+PRIOR_WEIGHT = 0.01  # weight of an estimate with confidence 0: it counts only where no view is sure
+CONFIDENCE_POWER = 2  # a view at confidence 0.9 outweighs one at 0.5 by 3.2
+BLOCK_ROWS = 32  # rows of frame i handled at once (results do not depend on it)
+
+
+class _Camera:
+    """Pinhole K (3, 3) and the pixel grid of an (H, W) frame, built once per frame.
+
+    Points are handled in pixel-homogeneous form (u z, v z, z): a rigid motion T of camera
+    coordinates is then the 3x4 matrix [K R K^-1 | K t] on them, one (3, 3) @ (3, H W) product
+    (the stage's cost is these per-pixel passes; as per-component float arithmetic they took
+    six times as long)."""
+
+    def __init__(self, K: np.ndarray, h: int, w: int):
+        self.K = np.asarray(K, np.float64)
+        self.h, self.w = h, w
+        self.u = np.broadcast_to(np.arange(w, dtype=np.float32)[None, :], (h, w))
+        self.v = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+
+    def motion(self, T: np.ndarray) -> np.ndarray:
+        """T (4, 4) on camera coordinates as a 3x4 float64 matrix on (u z, v z, z, 1)."""
+        K = self.K
+        return np.concatenate([K @ T[:3, :3] @ np.linalg.inv(K), (K @ T[:3, 3])[:, None]], 1)
+
+    def moved(self, T: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Pixels (u, v) at depth z (H, W) each, in the frame T moves them to: (u', v', z')."""
+        M = self.motion(T).astype(np.float32)
+        pts = np.stack([u * z, v * z, z]).reshape(3, -1)
+        out = M[:, :3] @ pts
+        out += np.ascontiguousarray(M[:, 3:])  # (a broadcast from the strided column is 10x slower)
+        pu, pv, pz = out.reshape(3, *z.shape)
+        # a point behind the camera (z' <= 0) lands far outside the image: nothing is sampled there
+        pz_safe = np.maximum(pz, 1e-6)
+        return pu / pz_safe, pv / pz_safe, pz
+
+
+def carry_depth(cam: _Camera, rows: slice, depth_i: np.ndarray, depth_j: np.ndarray, conf_j: np.ndarray,
+                T_ji: np.ndarray, valid_j: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Frame j's depth carried to frame i's pixels in ``rows``.
+
+    depth_i: (R, W) float32, frame i's depth in those rows; depth_j, conf_j: (H, W) float32;
+    T_ji (4, 4) maps frame-i camera coordinates to frame j's (inv(P_j) @ P_i); valid_j: (H, W)
+    float32, 1 where depth_j > 0 (computed here when not given). Returns, (R, W) each: z, depth
+    in frame i of the point j sees where i's pixel lands; c, j's confidence there; err2 px^2,
+    squared distance between i's pixel and that point projected back into i; ok bool, all four
+    pixels the bilinear sample mixes are inside j and valid (a sample mixing a depth with the
+    zeros of invalid pixels or of the outside would be a depth no surface has), in front of i.
+    """
+    if valid_j is None:
+        valid_j = (depth_j > 0).astype(np.float32)
+    u, v = cam.u[rows], cam.v[rows]
+    qu, qv, _ = cam.moved(T_ji, u, v, depth_i)
+    dj, cj, vj = (cv2.remap(a, qu, qv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                  for a in (depth_j, conf_j, valid_j))
+    # j's point at the landing position, moved back into frame i
+    pu, pv, pz = cam.moved(np.linalg.inv(T_ji), qu, qv, dj)
+    ok = (vj > 0.999) & (pz > 1e-6)
+    err2 = (pu - u) ** 2 + (pv - v) ** 2
+    return np.where(ok, pz, 1.0), cj, err2, ok
+
+
+def consensus_depth(
+    depth: np.ndarray,
+    confidence: np.ndarray,
+    pose: np.ndarray,
+    refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    max_log_dev: float = 0.4,
+    reproj_sigma_px: float = 2.0,
+) -> np.ndarray:
+    """Frame i's depth float32 (H, W) averaged with its references' (module docstring).
+
+    refs: [(depth_j (H, W), confidence_j (H, W), pose_j (4, 4) camera-to-world), ...]. Pixels
+    with depth 0 stay 0; with no reference the depth is returned unchanged.
+    """
+    depth = np.asarray(depth, np.float32)
+    confidence = np.asarray(confidence, np.float32)
+    cam = _Camera(K, *depth.shape)
+    pose = np.asarray(pose, np.float64)
+    views = [(np.linalg.inv(np.asarray(pose_j, np.float64)) @ pose, np.asarray(depth_j, np.float32),
+              np.asarray(conf_j, np.float32), (np.asarray(depth_j) > 0).astype(np.float32))
+             for depth_j, conf_j, pose_j in refs]
+    out = np.zeros_like(depth)
+    # blocks of rows: every temporary stays small (heap-allocated, in cache); whole 256x192
+    # temporaries are fresh pages on every allocation and took twice as long
+    for r0 in range(0, depth.shape[0], BLOCK_ROWS):
+        rows = slice(r0, r0 + BLOCK_ROWS)
+        out[rows] = _consensus_rows(cam, rows, depth[rows], confidence[rows], views, max_log_dev, reproj_sigma_px)
+    return out
+
+
+def _consensus_rows(cam: _Camera, rows: slice, depth: np.ndarray, confidence: np.ndarray,
+                    views: list[tuple[np.ndarray, ...]], max_log_dev: float,
+                    reproj_sigma_px: float) -> np.ndarray:
+    """``consensus_depth`` of the pixels in ``rows``; views [(T_ji, depth_j, confidence_j, valid_j)]."""
+    valid = depth > 0
+    log_d = np.log(np.where(valid, depth, 1.0))
+    own = confidence ** CONFIDENCE_POWER + PRIOR_WEIGHT
+    num, den = own * log_d, own.copy()
+    inv_var = 1.0 / np.float32(reproj_sigma_px) ** 2
+    for T_ji, depth_j, conf_j, valid_j in views:
+        z, c, err2, ok = carry_depth(cam, rows, depth, depth_j, conf_j, T_ji, valid_j)
+        log_z = np.log(z)
+        use = ok & (np.abs(log_z - log_d) < max_log_dev)
+        wgt = np.where(use, (c ** CONFIDENCE_POWER + PRIOR_WEIGHT) * np.exp(-err2 * inv_var), 0.0)
+        num += wgt * log_z
+        den += wgt
+    return np.where(valid, np.exp(num / den), 0.0).astype(np.float32)
