@@ -32,6 +32,7 @@ ROWS = [
     ("w/o depth-gradient loss", ["losses.grad=false"]),
     ("w/o pose graph", ["pose_graph.enabled=false"]),
     ("w/o bundle adjustment", ["bundle_adjustment.enabled=false"]),
+    ("w/o depth consensus", ["depth_consensus.enabled=false"]),
     ("+ depth fill (opt-in)", ["depth_filter.fill_below=0.4"]),
 ]
 
