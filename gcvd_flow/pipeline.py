@@ -844,10 +844,10 @@ class DepthConsensusParams(Section):
     offsets: tuple[int, ...] = Field((8, 16, 24, 32, 48, 64), description="references (frames i - k "
                                      "and i + k) whose filtered depth is carried into frame i with the "
                                      "final poses")
-    max_log_dev: float = Field(0.4, gt=0, description="a carried depth further from frame i's (|log "
-                               "ratio|) is another surface (occlusion, moving object) and not used")
-    reproj_sigma_px: float = Field(2.0, gt=0, description="round-trip reprojection error scale, px "
-                                   "(weight exp(-(e / sigma)^2), cut at 3 sigma)")
+    max_log_dev: float = Field(0.2, gt=0, description="a carried depth further from frame i's (|log "
+                               "ratio|) is another surface (an occlusion) and not used")
+    reproj_sigma_px: float = Field(3.0, gt=0, description="round-trip reprojection error scale, px "
+                                   "(weight exp(-(e / sigma)^2))")
 
     @field_validator("offsets")
     @classmethod
@@ -864,13 +864,15 @@ def _consensus_items(view, p: DepthConsensusParams):
         refs = [j for k in (p.offsets if p.enabled else ()) for j in (i - k, i + k) if 0 <= j < n]
         out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
                     "poses": PartRef("optimize_segments", ("poses",)), "depth": ItemRef("depth_filter", i),
-                    "refs": [ItemRef("depth_filter", j) for j in refs], "ref_indices": Const(refs)})
+                    "refs": [ItemRef("depth_filter", j) for j in refs], "ref_indices": Const(refs),
+                    "static": [ItemRef("masks", j) for j in [i, *refs]] if refs else []})
     return out
 
 
 def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: Any) -> dict[str, Any]:
-    """Frame i's filtered depth averaged with the depths its references see at its pixels ->
-    {depth float32 (H, W), confidence float32 (H, W): depth_filter's, unchanged}."""
+    """Frame i's filtered depth averaged with the depths its references see at its pixels (moving
+    pixels, by the masks stage, left out) -> {depth float32 (H, W), confidence float32 (H, W):
+    depth_filter's, unchanged}."""
     own = inputs["depth"]
     depth = np.asarray(own["depth"], np.float32)
     conf = np.asarray(own.get("confidence", np.zeros_like(depth)), np.float32)
@@ -879,13 +881,16 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
     poses = np.asarray(inputs["poses"], np.float64)
     refs = [(np.asarray(r["depth"]), np.asarray(r.get("confidence", np.zeros_like(depth))), poses[int(j)])
             for r, j in zip(inputs["refs"], inputs["ref_indices"])]
+    static = [np.asarray(m["static"]) for m in inputs["static"]]  # frame i's, then the references'
     out = depth_consensus.consensus_depth(depth, conf, poses[int(inputs["index"])], refs, np.asarray(inputs["K"]),
-                                          max_log_dev=p.max_log_dev, reproj_sigma_px=p.reproj_sigma_px)
+                                          max_log_dev=p.max_log_dev, reproj_sigma_px=p.reproj_sigma_px,
+                                          static=static[0], ref_static=static[1:])
     return {"depth": out, "confidence": conf}
 
 
 DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
-                                   deps=("ingest", "optimize_segments", "depth_filter"), params="depth_consensus",
+                                   deps=("ingest", "masks", "optimize_segments", "depth_filter"),
+                                   params="depth_consensus",
                                    kind="depth", items=_consensus_items,
                                    description="filtered depth averaged with what confident views of the "
                                                "same points say, carried with the final poses"))

@@ -34,7 +34,7 @@ def _refs(xs, conf: float = 0.9, scale: float = 1.0):
 REGION = (slice(30, 60), slice(40, 80))  # rows, cols of frame i's wrong, unconfident depth
 
 
-def _wrong_frame(factor: float = 1.25) -> tuple[np.ndarray, np.ndarray]:
+def _wrong_frame(factor: float = 1.15) -> tuple[np.ndarray, np.ndarray]:
     depth = _plane(0.0)
     depth[REGION] *= factor
     conf = np.full((H, W), 0.9, np.float32)
@@ -58,11 +58,11 @@ def test_carried_depth_of_a_consistent_neighbour_is_exact():
 
 
 def test_unconfident_region_takes_its_confident_neighbours_depth():
-    depth, conf = _wrong_frame(1.25)
+    depth, conf = _wrong_frame(1.15)  # |log 1.15| = 0.14: within max_log_dev (0.2)
     out = consensus_depth(depth, conf, _pose(0.0), _refs([-0.2, -0.1, 0.1, 0.2]), K)
     region = np.zeros((H, W), bool)
     region[REGION] = True
-    assert _log_err(depth, region) > 0.2
+    assert _log_err(depth, region) > 0.13
     assert _log_err(out, region) < 0.01  # own weight 0.01 against four views at 0.9^2 + 0.01
     # confident, correct pixels stay correct
     assert _log_err(out, ~region) < 1e-4
@@ -78,9 +78,10 @@ def test_a_confident_frame_is_not_pulled_by_unconfident_neighbours():
 
 
 def test_another_surface_is_not_averaged_in():
-    depth, conf = _wrong_frame(1.25)
-    # the references all see something twice as far (log ratio 0.69 > max_log_dev): occlusion
-    out = consensus_depth(depth, conf, _pose(0.0), _refs([-0.2, 0.2], scale=2.0), K)
+    depth, conf = _wrong_frame(1.15)
+    # the references all see something 60 % further (log ratio >= 0.33 > max_log_dev): occlusion
+
+    out = consensus_depth(depth, conf, _pose(0.0), _refs([-0.2, 0.2], scale=1.6), K)
     np.testing.assert_allclose(out, depth, rtol=1e-5)
 
 
@@ -110,3 +111,22 @@ def test_offsets_must_be_positive_distances(bad):
     with pytest.raises(ValidationError):
         DepthConsensusParams(offsets=bad)
     assert DepthConsensusParams(offsets=(16, 8, 8)).offsets == (8, 16)
+
+
+def test_moving_pixels_are_neither_averaged_nor_carried():
+    depth, conf = _wrong_frame(1.15)
+    refs = _refs([-0.2, 0.2])
+    region = np.zeros((H, W), bool)
+    region[REGION] = True
+    static = (~region).astype(np.uint8)  # frame i's wrong region is a moving object
+    out = consensus_depth(depth, conf, _pose(0.0), refs, K, static=static,
+                          ref_static=[np.ones((H, W), np.uint8)] * 2)
+    np.testing.assert_array_equal(out[region], depth[region])
+    # a reference whose every pixel moves gives nothing: the depth is unchanged everywhere
+    out = consensus_depth(depth, conf, _pose(0.0), refs, K, static=np.ones((H, W), np.uint8),
+                          ref_static=[np.zeros((H, W), np.uint8)] * 2)
+    np.testing.assert_allclose(out, depth, rtol=1e-6)
+    # and with static masks everywhere the region is corrected as without masks
+    out = consensus_depth(depth, conf, _pose(0.0), refs, K, static=np.ones((H, W), np.uint8),
+                          ref_static=[np.ones((H, W), np.uint8)] * 2)
+    assert _log_err(out, region) < 0.01
