@@ -207,8 +207,8 @@ def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
     captured = {}
     orig = Solver._warp
 
-    def spy(self, depth, T_b_a, idx, nidx):
-        out = orig(self, depth, T_b_a, idx, nidx)
+    def spy(self, blk, depth, T_b_a, idx, nidx):
+        out = orig(self, blk, depth, T_b_a, idx, nidx)
         captured[self.kf.photo_warp] = out
         return out
 
@@ -224,6 +224,78 @@ def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
     assert torch.equal(uv_p.reshape(*uvc_p.shape[:2], 9, 2)[:, :, 4], uvc_p)
     assert not torch.equal(uv_p.reshape(*uvc_p.shape[:2], 9, 2), uvc_p[:, :, None, :] + offs)
     assert np.isfinite(centre["depths"]).all() and centre["poses"].tobytes() != pixel["poses"].tobytes()
+
+
+def _window_solver(t: dict, pair_blocks: int, taus: tuple[int, ...] = (1, 2, 4)):
+    """A Solver over the tiny clip's 8 keyframes (one window, first pose fixed), seeded by 0."""
+    from stages.models.depth_net import DepthNet, mesh_shape
+    from stages.optimize.frames import flows_at_loss_res, loss_size, prepare_frames
+    from stages.optimize.keyframes import _keyframe_pairs
+    from stages.optimize.solver import Solver, Window
+
+    c, kf = t["clip"], t["kf"]
+    n = len(kf)
+    kfs = dataclasses.replace(SMALL, window=n, taus=taus)
+    net = DepthNet(seed=0)
+    gshape = mesh_shape(*loss_size(72, 96, kfs.loss_scale)[:2], 17)
+    fr = prepare_frames(net, c.frames[kf], t["prior"][kf], t["masks"][kf], c.K, kfs.loss_scale, gshape)
+    flows = flows_at_loss_res([t["kfl"][(j, j + 1)] for j in range(n - 1)], *fr.imgs.shape[-2:], fr.f)
+    pose_train = torch.ones(n, dtype=torch.float64)
+    pose_train[0] = 0
+    win = Window(fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, _keyframe_pairs(list(range(n)), flows, kfs),
+                 torch.as_tensor(c.poses[kf]), pose_train, torch.zeros(n, *gshape), torch.ones(n))
+    return Solver(win, net, None, kfs.lr, DepthModel(), LossWeights(), kfs, pair_blocks)
+
+
+def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict) -> None:
+    """A window's pairs in blocks, each block's loss differentiated on its own thread up to the
+    shared depth and poses: the same loss and gradient of every trainable parameter as one block
+    (up to float rounding: the sum is associated differently), and the same bits every time."""
+    one, three, three_again = (_window_solver(tiny, b) for b in (1, 3, 3))
+    assert [len(s.blocks) for s in (one, three)] == [1, 3]
+    assert sorted(torch.cat([b.sel for b in three.blocks]).tolist()) == list(range(len(one.w.pairs)))
+    losses = [s.step(torch.Generator().manual_seed(0)) for s in (one, three, three_again)]
+    assert losses[0] == pytest.approx(losses[1], rel=1e-5) and losses[1] == losses[2]
+    params = [[p for g in s.opt.param_groups for p in g["params"]] for s in (one, three, three_again)]
+    nonzero = 0
+    for p1, p3, p3b in zip(*params):
+        assert p1.grad is not None and p3.grad is not None
+        nonzero += bool(p1.grad.abs().max() > 0)
+        # atol: a gradient that cancels to ~0 (the head's output bias: LayerNorm removes a depth
+        # offset) keeps the rounding of its terms, ~3e-7 here
+        torch.testing.assert_close(p3.grad, p1.grad, rtol=1e-4, atol=1e-6)
+        assert p3.grad.numpy().tobytes() == p3b.grad.numpy().tobytes()
+    # all but the head's first layer (weight, bias), whose gradient is 0 while its zero-initialised
+    # last layer is: the head's output layer, pose corrections, mesh vertices, per-frame scales
+    assert nonzero == len(params[0]) - 2
+    # after the step the parameters moved the same way
+    torch.testing.assert_close(three.poses(), one.poses(), rtol=0, atol=1e-6)
+
+
+def _split_step_in_child(conn) -> None:
+    conn.send(_CHILD_SOLVER.step(torch.Generator().manual_seed(0)))
+    conn.close()
+
+
+def test_pair_block_threads_work_in_a_forked_child(tiny: dict) -> None:
+    """The pool of pair-block threads is per process: a child forked after the parent used it
+    gets its own (a forked child has none of the parent's threads; reusing the parent's pool
+    would wait for ever)."""
+    global _CHILD_SOLVER
+    parent = _window_solver(tiny, 2)
+    expected = _window_solver(tiny, 2).step(torch.Generator().manual_seed(0))  # the pool now exists
+    _CHILD_SOLVER = parent
+    ctx = multiprocessing.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_split_step_in_child, args=(send,))
+    proc.start()
+    try:
+        assert recv.poll(60), "the child's split step did not finish"
+        assert recv.recv() == expected
+    finally:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
 
 
 def _seg_run(t: dict, kres: dict, ck=None) -> dict:

@@ -98,7 +98,7 @@ def optimize_keyframes(
                 win = _keyframe_window(wi, fr_idx, fr, codes, flows_lr, init, mesh_init, run, kf)
                 if win is None:
                     break
-                solver = Solver(win, net, posenet, kf.lr, depth, losses, kf)
+                solver = Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks)
                 loss = _optimise_window(solver, wi, len(starts), run, gen, kf.steps, checkpointer)
                 log.debug("keyframe window %d/%d loss %.4f", wi + 1, len(starts), loss)
                 with torch.no_grad():
@@ -334,7 +334,7 @@ def solve_keyframe_window(job: KeyframeJob) -> KeyframeWindowResult:
             pose_train[0] = 0  # gauge
             win = Window(fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, poses, pose_train, meshes,
                          torch.ones(n), codes)
-            solver = Solver(win, net, posenet, kf.lr, st.depth, st.losses, kf)
+            solver = Solver(win, net, posenet, kf.lr, st.depth, st.losses, kf, kf.pair_blocks)
             run_solver(solver, gen, kf.steps, 0, None)
             with torch.no_grad():
                 poses, meshes = solver.poses().detach().clone(), solver.meshes().detach().clone()
