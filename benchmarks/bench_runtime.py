@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -89,8 +90,9 @@ class TreeMemory:
         return self.peak_kb / 1024
 
 
-def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str) -> list[float]:
-    """Wall seconds of ``copies`` cold runs of ``clip`` started together."""
+def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str, run_args: tuple[str, ...] = ()) -> list[float]:
+    """Wall seconds of ``copies`` cold runs of ``clip`` started together (``run_args``: more
+    ``gcvd-flow run`` options)."""
     import time
 
     env = dict(os.environ, CI="1", OMP_WAIT_POLICY=policy)
@@ -99,7 +101,7 @@ def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str) -> li
         d = tmp / f"{tag}-{c}"
         shutil.rmtree(d, ignore_errors=True)
         cmd = [sys.executable, "-m", "gcvd_flow", "run", str(clip), "--out", str(d / "run"), "--cache",
-               str(d / "cache"), "--json"]
+               str(d / "cache"), "--json", *run_args]
         procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
     ends = []
     for p in procs:
@@ -110,7 +112,8 @@ def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str) -> li
     return ends
 
 
-def side_by_side(frames: int, size: str, trajectory: str, repeat: int) -> dict:
+def side_by_side(frames: int, size: str, trajectory: str, repeat: int,
+                 policies: tuple[str, ...] = ("passive", "openmp_default"), run_args: tuple[str, ...] = ()) -> dict:
     import statistics
 
     with tempfile.TemporaryDirectory(prefix="bench-sbs-") as tmp_s:
@@ -118,10 +121,12 @@ def side_by_side(frames: int, size: str, trajectory: str, repeat: int) -> dict:
         clip = tmp / "clip"
         subprocess.run([sys.executable, "-m", "gcvd_flow", "synth", str(clip), "--frames", str(frames),
                         "--trajectory", trajectory, "--size", size], cwd=ROOT, check=True, capture_output=True)
-        out = {"frames": frames, "size": size, "repeat": repeat}
+        out = {"frames": frames, "size": size, "trajectory": trajectory, "repeat": repeat, "run_args": list(run_args)}
         for name, policy in (("passive", "PASSIVE"), ("openmp_default", "")):
-            alone = [_timed_runs(tmp, clip, "alone", 1, policy)[0] for _ in range(repeat)]
-            pair = [max(_timed_runs(tmp, clip, "pair", 2, policy)) for _ in range(repeat)]
+            if name not in policies:
+                continue
+            alone = [_timed_runs(tmp, clip, "alone", 1, policy, run_args)[0] for _ in range(repeat)]
+            pair = [max(_timed_runs(tmp, clip, "pair", 2, policy, run_args)) for _ in range(repeat)]
             a, b = statistics.median(alone), statistics.median(pair)
             out[name] = {"alone_s": a, "side_by_side_s": b, "ratio": b / a, "alone_all": alone, "pair_all": pair}
             print(f"{name:>15}: alone {a:7.1f} s, two side by side {b:7.1f} s (slower of the two): "
@@ -212,6 +217,11 @@ def main() -> None:
     ap.add_argument("--side-by-side", type=int, metavar="FRAMES", default=0,
                     help="measure two runs started together vs one alone (load collapse) instead")
     ap.add_argument("--repeat", type=int, default=3, help="rounds for --side-by-side / --real (median)")
+    ap.add_argument("--policies", default="passive,openmp_default",
+                    help="with --side-by-side: OpenMP idle-thread policies to measure (passive = ours; "
+                         "openmp_default = the spinning peer, slow)")
+    ap.add_argument("--run-args", default="", help="with --side-by-side: more `gcvd-flow run` options, one string "
+                    "(e.g. \"--set optimize_keyframes.pair_blocks=1\")")
     ap.add_argument("--frames", type=int, nargs="+", default=[50, 200, 500, 1000])
     ap.add_argument("--size", default="256x192")
     ap.add_argument("--trajectory", default="loop")
@@ -228,7 +238,11 @@ def main() -> None:
         print(json.dumps(doc, indent=1) if a.json else "")
         return
     if a.side_by_side:
-        doc = side_by_side(a.side_by_side, a.size, a.trajectory, a.repeat)
+        unknown = set(a.policies.split(",")) - {"passive", "openmp_default"}
+        if unknown:
+            ap.error(f"--policies: unknown {', '.join(sorted(unknown))} (passive, openmp_default)")
+        doc = side_by_side(a.side_by_side, a.size, a.trajectory, a.repeat, tuple(a.policies.split(",")),
+                           tuple(shlex.split(a.run_args)))
         print(json.dumps(doc, indent=1) if a.json else "")
         return
     rows = []

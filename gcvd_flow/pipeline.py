@@ -657,11 +657,17 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
     from stages.optimize import bundle_adjustment as ba_mod
 
+    from threadpoolctl import threadpool_limits
+
     from gcvd_flow.io.native_output import native_stdout_silenced
 
     okf = inputs["optimize_keyframes"]
     edges = {(int(e["i"]), int(e["j"])): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
-    with native_stdout_silenced():
+    # numpy's OpenBLAS on one thread: its idle threads spin (OMP_WAIT_POLICY does not reach its
+    # pthreads), so two runs adjusting at once on two cores took 55 s instead of 1.6; a second
+    # thread bought nothing alone (2.4 vs 2.4 s), and one thread makes the result independent of
+    # the machine's core count (OpenBLAS's default thread count changed the poses' bits)
+    with native_stdout_silenced(), threadpool_limits(limits=1, user_api="blas"):
         res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], edges, list(okf["keyframes"]),
                                    np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
                                    track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
