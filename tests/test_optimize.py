@@ -251,11 +251,7 @@ def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict) -> None:
     """A window's pairs in blocks, each block's loss differentiated on its own thread up to the
     shared depth and poses: the same loss and gradient of every trainable parameter as one block
     (up to float rounding: the sum is associated differently), and the same bits every time."""
-    from stages.optimize.solver import BlockSchedule
-
     one, three, three_again = (_window_solver(tiny, b) for b in (1, 3, 3))
-    three.block_schedule = BlockSchedule(fixed=True)  # on threads
-    three_again.block_schedule = BlockSchedule(fixed=False)  # one after the other: the same bits
     assert [len(s.blocks) for s in (one, three)] == [1, 3]
     assert sorted(torch.cat([b.sel for b in three.blocks]).tolist()) == list(range(len(one.w.pairs)))
     losses = [s.step(torch.Generator().manual_seed(0)) for s in (one, three, three_again)]
@@ -274,26 +270,6 @@ def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict) -> None:
     assert nonzero == len(params[0]) - 2
     # after the step the parameters moved the same way
     torch.testing.assert_close(three.poses(), one.poses(), rtol=0, atol=1e-6)
-
-
-def test_block_schedule_times_both_ways_and_runs_the_faster() -> None:
-    """Steps 0 and 1 of every period time the blocks inline and on threads; the other steps run
-    the way whose smoothed time is lower, and follow a change of load at the next period."""
-    from stages.optimize.solver import BlockSchedule
-
-    sch, ways = BlockSchedule(period=4), []
-    cost = {True: 0.04, False: 0.06}  # threads faster (idle cores)
-    for step in range(12):
-        if step == 6:
-            cost = {True: 0.20, False: 0.11}  # another process took a core: threads wait on each other
-        way = sch.threaded()
-        ways.append(way)
-        sch.record(way, cost[way])
-    assert ways[:4] == [False, True, True, True]
-    # the way that runs is re-timed at every step: at step 6 the threads slow down (mean 0.12 >
-    # 0.06), so step 7 runs inline; steps 8 / 9 re-time both, and inline stays the faster
-    assert ways[4:8] == [False, True, True, False] and ways[8:] == [False, True, False, False]
-    assert BlockSchedule(fixed=False).threaded() is False and BlockSchedule(fixed=True).threaded() is True
 
 
 def _split_step_in_child(conn) -> None:

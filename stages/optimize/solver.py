@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Mapping, Protocol
@@ -184,37 +183,6 @@ class _PairBlock:
                    flows, fvalid)
 
 
-class BlockSchedule:
-    """Whether a step computes its pair blocks on threads or one after the other.
-
-    Both give the same bits (each block is the same single-threaded computation, and the block
-    gradients are summed in block order); only the wall time differs, and which is faster depends
-    on the load. On idle cores the threads win (a 40-keyframe step 39 vs 58 ms); beside another
-    busy process the threads of one step wait for each other through the GIL and the OS scheduler,
-    and a pair of runs sharing two cores took 1.5x longer with always-threaded blocks than with
-    one block. So every ``period`` steps each way is timed once (steps 0 and 1 of the period), and
-    the rest of the period runs the way that was faster (running mean of the last measurements);
-    ``fixed`` pins the choice (tests)."""
-
-    def __init__(self, period: int = 16, fixed: bool | None = None) -> None:
-        self.period, self.fixed = period, fixed
-        self.steps = 0
-        self.seconds: dict[bool, float] = {}  # threaded? -> smoothed seconds of the blocks
-
-    def threaded(self) -> bool:
-        if self.fixed is not None:
-            return self.fixed
-        k = self.steps % self.period
-        if k < 2 or len(self.seconds) < 2:
-            return k % 2 == 1
-        return self.seconds[True] <= self.seconds[False]
-
-    def record(self, threaded: bool, seconds: float) -> None:
-        prev = self.seconds.get(threaded)
-        self.seconds[threaded] = seconds if prev is None else 0.5 * (prev + seconds)
-        self.steps += 1
-
-
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 os.register_at_fork(after_in_child=_POOLS.clear)  # a forked child has none of the parent's threads
 
@@ -268,7 +236,6 @@ class Solver:
         self.h, self.w_ = h, w
         self.rays = G.pixel_rays(h, w, win.K).to(torch.float32)  # (h*w, 3)
         self._prep_pairs(pair_blocks)
-        self.block_schedule = BlockSchedule()
 
     def _prep_pairs(self, n_blocks: int) -> None:
         win = self.w
@@ -382,10 +349,9 @@ class Solver:
         return uv, uv.reshape(npair, M, 9, 2)[:, :, 4], z.reshape(npair, M, 9)[:, :, 4]
 
     def _split_backward(self, gen: torch.Generator) -> torch.Tensor:
-        """Loss and gradients in pair blocks: each block's loss is differentiated up to the shared
-        depth and poses (``autograd.grad``) -- on threads, or one after the other, as
-        ``block_schedule`` says (the same bits either way) --, the block gradients are summed in
-        block order, then one backward runs through the depth head and poses."""
+        """Loss and gradients with the pair blocks on threads: each block's loss is
+        differentiated up to the shared depth and poses (``autograd.grad``), the block gradients
+        are summed in block order, then one backward runs through the depth head and poses."""
         depth = self._depth()
         T_w_c = self.poses()
         idx = self._sample(gen)
@@ -398,14 +364,8 @@ class Solver:
                 g_d, g_T = torch.autograd.grad(part, (d_leaf, T_leaf), allow_unused=True)
             return part.detach(), g_d, g_T
 
-        threaded = self.block_schedule.threaded()
-        t0 = time.perf_counter()
-        if threaded:
-            futures = [_pool(len(self.blocks) - 1).submit(block, b) for b in self.blocks[1:]]
-            results = [block(self.blocks[0])] + [f.result() for f in futures]
-        else:
-            results = [block(b) for b in self.blocks]
-        self.block_schedule.record(threaded, time.perf_counter() - t0)
+        futures = [_pool(len(self.blocks) - 1).submit(block, b) for b in self.blocks[1:]]
+        results = [block(self.blocks[0])] + [f.result() for f in futures]
         g_d = _sum_grads([r[1] for r in results], d_leaf)
         g_T = _sum_grads([r[2] for r in results], T_leaf)
         reg = self._add_regularisers(torch.zeros(()), depth)
