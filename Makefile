@@ -60,6 +60,7 @@ bench-runtime: $(STAMP)
 	$(BIN)/python benchmarks/bench_runtime.py
 	$(BIN)/python benchmarks/bench_runtime.py --real
 	$(BIN)/python benchmarks/bench_runtime.py --side-by-side 30 --size 128x96
+	$(BIN)/python benchmarks/bench_runtime.py --side-by-side 100 --trajectory scan --size 256x192 --policies passive
 
 # map stages' throughput on 1 vs 2 Dask workers, and a cluster projection (docs/teams.md)
 bench-scale: $(STAMP)
