@@ -311,3 +311,36 @@ def test_schur_solver_is_deterministic():
     assert a["poses"].tobytes() == b["poses"].tobytes()
     assert a["depth_scale"].tobytes() == b["depth_scale"].tobytes()
     assert a["final_median_px"] == b["final_median_px"]
+
+
+def test_bundle_adjustment_stage_runs_numpy_blas_on_one_thread(monkeypatch):
+    """The stage limits numpy's OpenBLAS to one thread while it adjusts (its idle pthreads spin:
+    two runs adjusting at once took 55 s instead of 1.6; docs/benchmarks.md), and restores it."""
+    from types import SimpleNamespace
+
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from gcvd_flow import pipeline
+    from stages.optimize import bundle_adjustment as ba_mod
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    seen = []
+
+    def fake_adjust(T_w_k, *args, **kwargs):
+        seen.append(blas_threads())
+        return {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0, "final_median_px": 0.0,
+                "iterations": 0, "skipped": True, "depth_scale": np.ones(len(T_w_k))}
+
+    monkeypatch.setattr(ba_mod, "bundle_adjust", fake_adjust)
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    inputs = {"pose_graph": {"poses": poses}, "optimize_keyframes": {"depths": [np.ones((4, 4))] * 2, "keyframes": [0, 1]},
+              "association": {"edge_flows": []}, "ingest": SimpleNamespace(summary={"K": np.eye(3)})}
+    ctx = SimpleNamespace(log=lambda msg: None)
+    with threadpool_limits(limits=2, user_api="blas"):  # as on a 2-core machine, whatever this one has
+        before = blas_threads()
+        out = pipeline.run_bundle_adjustment(inputs, pipeline.BundleAdjustmentParams(), ctx)
+        assert blas_threads() == before
+    assert seen and seen[0] and set(seen[0]) == {1}
+    assert np.array_equal(out["poses"], poses)
