@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress regress-baseline
+.PHONY: setup demo test lint test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress regress-baseline
 
 setup: $(STAMP)
 
@@ -43,8 +43,13 @@ $(STAMP): requirements.txt requirements-test.txt pyproject.toml | sysdeps
 demo: $(STAMP)
 	$(BIN)/python -m gcvd_flow demo
 
-test: $(STAMP) testdeps
+test: $(STAMP) testdeps lint
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+
+# ruff (pyflakes, import order, bugbear, numpy rules) on everything; mypy on the engine
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/python -m mypy
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -x -m "not slow"

@@ -22,8 +22,7 @@ from typing import Any
 import numpy as np
 
 from gcvd_flow.engine import api as _engine
-from gcvd_flow.engine.api import (fsck, gc, open_store, plan, read_run_dir, recorded_output, run, status,
-                                  why)
+from gcvd_flow.engine.api import fsck, gc, open_store, plan, read_run_dir, recorded_output, run, status, why
 
 PIPELINE = "gcvd"
 

@@ -193,8 +193,7 @@ def cmd_synth(a: argparse.Namespace) -> int:
 
 
 def cmd_eval(a: argparse.Namespace) -> int:
-    from gcvd_flow.evaluate.run_eval import (compare_to_baseline, evaluate, format_metrics, parse_tolerance,
-                                             read_baseline, write_metrics)
+    from gcvd_flow.evaluate.run_eval import compare_to_baseline, evaluate, format_metrics, parse_tolerance, read_baseline, write_metrics
 
     tol = parse_tolerance(a.tolerance)
     base = read_baseline(a.baseline) if a.baseline else None

@@ -35,15 +35,10 @@ from gcvd_flow.engine.config import Section
 from gcvd_flow.engine.dag import Const, ItemRef, MapStage, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io import run_dir
-from gcvd_flow.io.weights import open_model
 from gcvd_flow.io.sources import Source, open_source as _open_source
-from stages.depth import consensus as depth_consensus
-from stages.depth import filter as depth_filter
-from stages.depth import fusion as depth_fusion
-from stages.frontend import flow
-from stages.frontend import ingest as ingest_mod
-from stages.frontend import masks as masks_mod
-from stages.frontend import priors as priors_mod
+from gcvd_flow.io.weights import open_model
+from stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion
+from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, priors as priors_mod
 from stages.graph import keyframes as keyframes_mod
 from stages.optimize import params as opt_params
 
@@ -655,11 +650,10 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     if not p.enabled:
         return {"poses": T_w_k, "enabled": False, "depth_scale": np.ones(len(T_w_k))}
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
-    from stages.optimize import bundle_adjustment as ba_mod
-
     from threadpoolctl import threadpool_limits
 
     from gcvd_flow.io.native_output import native_stdout_silenced
+    from stages.optimize import bundle_adjustment as ba_mod
 
     okf = inputs["optimize_keyframes"]
     edges = {(int(e["i"]), int(e["j"])): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
@@ -941,8 +935,10 @@ def limit_threads() -> None:
 PIPELINE = Pipeline(
     list(_STAGES),
     packages=("stages", "gcvd_flow.pipeline"),
+    # every third-party library whose code computes a stored result (tests/test_keys.py finds
+    # them in the stages' imports); the engine adds its codecs (numpy, Pillow, safetensors)
     numeric_libraries=(("torch", ("torch",)), ("opencv", ("opencv-python-headless", "opencv-python")),
-                       ("kornia", ("kornia",)), ("gtsam", ("gtsam",))),
+                       ("kornia", ("kornia",)), ("gtsam", ("gtsam",)), ("scipy", ("scipy",))),
     numeric_settings=(("device", "cpu"), ("dtype", "float32"), ("deterministic", True)),
     worker_init=limit_threads,
 )

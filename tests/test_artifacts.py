@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import io
 import json
-import pickle
 
 import numpy as np
 import pytest
 
 import artifacts_schema
-from gcvd_flow.engine.artifacts import (ArtifactError, Encoder, Tensors, load_manifest, load_value,
-                                      register_schema_dir, validate)
+from gcvd_flow.engine.artifacts import ArtifactError, Encoder, Tensors, load_manifest, load_value, register_schema_dir, validate
 
 register_schema_dir(artifacts_schema.SCHEMA_DIR)  # what a pipeline spec does when it is loaded
 from gcvd_flow.engine.store import Store

@@ -10,7 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from geometry_ref import rigid_flow
 
+from gcvd_flow.evaluate.synth import render_clip
+from gcvd_flow.io.weights import open_model
+from stages.frontend.flow import compute_pair_flow
 from stages.graph.association import (
     DEFAULT_SIMILARITY_THRESHOLD,
     build_graph,
@@ -20,12 +24,8 @@ from stages.graph.association import (
     keyframe_pair_flow,
     verify_pair,
 )
-from stages.models.resnet import ResNet18, resnet_descriptor
-from stages.frontend.flow import compute_pair_flow
-from geometry_ref import rigid_flow
 from stages.graph.keyframes import pair_motion, select_keyframes
-from gcvd_flow.evaluate.synth import render_clip
-from gcvd_flow.io.weights import open_model
+from stages.models.resnet import ResNet18, resnet_descriptor
 
 SIZE = (160, 120)
 

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from geometry_ref import rigid_flow
 from scipy.spatial.transform import Rotation
 
 from gcvd_flow.evaluate.metrics import ate
 from gcvd_flow.evaluate.synth import render_clip
-from geometry_ref import rigid_flow
 from stages.optimize import ba_solver
-from stages.optimize.bundle_adjustment import (build_tracks, bundle_adjust, gtsam_graph, inverse_depth_landmark,
-                                               solve_gtsam)
+from stages.optimize.bundle_adjustment import build_tracks, bundle_adjust, gtsam_graph, inverse_depth_landmark, solve_gtsam
 
 
 def _pair_flow(clip, a: int, b: int) -> dict[str, np.ndarray]:

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import cli, cli_json
 
 N_FRAMES, W, H = 14, 96, 72

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import ROOT, by_stage, cli_json, make_toy_input
 
 from gcvd_flow.engine.store import Store

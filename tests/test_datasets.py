@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcvd_flow.io import formats as ds
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.evaluate.synth import render_clip
+from gcvd_flow.io import formats as ds
 
 ICL = Path("/work/shared/data/icl_livingroom1_micro")
 
@@ -290,9 +290,9 @@ def test_associate_is_nearest_within_max_diff():
 
 
 def test_video_poses_are_stamped_index_over_fps(tmp_path):
-    import cv2
     import json
 
+    import cv2
     from conftest import cli
 
     clip = render_clip(n_frames=12, trajectory="orbit", size=(96, 72), seed=1)

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from geometry_ref import rigid_flow
 
 from stages.depth.filter import chain_flow, filter_depth
-from geometry_ref import rigid_flow
 
 F = 100.0
 W, H = 128, 96

@@ -12,11 +12,10 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import ROOT, by_stage, cli, cli_json, make_toy_input
 
 from gcvd_flow.engine import api
 from gcvd_flow.engine.store import Store
-
-from conftest import ROOT, by_stage, cli, cli_json, make_toy_input
 
 
 def toy(*args: str) -> list[str]:
@@ -89,7 +88,7 @@ def _verify_cache(cache: Path) -> None:
     store = Store(cache)
     rep = store.fsck()
     assert rep.corrupt == [] and rep.records_removed == 0
-    for key, path in store.iter_records():
+    for _key, path in store.iter_records():
         rec = json.loads(path.read_text())
         for d in rec.get("objects", {}):
             assert store.has(d)
@@ -214,7 +213,7 @@ def test_pinned_run_survives_gc(toy_input, tmp_path):
 
 
 def test_parallel_jobs_match_serial(toy_input, tmp_path):
-    serial = run_toy(toy_input, tmp_path / "o1", tmp_path / "c1")
+    run_toy(toy_input, tmp_path / "o1", tmp_path / "c1")
     par = run_toy(toy_input, tmp_path / "o2", tmp_path / "c2", "--jobs", "2")
     assert par["transform"]["executed"] == 40
     r1 = json.loads((tmp_path / "o1" / "run.json").read_text())["stages"]

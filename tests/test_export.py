@@ -15,7 +15,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import cli, cli_json
 
 from gcvd_flow.io.formats import read_tum_poses

@@ -21,9 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from PIL import Image
-
 from conftest import cli, cli_json
+from PIL import Image
 
 N_FRAMES, W, H = 12, 96, 72  # the clip (source resolution)
 WW, WH = 64, 48  # the run's working resolution

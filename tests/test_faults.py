@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, by_stage, cli, cli_json, make_toy_input
+
 from gcvd_flow.engine.store import Store
 
 TOY = ("--pipeline", "toy")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from stages.frontend.flow import chain_flows, compute_pair_flow, fb_consistency, warp_sample
 from geometry_ref import rigid_flow
+
 from gcvd_flow.evaluate.synth import render_clip
+from stages.frontend.flow import chain_flows, compute_pair_flow, fb_consistency, warp_sample
 
 
 @pytest.fixture(scope="module")

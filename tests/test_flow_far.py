@@ -14,12 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import by_stage, cli, cli_json
-from gcvd_flow import api
-from gcvd_flow import pipeline as gp
-from stages.frontend import flow as flow_mod
-from stages.frontend import priors as priors_mod
+
+from gcvd_flow import api, pipeline as gp
+from stages.frontend import flow as flow_mod, priors as priors_mod
 
 N = 24
 

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, by_stage, cli, cli_json
 
 pytestmark = pytest.mark.slow

@@ -7,8 +7,8 @@ import json
 import os
 
 import pytest
-
 from conftest import cli, cli_json, make_toy_input
+
 from gcvd_flow.engine import api
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.executors import InProcessExecutor, ProcessPoolItemExecutor, resolve_jobs, usable_cores

@@ -55,6 +55,50 @@ def test_env_has_no_paths_or_names():
     assert set(env) >= {"numpy", "torch", "opencv", "device", "dtype", "deterministic"}
 
 
+# Third-party libraries the pipeline's code imports that compute no stored result, and why.
+# Everything else it imports (stages/, gcvd_flow/pipeline.py and the project modules they reach,
+# at module level or inside functions) must have its version in every key.
+NOT_NUMERIC = {
+    "pydantic": "parses the configuration; params enter keys in their own canonical encoding",
+    "jsonschema": "validates artifact metadata", "referencing": "jsonschema's schema registry",
+    "blake3": "computes the digests themselves (a fixed algorithm)",
+    "platformdirs": "finds the default cache directory", "fsspec": "remote caches move bytes verbatim",
+    "distributed": "the Dask executor (results do not depend on where an item ran)",
+    "threadpoolctl": "pins BLAS to one thread around bundle adjustment (results then do not depend on it)",
+}
+
+
+def _pipeline_libraries() -> dict[str, set[str]]:
+    """Distribution -> project modules importing it, for the code a GCVD run executes."""
+    import importlib.metadata
+
+    from import_graph import closure, project_graph, third_party_imports
+
+    graph = project_graph()
+    reached = closure(["gcvd_flow.pipeline"] + [m for m in graph if m.split(".")[0] == "stages"], graph)
+    dists = importlib.metadata.packages_distributions()
+    out: dict[str, set[str]] = {}
+    for top, importers in third_party_imports(reached).items():
+        assert top in dists, f"{top} (imported by {sorted(importers)}) is not installed"
+        for d in dists[top]:
+            out.setdefault(d.lower(), set()).update(importers)
+    return out
+
+
+def test_every_library_computing_a_stored_result_is_in_the_key():
+    from gcvd_flow.engine.keys import ENGINE_LIBRARIES
+    from gcvd_flow.pipeline import PIPELINE
+
+    keyed = {d.lower() for _, dists in ENGINE_LIBRARIES + PIPELINE.numeric_libraries for d in dists}
+    found = _pipeline_libraries()
+    assert {"scipy", "pillow", "torch", "gtsam"} <= set(found), sorted(found)  # the finder finds
+    missing = {d: sorted(m)[:3] for d, m in found.items() if d not in keyed and d not in NOT_NUMERIC}
+    assert not missing, ("libraries the pipeline imports whose versions are not in the cache key "
+                         f"(add them to PIPELINE's numeric_libraries, or to NOT_NUMERIC with a reason): {missing}")
+    env = PIPELINE.numeric_env()
+    assert env["scipy"] and env["pillow"] and env["safetensors"], env
+
+
 def _make_package(root, name: str, files: dict[str, str], monkeypatch):
     """Write a throw-away package `name` under `root`, importable and counted as project code."""
     pkg = root / name

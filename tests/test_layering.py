@@ -131,3 +131,43 @@ def test_a_forbidden_edge_would_be_caught():
     assert _forbidden("cv2", ENGINE_FORBIDDEN) and _forbidden("gcvd_flow.pipeline", ENGINE_FORBIDDEN,
                                                               allowed=("gcvd_flow.engine",))
     assert _forbidden("gcvd_flow.engine.dag", STAGES_FORBIDDEN)
+
+
+# ------------------------------------------------------------------------------ the import graph
+# (tests/import_graph.py: module-level imports and those inside functions, from the source)
+from import_graph import cycles, project_graph  # noqa: E402
+
+# the product modules that may import stages/: the pipeline wires them in, the weights opener
+# hands a state dict to stages.models.load_model (docs/contributing.md, "Layering")
+STAGES_IMPORTERS = {"gcvd_flow.pipeline", "gcvd_flow.io.weights"}
+
+
+def test_no_import_cycle_among_the_project_modules():
+    found = cycles(project_graph())
+    assert not found, "import cycles (a deferred import inside a function counts too):\n" + "\n".join(
+        " <-> ".join(c) for c in found)
+
+
+def test_the_cycle_finder_sees_a_cycle_through_a_function_level_import(monkeypatch):
+    import import_graph
+
+    graph = project_graph()
+    graph["gcvd_flow.io.formats"] = graph["gcvd_flow.io.formats"] | {"gcvd_flow.exports.clouds"}
+    assert any("gcvd_flow.io.formats" in c for c in cycles(graph))
+    # and the source reader records imports inside function bodies
+    mods = import_graph.project_modules()
+    assert "gcvd_flow.io.depth_maps" in graph["gcvd_flow.io.run_dir"], \
+        f"run_dir's deferred import not seen in {sorted(graph['gcvd_flow.io.run_dir'])} ({mods['gcvd_flow.io.run_dir']})"
+
+
+def test_only_the_pipeline_and_the_weights_opener_import_stages():
+    bad = [f"{m} imports {sorted(t for t in targets if t.split('.')[0] == 'stages')}"
+           for m, targets in sorted(project_graph().items())
+           if m.startswith("gcvd_flow") and m not in STAGES_IMPORTERS and any(t.split(".")[0] == "stages" for t in targets)]
+    assert not bad, "product modules importing stages/ (wire the algorithm in gcvd_flow/pipeline.py):\n" + "\n".join(bad)
+
+
+def test_reading_data_depends_on_no_exporter_or_report():
+    bad = [f"{m} imports {t}" for m, targets in sorted(project_graph().items()) if m.startswith("gcvd_flow.io")
+           for t in sorted(targets) if t.startswith(("gcvd_flow.exports", "gcvd_flow.report", "gcvd_flow.evaluate"))]
+    assert not bad, "gcvd_flow/io must not depend on the consumers of its data:\n" + "\n".join(bad)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from gcvd_flow.evaluate.synth import render_clip
 from stages.geometry import torch_ops as G
 from stages.optimize import losses as L
-from gcvd_flow.evaluate.synth import render_clip
 
 
 @pytest.fixture(scope="module")

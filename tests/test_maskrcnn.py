@@ -14,12 +14,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import by_stage, cli, cli_json
 from safetensors.torch import save_file
 
-from conftest import by_stage, cli, cli_json
-from stages.models.maskrcnn import (DYNAMIC_COCO_CLASSES, MaskRCNN, batched_nms, build_maskrcnn, cell_anchors,
-                                      nms, roi_align, semantic_static_mask)
 from gcvd_flow.io.weights import open_model
+from stages.models.maskrcnn import (
+    DYNAMIC_COCO_CLASSES,
+    MaskRCNN,
+    batched_nms,
+    build_maskrcnn,
+    cell_anchors,
+    nms,
+    roi_align,
+    semantic_static_mask,
+)
 
 TORCHVISION_PARAMS = 44_401_393  # sum(p.numel() for p in maskrcnn_resnet50_fpn().parameters())
 TORCHVISION_TENSORS = 307  # its state dict: 265 backbone.body (frozen BN: 4 buffers each), 16 fpn, 6 rpn, 20 roi_heads

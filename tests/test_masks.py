@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gcvd_flow.evaluate.synth import render_clip
 from stages.frontend.flow import chain_flows, compute_pair_flow
 from stages.frontend.masks import motion_static_mask
-from gcvd_flow.evaluate.synth import render_clip
 
 N = 20
 FRAMES = (7, 12, 18)

@@ -66,8 +66,10 @@ def test_depth_metrics_median_scaling_and_validity():
 
 def test_agrees_with_evo():
     evo_traj = pytest.importorskip("evo.core.trajectory")
-    from evo.core import metrics as evo_metrics
-    from evo.core import sync  # noqa: F401  (import check)
+    from evo.core import (
+        metrics as evo_metrics,
+        sync,  # noqa: F401  (import check)
+    )
 
     gt = _traj(120, seed=5)
     est = _sim3(gt, 0.5)
@@ -148,8 +150,7 @@ def test_path_length_and_aggregate():
 
 def test_agrees_with_evo_trajectories_sync_se3_and_delta():
     evo_traj = pytest.importorskip("evo.core.trajectory")
-    from evo.core import metrics as evo_metrics
-    from evo.core import sync
+    from evo.core import metrics as evo_metrics, sync
     from scipy.spatial.transform import Rotation
 
     n = 150

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from geometry_ref import rigid_flow as rigid_flow_np
 
 from stages.geometry import torch_ops as G
-from geometry_ref import rigid_flow as rigid_flow_np
 from stages.models.depth_net import DepthNet, mesh_shape, upsample_mesh
 from stages.models.pose_net import DirectPoses, PoseNet, positional_encoding
 

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
+from gcvd_flow.evaluate.synth import render_clip
 from stages.frontend.flow import compute_pair_flow
 from stages.optimize.edges import optimize_edge, optimize_edge_call
 from stages.optimize.init import two_view_pose
 from stages.optimize.keyframes import optimize_keyframes
 from stages.optimize.params import DepthModel, EdgeSettings, KeyframeSettings, LossWeights, SegmentSettings
 from stages.optimize.segments import optimize_segments
-from gcvd_flow.evaluate.synth import render_clip
 
 # one thread: on 2 cores shared with other jobs, torch's intra-op threads oversubscribe badly
 torch.set_num_threads(1)

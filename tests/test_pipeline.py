@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-
 from conftest import SHARED_DATA, by_stage, cli, cli_json
 
 PRE = ("ingest", "flow", "masks", "priors")

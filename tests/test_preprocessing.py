@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from geometry_ref import rigid_flow
 from scipy.stats import spearmanr
 
-from stages.frontend import flow
-from stages.frontend import masks
-from stages.frontend import priors
-from geometry_ref import rigid_flow
 from gcvd_flow.evaluate.synth import render_clip
+from stages.frontend import flow, masks, priors
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import spearmanr
 
+from gcvd_flow.evaluate.synth import render_clip
 from stages.frontend.flow import compute_pair_flow
 from stages.frontend.priors import geometric_prior
-from gcvd_flow.evaluate.synth import render_clip
 
 N = 16
 

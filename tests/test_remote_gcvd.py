@@ -10,7 +10,6 @@ import uuid
 from pathlib import Path
 
 import pytest
-
 from conftest import cli, cli_json
 from remote_servers import DUMMY_AWS, moto_s3, s3fs_client
 

@@ -8,7 +8,6 @@ import uuid
 from pathlib import Path
 
 import pytest
-
 from conftest import by_stage, cli, cli_json, make_toy_input
 from remote_servers import DUMMY_AWS, moto_s3, s3fs_client
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from conftest import by_stage, cli, cli_json, make_toy_input
 from remote_servers import sshd
 

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import cli, cli_json
 
 N_FRAMES, W, H = 16, 96, 72

@@ -25,6 +25,7 @@ from gcvd_flow.engine.artifacts import register_schema_dir
 from gcvd_flow.engine.config import build_config
 from gcvd_flow.engine.dag import Pipeline
 from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.keys import ENGINE_LIBRARIES
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
 from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
@@ -57,7 +58,7 @@ class PipelineSpec:
         if self.schema_dir is not None:
             dirs.add(str(Path(self.schema_dir).resolve()))
         files = []
-        for _, dists in self.pipeline.numeric_libraries:
+        for _, dists in ENGINE_LIBRARIES + self.pipeline.numeric_libraries:
             for d in dists:
                 try:
                     meta = [f for f in importlib.metadata.distribution(d).files or [] if f.name == "METADATA"]

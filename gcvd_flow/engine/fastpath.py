@@ -13,12 +13,10 @@ runner, which decides by content hashes as usual.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 STAMP = ".gcvd-stamp.json"

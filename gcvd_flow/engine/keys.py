@@ -340,11 +340,19 @@ def _version(dist: str) -> str | None:
         return None
 
 
+# The engine's own codecs of stored values, (label, (distribution, alternatives...)) like
+# ``Pipeline.numeric_libraries``: numpy (arrays, .npy), Pillow (PNG images) and safetensors
+# (tensor dicts, checkpoints) write the bytes whose digests are outputs, so their versions enter
+# every key whatever the pipeline.
+ENGINE_LIBRARIES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("numpy", ("numpy",)), ("pillow", ("pillow",)), ("safetensors", ("safetensors",)))
+
+
 def numeric_env(libraries: tuple[tuple[str, tuple[str, ...]], ...] = (),
                 settings: tuple[tuple[str, Any], ...] = ()) -> dict[str, Any]:
-    """What changes numerics, and nothing personal: the interpreter and numpy (the engine's own
-    array library), the versions of the pipeline's numeric ``libraries`` ((label, (distribution,
-    alternatives...)), ...) and its ``settings`` (e.g. device, dtype, determinism)."""
+    """What changes numerics, and nothing personal: the interpreter, the engine's own codecs
+    (``ENGINE_LIBRARIES``), the versions of the pipeline's numeric ``libraries`` ((label,
+    (distribution, alternatives...)), ...) and its ``settings`` (e.g. device, dtype, determinism)."""
     return dict(_numeric_env(tuple(libraries), tuple(settings)))
 
 
@@ -353,11 +361,10 @@ def _numeric_env(libraries: tuple[tuple[str, tuple[str, ...]], ...],
                  settings: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
     env: dict[str, Any] = {
         "python": f"{sys.version_info.major}.{sys.version_info.minor}",
-        "numpy": _version("numpy"),
         "byteorder": sys.byteorder,
         "float_size": struct.calcsize("d"),
     }
-    for label, dists in libraries:
+    for label, dists in ENGINE_LIBRARIES + libraries:
         env[label] = next((v for v in map(_version, dists) if v), None)
     env.update(dict(settings))
     return tuple(sorted(env.items()))

@@ -15,13 +15,11 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator
 
 from gcvd_flow.engine import keys
-from gcvd_flow.engine.artifacts import (Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest,
-                                        load_value, validate)
-from gcvd_flow.engine.dag import Const, DepsView, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
+from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
+from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, make_executor, open_resource
 from gcvd_flow.engine.store import Store
-
 
 # ------------------------------------------------------------------------------ reports
 

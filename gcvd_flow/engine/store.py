@@ -40,11 +40,9 @@ from typing import Any, Iterable, Iterator, Protocol
 
 import blake3
 
+from gcvd_flow.engine.errors import StoreError  # noqa: F401 - re-exported
 from gcvd_flow.engine.keys import digest_bytes, is_digest, key_of
 from gcvd_flow.engine.paths import default_cache_dir  # noqa: F401 - re-exported
-
-
-from gcvd_flow.engine.errors import StoreError  # noqa: E402 - re-exported (stdlib-only module)
 
 
 def record_problem(key: str, rec: Any) -> str | None:
@@ -509,7 +507,7 @@ class Store:
             if h.hexdigest() != digest:
                 self.quarantine(digest)
                 rep.corrupt.append(digest)
-        for key, path in list(self.iter_records()):
+        for _key, path in list(self.iter_records()):
             try:
                 rec = json.loads(path.read_bytes())
             except (OSError, json.JSONDecodeError):
@@ -520,7 +518,7 @@ class Store:
                 path.unlink(missing_ok=True)
                 rep.records_removed += 1
         # a map stage whose items lost their records is incomplete too
-        for key, path in list(self.iter_records()):
+        for _key, path in list(self.iter_records()):
             try:
                 rec = json.loads(path.read_bytes())
             except (OSError, json.JSONDecodeError):

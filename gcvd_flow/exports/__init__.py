@@ -43,7 +43,7 @@ from typing import Any
 
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.exports import clouds, colmap, depth_png, mcap, nerfstudio, tum
-from gcvd_flow.exports._common import _atomic, ExportContext, Options, Writer, images_use  # noqa: F401 - API
+from gcvd_flow.exports._common import ExportContext, Options, Writer, _atomic, images_use  # noqa: F401 - API
 from gcvd_flow.exports.depth_png import depth_to_mm16  # noqa: F401 - part of this API
 from gcvd_flow.io.run_dir import RunData, attach_images, check_confidence, load_run  # noqa: F401 - part of this API
 

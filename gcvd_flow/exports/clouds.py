@@ -16,20 +16,16 @@ depth float32 (H, W) z-depth in scene units, 0 = invalid; image uint8 (H, W, 3) 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.exports._common import ExportContext, _atomic, rigid_inverse, uses_images
+from gcvd_flow.io.depth_maps import median_depth, valid_depth  # noqa: F401 - median_depth: part of this API
 
 # ------------------------------------------------------------------------------ geometry
-
-
-def valid_depth(depth: np.ndarray) -> np.ndarray:
-    """bool mask of usable depth: finite and > 0."""
-    return np.isfinite(depth) & (depth > 0)
 
 
 def pixels_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> np.ndarray:
@@ -133,13 +129,6 @@ def fuse_point_cloud(depths: Sequence[np.ndarray], poses: np.ndarray, K: np.ndar
         pts, cols = backproject_frame(depths[k], K, poses[k], None if images is None else images[k])
         acc.add(pts, cols)
     return acc.result()
-
-
-def median_depth(depths: Iterable[np.ndarray], stride: int = 4) -> float:
-    """Median of the valid depth over frames (every ``stride``-th pixel); 0 if none is valid."""
-    vals = [d[::stride, ::stride][valid_depth(d[::stride, ::stride])] for d in (np.asarray(x, np.float32) for x in depths)]
-    allv = np.concatenate(vals) if vals else np.zeros(0, np.float32)
-    return float(np.median(allv)) if len(allv) else 0.0
 
 
 def default_voxel(median: float) -> float:

@@ -144,7 +144,7 @@ class RunData:
     def median_depth(self) -> float:
         """Median valid depth over (at most ~50 evenly spread) frames; UsageError if none."""
         if self._median is None:
-            from gcvd_flow.exports.clouds import median_depth
+            from gcvd_flow.io.depth_maps import median_depth  # numpy: imported when used
 
             step = max(1, len(self) // 50)
             self._median = median_depth(self.depth(k) for k in range(0, len(self), step))
@@ -156,6 +156,7 @@ class RunData:
 def load_run(run_dir: str | Path) -> RunData:
     """Read and check RUN_DIR; every problem is a one-line UsageError naming the file."""
     import numpy as np
+
     from gcvd_flow.io.formats import read_tum_poses
 
     run = Path(run_dir)

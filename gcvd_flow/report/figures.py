@@ -15,7 +15,6 @@ import numpy as np
 
 from gcvd_flow.io.formats import png_bytes
 
-
 TILE_MAX_WIDTH = 300  # px: shown at 150 CSS px, sharp on a 2x display, small in the file
 
 

@@ -23,7 +23,6 @@ from gcvd_flow.engine.dag import ExternalRef, ItemRef, MapStage, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import digest_file, key_of
 
-
 # ------------------------------------------------------------------------------ stage functions
 
 

@@ -72,7 +72,7 @@ def chain_flow(
     k+1 we need bwd_flows[k] (defined on frame k+1's grid).
     """
     x, y, inside = x0, y0, None
-    for _, x, y, inside in _walk(fwd_flows, bwd_flows, start, end, x0, y0):
+    for _, x, y, inside in _walk(fwd_flows, bwd_flows, start, end, x0, y0):  # noqa: B007 - the walk's last position is the result
         pass
     if inside is None:  # start == end
         h, w = fwd_flows.shape[1:3]

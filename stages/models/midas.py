@@ -27,8 +27,8 @@ No file is downloaded here: the user supplies a local weights file.
 from __future__ import annotations
 
 import logging
-from typing import Mapping
 import math
+from typing import Mapping
 
 import cv2
 import numpy as np

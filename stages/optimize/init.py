@@ -195,6 +195,7 @@ def essential_chain(
     log_m = np.zeros(n)  # log depth scale of frame k relative to ref_depths[k]
     poses = np.tile(np.eye(4), (n, 1, 1))
     known = False  # whether log_m[k] is anchored by a triangulation
+    prev_scale = 1.0  # the previous pair's scale s (read only once known)
     for k in range(n - 1):
         T_k1_k = T_next_cur[k].copy()
         if d_fwd[k] is not None:

@@ -26,12 +26,26 @@ import torch
 from stages.models.depth_net import DepthNet, Encoded, mesh_shape
 from stages.models.pose_net import PoseNet
 from stages.optimize.frames import (
-    FlowPair, Frames, chained_flow, flows_at_loss_res, full_depth, init_depth_full, loss_size, prepare_frames,
+    FlowPair,
+    Frames,
+    chained_flow,
+    flows_at_loss_res,
+    full_depth,
+    init_depth_full,
+    loss_size,
+    prepare_frames,
 )
 from stages.optimize.init import essential_chain
 from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
 from stages.optimize.solver import (
-    Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads,
+    Checkpointer,
+    Pair,
+    Solver,
+    Window,
+    deterministic,
+    load_checkpoint,
+    run_solver,
+    torch_threads,
     window_seed,
 )
 

@@ -27,13 +27,28 @@ import torch
 
 from stages.models.depth_net import DepthNet, mesh_shape
 from stages.optimize.frames import (
-    FlowPair, area_resize, chained_flow, fit_mesh, flows_at_loss_res, full_depth, init_depth_full, loss_size,
+    FlowPair,
+    area_resize,
+    chained_flow,
+    fit_mesh,
+    flows_at_loss_res,
+    full_depth,
+    init_depth_full,
+    loss_size,
     prepare_frames,
 )
 from stages.optimize.init import interp_pose, pnp_init, transfer_depths
 from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights, SegmentSettings
 from stages.optimize.solver import (
-    Checkpointer, Pair, Solver, Window, deterministic, load_checkpoint, run_solver, torch_threads, window_seed,
+    Checkpointer,
+    Pair,
+    Solver,
+    Window,
+    deterministic,
+    load_checkpoint,
+    run_solver,
+    torch_threads,
+    window_seed,
 )
 
 __all__ = ["optimize_segments", "solve_window", "WindowJob", "WindowResult", "window_seed"]
