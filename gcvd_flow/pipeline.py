@@ -515,15 +515,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
 
     kf = list(inputs["keyframes"]["indices"])
     frames = inputs["ingest"]
-    pos = {f: k for k, f in enumerate(kf)}
-    pair_flows = {}
-    for e in inputs["association"]["edge_flows"]:
-        a, c = pos.get(e["i"]), pos.get(e["j"])
-        if a is not None and c is not None and c == a + 1:
-            pair_flows[(a, c)] = _flow_dict(e)
-    missing = [k for k in range(len(kf) - 1) if (k, k + 1) not in pair_flows]
-    if missing:
-        raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
+    pair_flows = keyframes_mod.keyframe_pair_flows(kf, inputs["association"]["edge_flows"])
     res = opt_keyframes.optimize_keyframes(
         _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
         _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,

@@ -19,12 +19,11 @@ from stages.graph.association import (
     DEFAULT_SIMILARITY_THRESHOLD,
     build_graph,
     candidate_pairs,
-    flows_by_keyframe_position,
     global_descriptor,
     keyframe_pair_flow,
     verify_pair,
 )
-from stages.graph.keyframes import pair_motion, select_keyframes
+from stages.graph.keyframes import keyframe_pair_flows, pair_motion, select_keyframes
 from stages.models.resnet import ResNet18, resnet_descriptor
 
 SIZE = (160, 120)
@@ -115,9 +114,9 @@ def test_loop_closes_end_to_start(loop_clip) -> None:
     for m in range(n - 1):
         f = flows[(kfs[m], kfs[m + 1])]
         assert f["fwd"].shape == frames.shape[1:3] + (2,)
-    by_pos = flows_by_keyframe_position(kfs, flows)
+    by_pos = keyframe_pair_flows(kfs, [{"i": i, "j": j, **fl} for (i, j), fl in flows.items()])
     assert sorted(by_pos) == [(m, m + 1) for m in range(n - 1)]
-    assert by_pos[(0, 1)] is flows[(kfs[0], kfs[1])]
+    assert np.array_equal(by_pos[(0, 1)]["fwd"], flows[(kfs[0], kfs[1])]["fwd"])
     # Deterministic, also with its SIFT, pair flows and candidate checks run on worker processes
     # (the pipeline passes the engine's ctx.map as call_map): the same graph and flow bits
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:

@@ -109,15 +109,16 @@ def test_past_neighbours_count_as_much_as_future_ones() -> None:
 def test_one_walk_per_side_equals_chaining_to_each_neighbour() -> None:
     """filter_depth tracks to all neighbours of a side in one walk; each track must equal
     chaining from the centre to that neighbour on its own, step by step, to the bit."""
-    from stages.depth.filter import _inside, _sample, _walk, chain_flow
+    from stages.depth.filter import _sample, _walk, chain_flow
+    from stages.geometry.image import inside_image
 
     def chained(fwd, bwd, start, end, x, y):
-        inside = _inside(x, y, w, h, 0.0)
+        inside = inside_image(x, y, w, h, 0.0)
         step = 1 if end >= start else -1
         for k in range(start, end, step):
             f = _sample(fwd[k] if step > 0 else bwd[k - 1], x, y)
             x, y = x + f[..., 0], y + f[..., 1]
-            inside = inside & _inside(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
+            inside = inside & inside_image(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
         return x, y, inside
 
     rng = np.random.default_rng(5)

@@ -133,3 +133,24 @@ def test_warp_sample_and_chain_are_bit_identical_to_the_plain_formula():
         valid &= inside(base + total)
     got_f, got_v = chain_flows(flows)
     assert np.array_equal(got_f, total.astype(np.float32)) and np.array_equal(got_v, valid)
+
+
+def test_the_initialisations_sampler_is_warp_sample_with_its_clamp():
+    # stages.optimize.init.sample_np was a copy of warp_sample's arithmetic with its own clamp;
+    # it now calls warp_sample and must give the copy's bits (results unchanged by the merge)
+    from stages.optimize.init import sample_np
+
+    def copy(img, uv):  # the former body
+        h, w = img.shape
+        u, v = np.clip(uv[:, 0], 0, w - 1.001), np.clip(uv[:, 1], 0, h - 1.001)
+        u0, v0 = np.floor(u).astype(int), np.floor(v).astype(int)
+        fu, fv = u - u0, v - v0
+        return (img[v0, u0] * (1 - fu) * (1 - fv) + img[v0, u0 + 1] * fu * (1 - fv)
+                + img[v0 + 1, u0] * (1 - fu) * fv + img[v0 + 1, u0 + 1] * fu * fv)
+
+    rng = np.random.default_rng(0)
+    for dtype in (np.float32, np.float64):
+        img = (rng.random((24, 32)) * 5).astype(dtype)
+        uv = np.c_[rng.uniform(-2, 34, 4000), rng.uniform(-2, 26, 4000)]
+        got, want = sample_np(img, uv), copy(img, uv)
+        assert got.dtype == want.dtype and np.array_equal(got, want)

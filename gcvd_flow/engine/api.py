@@ -57,7 +57,7 @@ class PipelineSpec:
                 dirs.update(str(Path(d).resolve()) for d in spec.submodule_search_locations)
         if self.schema_dir is not None:
             dirs.add(str(Path(self.schema_dir).resolve()))
-        files = []
+        files: list[str] = []
         for _, dists in ENGINE_LIBRARIES + self.pipeline.numeric_libraries:
             for d in dists:
                 try:

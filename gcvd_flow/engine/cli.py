@@ -297,8 +297,8 @@ def _cmd_dag(a: argparse.Namespace) -> int:
     from gcvd_flow.engine import api
 
     spec = api.load_spec(a.pipeline, allow_module_ref=True)
-    stages = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
-              for s in spec.pipeline.stages]
+    stages: list[dict[str, Any]] = [{"name": s.name, "deps": list(s.deps), "map": s.is_map, "kind": s.kind}
+                                    for s in spec.pipeline.stages]
     if a.json_mode:
         _print_json({"stages": stages})
     else:

@@ -72,10 +72,6 @@ Ref = ItemRef | PartRef | ExternalRef | Const
 ItemInputs = dict[str, "Ref | list[Ref]"]  # what an ``items`` function returns per item
 
 
-class Loader(Protocol):
-    def __call__(self) -> Any: ...
-
-
 # ------------------------------------------------------------------------------ stages
 
 
@@ -138,7 +134,7 @@ class Pipeline:
             for d in s.deps:
                 if d not in seen:
                     raise PipelineError(f"stage {s.name!r} depends on {d!r}, which is not declared before it")
-            if s.is_map and s.items is None:
+            if isinstance(s, MapStage) and s.items is None:
                 raise PipelineError(f"map stage {s.name!r} has no items function")
             seen.add(s.name)
 
@@ -205,7 +201,7 @@ class MapValue(Sequence):
     def __len__(self) -> int:
         return self._n
 
-    def __getitem__(self, i):  # type: ignore[override]
+    def __getitem__(self, i):
         if isinstance(i, slice):
             return [self._loader(j) for j in range(*i.indices(self._n))]
         if i < 0:

@@ -5,10 +5,6 @@ class UsageError(ValueError):
     """Bad usage or bad input: reported as one line on stderr, exit code 2."""
 
 
-class Interrupted(KeyboardInterrupt):
-    """Ctrl-C: the cache is consistent; re-running resumes."""
-
-
 class StoreError(RuntimeError):
     """The cache cannot serve a request (missing or corrupt objects that could not be healed,
     a directory that is not a cache): reported as one line, exit code 2."""

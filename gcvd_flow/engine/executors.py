@@ -405,9 +405,6 @@ class DaskItemExecutor:
                 self._cluster.shutdown_on_close = False  # no second attempt (and traceback) at exit
 
 
-EXECUTORS = ("process", "dask")
-
-
 def make_executor(jobs: int, worker_init: Callable[[], None] | None = None, kind: str = "process",
                   scheduler: str | None = None):
     """``process``: in this process (jobs == 1) or a local process pool; ``dask``: a Dask cluster.

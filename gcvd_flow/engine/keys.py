@@ -130,7 +130,7 @@ def key_of(obj: Any) -> str:
 class _StripDocstrings(ast.NodeTransformer):
     """Removes docstrings so that documentation edits do not invalidate caches."""
 
-    def _strip(self, node: ast.AST) -> ast.AST:
+    def _strip(self, node: Any) -> Any:  # a Module / FunctionDef / ClassDef: they have .body
         self.generic_visit(node)
         body = getattr(node, "body", None)
         if (
@@ -199,7 +199,7 @@ def _project_imports(tree: ast.AST, package: str, packages: Packages) -> set[str
 def _imported_project_modules(name: str, source: str, packages: Packages) -> set[str]:
     """Project modules that module ``name`` imports (absolute and relative imports)."""
     spec = importlib.util.find_spec(name)
-    is_pkg = spec is not None and bool(spec.origin) and spec.origin.endswith("__init__.py")
+    is_pkg = spec is not None and spec.origin is not None and spec.origin.endswith("__init__.py")
     package = name if is_pkg else name.rpartition(".")[0]
     found = _project_imports(ast.parse(source), package, packages)
     # a module also depends on its parent packages' __init__ (executed on import)

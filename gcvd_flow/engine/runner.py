@@ -8,11 +8,12 @@ item by item, each item keyed by its own inputs) and its record is written last.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator, Mapping
 
 from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
@@ -143,6 +144,11 @@ class Checkpointer:
 
     def discard(self) -> None:
         self.store.delete_record(self.key)
+
+
+def _load_item(store: Store, digests: list[str], i: int) -> Any:
+    """Item i of a map stage's output (``digests``: its items' value digests)."""
+    return load_value(store, digests[i])
 
 
 def _has_stored(shard: dict[str, Any]) -> bool:
@@ -292,7 +298,7 @@ class Runner:
         man = self._manifest(stage)
         if st.is_map:
             digests = self._items[stage]
-            v: Any = MapValue(lambda i, d=digests: load_value(self.store, d[i]), len(digests),
+            v: Any = MapValue(functools.partial(_load_item, self.store, digests), len(digests),
                               decode_tree(self.store, man.get("summary")))
         else:
             v = decode_tree(self.store, man["value"])
@@ -312,7 +318,7 @@ class Runner:
             node = node[p]
         return decode_tree(self.store, node)
 
-    def _key_fields(self, stage: Stage, inputs: dict[str, str]) -> dict[str, Any]:
+    def _key_fields(self, stage: Stage, inputs: Mapping[str, str | None]) -> dict[str, Any]:
         fp, files = keys.code_fingerprint(stage.fn, self.pipeline.packages)
         for name, opener in sorted(stage.resources.items()):  # e.g. the code that builds a model
             rfp, rfiles = keys.code_fingerprint(opener, self.pipeline.packages)
@@ -348,7 +354,7 @@ class Runner:
             return ResolvedRef("artifact", self._items[ref.stage][ref.index])
         if isinstance(ref, PartRef):
             man = self._manifest(ref.stage)
-            node = man.get("summary") if ref.summary else man["value"]
+            node: Any = man.get("summary") if ref.summary else man["value"]
             for p in ref.path:
                 node = node[p]
             if is_leaf(node):
@@ -404,7 +410,7 @@ class Runner:
                 rep.reasons.extend(diff_fields(prev_fields, f, stage.params if isinstance(stage.params, str) else None))
             elif previous is None or stage.name not in (previous or {}):
                 rep.reasons.append("no previous run of this stage")
-            if stage.is_map:
+            if isinstance(stage, MapStage):
                 try:
                     items = stage.items(_View(self), self.stage_params(stage))
                     item_params = self._item_params(stage, f)
@@ -464,7 +470,7 @@ class Runner:
             rep.seconds = time.perf_counter() - t0
             return rep
         rep.action = "run"
-        if stage.is_map:
+        if isinstance(stage, MapStage):
             self._run_map(stage, f, key, rep, executor)
         else:
             self._run_whole(stage, f, key, rep, executor)

@@ -34,7 +34,7 @@ import os
 import shutil
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Protocol
 
@@ -115,7 +115,7 @@ def _fsync_dir(path: Path) -> None:
 class FsckReport:
     objects: int = 0
     bytes: int = 0
-    corrupt: list[str] | None = None
+    corrupt: list[str] = field(default_factory=list)
     records_removed: int = 0
     tmp_removed: int = 0
 

@@ -58,7 +58,6 @@ WRITERS: dict[str, Writer] = {
     "mcap": mcap.write,
 }
 FORMATS = tuple(WRITERS)
-NEEDS_IMAGES = frozenset(f for f, w in WRITERS.items() if images_use(w) == "required")
 
 
 def parse_formats(values: Sequence[str]) -> list[str]:

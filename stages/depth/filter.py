@@ -27,6 +27,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from stages.geometry.image import inside_image
+
 log = logging.getLogger(__name__)
 
 RATIO_WEIGHT: float = 2.0
@@ -42,10 +44,6 @@ def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         interpolation=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     )
-
-
-def _inside(x: np.ndarray, y: np.ndarray, w: int, h: int, border: float) -> np.ndarray:
-    return (x >= border) & (x <= w - 1 - border) & (y >= border) & (y <= h - 1 - border)
 
 
 def chain_flow(
@@ -77,7 +75,7 @@ def chain_flow(
     if inside is None:  # start == end
         h, w = fwd_flows.shape[1:3]
         x, y = x0.astype(np.float32).copy(), y0.astype(np.float32).copy()
-        inside = _inside(x, y, w, h, 0.0)
+        inside = inside_image(x, y, w, h, 0.0)
     return x, y, inside
 
 
@@ -88,14 +86,14 @@ def _walk(fwd_flows: np.ndarray, bwd_flows: np.ndarray, start: int, end: int, x0
     h, w = fwd_flows.shape[1:3]
     x = x0.astype(np.float32).copy()
     y = y0.astype(np.float32).copy()
-    inside = _inside(x, y, w, h, 0.0)
+    inside = inside_image(x, y, w, h, 0.0)
     step = 1 if end >= start else -1
     for k in range(start, end, step):
         flow = fwd_flows[k] if step > 0 else bwd_flows[k - 1]
         f = _sample(flow, x, y)
         x = x + f[..., 0]
         y = y + f[..., 1]
-        inside = inside & _inside(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
+        inside = inside & inside_image(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
         yield k + step, x, y, inside
 
 
@@ -166,7 +164,7 @@ def filter_depth(
             & ok
             & ok_r
             & v_j
-            & _inside(xj, yj, w, h, float(border))
+            & inside_image(xj, yj, w, h, float(border))
             & np.isfinite(incons)
             & (d_j > 0)
         )

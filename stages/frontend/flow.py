@@ -15,6 +15,8 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from stages.geometry.image import inside_image, to_gray
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -38,12 +40,6 @@ DIS_PRESETS: dict[str, int] = {
 FINEST_SCALE = {"fine": 0}
 
 
-def _gray(img: np.ndarray) -> np.ndarray:
-    if img.ndim == 2:
-        return np.ascontiguousarray(img, dtype=np.uint8)
-    return cv2.cvtColor(np.ascontiguousarray(img, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
-
-
 def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np.ndarray:
     """DIS flow a -> b, float32 (H, W, 2) px.
 
@@ -55,7 +51,7 @@ def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np
     dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
     if preset in FINEST_SCALE:
         dis.setFinestScale(FINEST_SCALE[preset])
-    flow = dis.calc(_gray(img_a), _gray(img_b), None)
+    flow = dis.calc(to_gray(img_a), to_gray(img_b), None)
     return np.ascontiguousarray(flow, dtype=np.float32)
 
 
@@ -105,13 +101,7 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 def _inside(tgt: np.ndarray, h: int, w: int) -> np.ndarray:
     """Finite target coordinates (H, W, 2) inside an h x w image: bool (H, W)."""
-    # no isfinite test needed: every comparison with NaN is False, and +-inf fails one bound
-    u, v = tgt[..., 0], tgt[..., 1]
-    out = u >= 0
-    out &= u <= w - 1
-    out &= v >= 0
-    out &= v <= h - 1
-    return out
+    return inside_image(tgt[..., 0], tgt[..., 1], w, h)
 
 
 def _grid(h: int, w: int) -> np.ndarray:

@@ -36,6 +36,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 
 from stages.frontend.flow import dis_flow, fb_consistency
+from stages.geometry.image import to_gray
 
 log = logging.getLogger(__name__)
 
@@ -177,10 +178,6 @@ def candidate_pairs(
 # ----------------------------------------------------------------------------- matching
 
 
-def _gray(img: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(np.ascontiguousarray(img, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
-
-
 SiftFeatures = tuple[np.ndarray, np.ndarray | None]  # keypoint positions (K, 2) px, descriptors (K, 128)
 
 
@@ -188,7 +185,7 @@ def _sift_features(img: np.ndarray) -> SiftFeatures:
     """SIFT keypoint positions and descriptors of one image (a keyframe takes part in several
     pairs: its features are computed once)."""
     sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)
-    kp, des = sift.detectAndCompute(_gray(img), None)
+    kp, des = sift.detectAndCompute(to_gray(img), None)
     return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
 
 
@@ -523,15 +520,3 @@ def build_graph(
     }
     return graph, edge_flows
 
-
-def flows_by_keyframe_position(
-    kf_indices: list[int], edge_flows: dict[tuple[int, int], dict[str, np.ndarray]]
-) -> dict[tuple[int, int], dict[str, np.ndarray]]:
-    """Re-key the consecutive-keyframe flows of :func:`build_graph` by keyframe *position*.
-
-    ``edge_flows`` is keyed by frame indices (i, j); ``stages.optimize.optimize_keyframes``
-    expects ``pair_flows[(m, m + 1)]`` with m the position in the keyframe list. Same arrays,
-    no copy.
-    """
-    kfs = [int(i) for i in kf_indices]
-    return {(m, m + 1): edge_flows[(kfs[m], kfs[m + 1])] for m in range(len(kfs) - 1)}

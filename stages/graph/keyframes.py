@@ -11,7 +11,7 @@ Pure functions, no I/O. Units: pixels at flow resolution.
 from __future__ import annotations
 
 import logging
-from typing import TypedDict
+from typing import Any, Iterable, Mapping, TypedDict
 
 import numpy as np
 
@@ -112,3 +112,26 @@ def select_keyframes(
             acc = 0.0
     log.debug("selected %d keyframes of %d frames (threshold %.2f px)", len(indices), n, threshold)
     return KeyframeSelection(indices=indices, accumulated=accumulated, threshold_px=threshold)
+
+
+FLOW_FIELDS = ("fwd", "bwd", "fwd_valid", "bwd_valid")
+
+
+def keyframe_pair_flows(kf_indices: list[int], edge_flows: Iterable[Mapping[str, Any]]
+                        ) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+    """The flows of consecutive keyframes keyed by keyframe *position* (m, m + 1), as
+    ``stages.optimize.keyframes.optimize_keyframes`` reads them.
+
+    ``edge_flows``: the association's flows, each {i, j (frame indices), fwd, bwd (H, W, 2)
+    float32 px, fwd_valid, bwd_valid (H, W) bool}; pairs that are not consecutive keyframes are
+    ignored. RuntimeError naming the positions when a consecutive pair has no flow (a bug)."""
+    pos = {int(f): k for k, f in enumerate(kf_indices)}
+    out: dict[tuple[int, int], dict[str, np.ndarray]] = {}
+    for e in edge_flows:
+        a, c = pos.get(int(e["i"])), pos.get(int(e["j"]))
+        if a is not None and c is not None and c == a + 1:
+            out[(a, c)] = {k: np.asarray(e[k]) for k in FLOW_FIELDS}
+    missing = [k for k in range(len(kf_indices) - 1) if (k, k + 1) not in out]
+    if missing:
+        raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
+    return out

@@ -22,6 +22,7 @@ from typing import Mapping, Sequence
 import cv2
 import numpy as np
 
+from stages.frontend.flow import warp_sample
 from stages.geometry.two_view import pose_from_essential, rotation_from_homography
 from stages.optimize.frames import normalised_prior
 
@@ -117,16 +118,12 @@ def triangulate(
 
 
 def sample_np(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of img (H, W) at pixel points uv (M, 2) (clamped) -> (M,)."""
+    """Bilinear sample of img (H, W) at pixel points uv (M, 2) -> float64 (M,), the points clamped
+    to [0, W - 1.001] x [0, H - 1.001] (the initialisation's clamp, kept for its results);
+    ``warp_sample``'s arithmetic, term by term (the same bits as the copy this replaced)."""
     h, w = img.shape
-    u = np.clip(uv[:, 0], 0, w - 1.001)
-    v = np.clip(uv[:, 1], 0, h - 1.001)
-    u0, v0 = np.floor(u).astype(int), np.floor(v).astype(int)
-    fu, fv = u - u0, v - v0
-    return (
-        img[v0, u0] * (1 - fu) * (1 - fv) + img[v0, u0 + 1] * fu * (1 - fv)
-        + img[v0 + 1, u0] * (1 - fu) * fv + img[v0 + 1, u0 + 1] * fu * fv
-    )
+    uv_c = np.stack([np.clip(uv[:, 0], 0, w - 1.001), np.clip(uv[:, 1], 0, h - 1.001)], axis=1)
+    return warp_sample(np.asarray(img, np.float64), uv_c)
 
 
 def _grid_depths(
@@ -245,8 +242,6 @@ def pnp_init(
     flows (adjacent_flows[i]: flow dict of pair (i, i+1)) and registered in each target frame.
     Well conditioned even for tiny baselines, unlike two-view geometry; frames with too few tracks
     are omitted."""
-    from stages.frontend.flow import warp_sample
-
     h, w = kf_depth.shape
     ys, xs = np.mgrid[stride // 2 : h : stride, stride // 2 : w : stride]
     uv0 = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
