@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from gcvd_flow.evaluate.metrics import ate
 from gcvd_flow.evaluate.synth import render_clip
+from stages.geometry import se3
 from stages.optimize import ba_solver
 from stages.optimize.bundle_adjustment import build_tracks, bundle_adjust, gtsam_graph, inverse_depth_landmark, solve_gtsam
 
@@ -244,12 +245,12 @@ def test_analytic_jacobians_match_finite_differences():
         for c in range(6):
             d = np.zeros((len(T0), 6))
             d[k, c] = eps
-            plus = ba_solver.reprojection(prob, T0 @ ba_solver.se3_exp(d), lm0)
-            minus = ba_solver.reprojection(prob, T0 @ ba_solver.se3_exp(-d), lm0)
+            plus = ba_solver.reprojection(prob, T0 @ se3.se3_exp(d), lm0)
+            minus = ba_solver.reprojection(prob, T0 @ se3.se3_exp(-d), lm0)
             analytic = lin.A[:, c] * (anchor == k) + lin.B[:, c] * (prob.obs_cam == k)
             np.testing.assert_allclose((plus - minus) / (2 * eps), analytic, atol=2e-5 * np.abs(analytic).max())
-            e_p, _ = ba_solver.prior_terms(prob, T0 @ ba_solver.se3_exp(d))
-            e_m, _ = ba_solver.prior_terms(prob, T0 @ ba_solver.se3_exp(-d))
+            e_p, _ = ba_solver.prior_terms(prob, T0 @ se3.se3_exp(d))
+            e_m, _ = ba_solver.prior_terms(prob, T0 @ se3.se3_exp(-d))
             _, J = ba_solver.prior_terms(prob, T0, jacobians=True)
             np.testing.assert_allclose((e_p - e_m)[k] / (2 * eps), J[k][:, c], atol=1e-7)
     for c in range(3):
@@ -260,12 +261,12 @@ def test_analytic_jacobians_match_finite_differences():
     assert np.all(lin.A[:, :, anchor == prob.obs_cam] == 0) and np.all(lin.B[:, :, anchor == prob.obs_cam] == 0)
     import gtsam
     xi = np.random.default_rng(3).normal(0, 0.7, (6, 6))
-    for x, T in zip(xi, ba_solver.se3_exp(xi)):
+    for x, T in zip(xi, se3.se3_exp(xi)):
         P = gtsam.Pose3(T0[1])
         np.testing.assert_allclose(T, gtsam.Pose3.Expmap(x).matrix(), atol=1e-12)
         np.testing.assert_allclose(T0[1] @ T, P.retract(x).matrix(), atol=1e-12)  # retract = compose(Expmap)
-        np.testing.assert_allclose(ba_solver.se3_log(T[None])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T)), atol=1e-10)
-        np.testing.assert_allclose(ba_solver.se3_dlog(x[None])[0], gtsam.Pose3.LogmapDerivative(gtsam.Pose3(T)),
+        np.testing.assert_allclose(se3.se3_log(T[None])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T)), atol=1e-10)
+        np.testing.assert_allclose(se3.se3_dlog(x[None])[0], gtsam.Pose3.LogmapDerivative(gtsam.Pose3(T)),
                                    atol=1e-10)
 
 

@@ -14,7 +14,7 @@ from stages.models.pose_net import DirectPoses, PoseNet, positional_encoding
 def _rand_twists(n: int, seed: int = 0, rot: float = 0.6) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     xi = torch.randn(n, 6, generator=g, dtype=torch.float64)
-    xi[:, 3:] *= rot
+    xi[:, :3] *= rot  # (w, v): rotation first
     return xi
 
 
@@ -28,10 +28,23 @@ def test_se3_exp_log_roundtrip() -> None:
     assert torch.allclose(G.se3_log(T), xi, atol=1e-9)
 
 
+def test_one_twist_order_in_torch_and_numpy() -> None:
+    # stages.geometry.torch_ops and stages.geometry.se3 (gtsam's Pose3.Expmap) read (w, v) alike
+    from stages.geometry import se3
+
+    xi = _rand_twists(16, 7)
+    np.testing.assert_allclose(G.se3_exp(xi).numpy(), se3.se3_exp(xi.numpy()), atol=1e-12)
+    np.testing.assert_allclose(G.se3_log(G.se3_exp(xi)).numpy(), se3.se3_log(se3.se3_exp(xi.numpy())), atol=1e-9)
+    rot_only = torch.zeros(1, 6, dtype=torch.float64)
+    rot_only[0, 2] = 0.5  # the first three components rotate: about z by 0.5 rad, no translation
+    T = G.se3_exp(rot_only)[0]
+    assert torch.allclose(T[:3, 3], torch.zeros(3, dtype=torch.float64)) and abs(float(T[0, 1]) + np.sin(0.5)) < 1e-12
+
+
 def test_pose_from_rt_roundtrip_and_so3_matches_cv2() -> None:
     import cv2
 
-    rt = _rand_twists(16, 1)[:, [3, 4, 5, 0, 1, 2]]
+    rt = _rand_twists(16, 1)
     T = G.pose_from_rt(rt)
     assert torch.allclose(G.rt_from_pose(T), rt, atol=1e-9)
     for i in range(4):
@@ -47,8 +60,8 @@ def test_so3_gradient_finite_at_zero() -> None:
 
 
 def test_relative_pose_matches_inverse() -> None:
-    Pa, Pb = G.se3_exp(_rand_twists(5, 2)), G.se3_exp(_rand_twists(5, 3))
-    assert torch.allclose(G.relative_pose(Pa, Pb), torch.linalg.inv(Pb) @ Pa, atol=1e-12)
+    T_w_a, T_w_b = G.se3_exp(_rand_twists(5, 2)), G.se3_exp(_rand_twists(5, 3))
+    assert torch.allclose(G.relative_pose(T_w_a, T_w_b), torch.linalg.inv(T_w_b) @ T_w_a, atol=1e-12)
 
 
 def test_rigid_flow_matches_numpy_reference() -> None:
@@ -56,10 +69,10 @@ def test_rigid_flow_matches_numpy_reference() -> None:
     K = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
     rng = np.random.default_rng(0)
     depth = rng.uniform(1.0, 3.0, (h, w))
-    Pa = G.se3_exp(0.1 * _rand_twists(1, 4))[0].numpy()
-    Pb = G.se3_exp(0.1 * _rand_twists(1, 5))[0].numpy()
-    ref = rigid_flow_np(depth, K, Pa, Pb)
-    T = torch.as_tensor(np.linalg.inv(Pb) @ Pa)[None]
+    T_w_a = G.se3_exp(0.1 * _rand_twists(1, 4))[0].numpy()
+    T_w_b = G.se3_exp(0.1 * _rand_twists(1, 5))[0].numpy()
+    ref = rigid_flow_np(depth, K, T_w_a, T_w_b)
+    T = torch.as_tensor(np.linalg.inv(T_w_b) @ T_w_a)[None]
     ours = G.rigid_flow(torch.as_tensor(depth)[None], torch.as_tensor(K), T)[0].numpy()
     assert np.abs(ours - ref).max() < 1e-5  # the reference returns float32
     assert np.abs(ref).max() > 1.0  # a non-trivial motion

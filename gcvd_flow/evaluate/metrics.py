@@ -3,7 +3,7 @@
 * ATE: RMSE of camera positions after a Sim(3) Umeyama alignment of the estimate to the
   ground truth (metres) — evo's ``evo_ape --align --correct_scale``.
 * RPE (delta = 1 frame): the alignment's scale applied to the estimate, then per pair the
-  error E = inv(inv(G_i) G_j) @ (inv(P_i) P_j); RMSE of |t(E)| (m) and of angle(E) (degrees) —
+  error E = inv(inv(Tgt_w_i) Tgt_w_j) @ (inv(T_w_i) T_w_j) (Tgt: ground truth); RMSE of |t(E)| (m) and of angle(E) (degrees) —
   evo's ``evo_rpe --delta 1 --delta_unit f --align --correct_scale`` (trans_part, angle_deg).
 * Depth: per-frame median scaling, ground truth > 0 and <= ``max_depth``; AbsRel, SqRel, RMSE
   (m), δ < 1.25.
@@ -92,7 +92,7 @@ def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, delta: int = 1, align: str 
 
     est_poses, gt_poses: (N, 4, 4) camera-to-world. The estimate is first aligned as in
     ``ate`` (so with 'sim3' its translations are in metres); then for every i the error
-    E_i = inv(G_i^-1 G_{i+delta}) (P_i^-1 P_{i+delta}); rpe_trans = RMSE |t(E_i)|,
+    E_i = inv(inv(Tgt_w_i) Tgt_w_{i+delta}) (inv(T_w_i) T_w_{i+delta}) (Tgt: ground truth); rpe_trans = RMSE |t(E_i)|,
     rpe_rot = RMSE angle(R(E_i)) in degrees.
     """
     est_poses, gt = _check_pair(est_poses, gt_poses)

@@ -142,7 +142,7 @@ def num(x: float) -> str:
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms (..., 4, 4): T_b_a -> T_a_b (e.g. c2w -> w2c)."""
+    """Inverse of rigid transforms (..., 4, 4): T_b_a -> T_a_b (e.g. T_w_c -> T_c_w)."""
     R, t = T[..., :3, :3], T[..., :3, 3]
     out = np.zeros_like(T)
     Rt = np.swapaxes(R, -1, -2)

@@ -28,17 +28,17 @@ from gcvd_flow.io.depth_maps import median_depth, valid_depth  # noqa: F401 - me
 # ------------------------------------------------------------------------------ geometry
 
 
-def pixels_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+def pixels_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, T_w_c: np.ndarray) -> np.ndarray:
     """Pixels (u, v) (M,) with z-depth z (M,) -> world points float64 (M, 3): T_w_c [z K^-1 (u, v, 1), 1]."""
     K = np.asarray(K, np.float64)
     x = (u - K[0, 2]) / K[0, 0] * z
     y = (v - K[1, 2]) / K[1, 1] * z
     cam = np.stack([x, y, z], axis=1)
-    T = np.asarray(c2w, np.float64)
+    T = np.asarray(T_w_c, np.float64)
     return cam @ T[:3, :3].T + T[:3, 3]
 
 
-def backproject_frame(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, image: np.ndarray | None = None,
+def backproject_frame(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, image: np.ndarray | None = None,
                       stride: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
     """World points of a frame's valid depth pixels (every ``stride``-th row and column).
 
@@ -49,7 +49,7 @@ def backproject_frame(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, image: 
     z = d[v, u].astype(np.float64)
     u = u.astype(np.float64) * stride
     v = v.astype(np.float64) * stride
-    pts = pixels_to_world(u, v, z, K, c2w)
+    pts = pixels_to_world(u, v, z, K, T_w_c)
     cols = None
     if image is not None:
         cols = np.asarray(image, np.uint8)[(v.astype(np.int64)), (u.astype(np.int64))].reshape(-1, 3)

@@ -73,11 +73,11 @@ class _Camera:
 
 
 def carry_depth(cam: _Camera, rows: slice, depth_i: np.ndarray, depth_j: np.ndarray, conf_j: np.ndarray,
-                T_ji: np.ndarray, valid_j: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                T_j_i: np.ndarray, valid_j: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Frame j's depth carried to frame i's pixels in ``rows``.
 
     depth_i: (R, W) float32, frame i's depth in those rows; depth_j, conf_j: (H, W) float32;
-    T_ji (4, 4) maps frame-i camera coordinates to frame j's (inv(P_j) @ P_i); valid_j: (H, W)
+    T_j_i (4, 4) maps frame-i camera coordinates to frame j's (inv(T_w_j) @ T_w_i); valid_j: (H, W)
     float32, 1 where depth_j > 0 (computed here when not given). Returns, (R, W) each: z, depth
     in frame i of the point j sees where i's pixel lands; c, j's confidence there; err2 px^2,
     squared distance between i's pixel and that point projected back into i; ok bool, all four
@@ -87,11 +87,11 @@ def carry_depth(cam: _Camera, rows: slice, depth_i: np.ndarray, depth_j: np.ndar
     if valid_j is None:
         valid_j = (depth_j > 0).astype(np.float32)
     u, v = cam.u[rows], cam.v[rows]
-    qu, qv, _ = cam.moved(T_ji, u, v, depth_i)
+    qu, qv, _ = cam.moved(T_j_i, u, v, depth_i)
     dj, cj, vj = (cv2.remap(a, qu, qv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
                   for a in (depth_j, conf_j, valid_j))
     # j's point at the landing position, moved back into frame i
-    pu, pv, pz = cam.moved(np.linalg.inv(T_ji), qu, qv, dj)
+    pu, pv, pz = cam.moved(np.linalg.inv(T_j_i), qu, qv, dj)
     ok = (vj > 0.999) & (pz > 1e-6)
     err2 = (pu - u) ** 2 + (pv - v) ** 2
     return np.where(ok, pz, 1.0), cj, err2, ok
@@ -141,14 +141,14 @@ def consensus_depth(
 def _consensus_rows(cam: _Camera, rows: slice, depth: np.ndarray, confidence: np.ndarray,
                     views: list[tuple[np.ndarray, ...]], max_log_dev: float,
                     reproj_sigma_px: float) -> np.ndarray:
-    """``consensus_depth`` of the pixels in ``rows``; views [(T_ji, depth_j, confidence_j, valid_j)]."""
+    """``consensus_depth`` of the pixels in ``rows``; views [(T_j_i, depth_j, confidence_j, valid_j)]."""
     valid = depth > 0
     log_d = np.log(np.where(valid, depth, 1.0))
     own = confidence ** CONFIDENCE_POWER + PRIOR_WEIGHT
     num, den = own * log_d, own.copy()
     inv_var = 1.0 / np.float32(reproj_sigma_px) ** 2
-    for T_ji, depth_j, conf_j, valid_j in views:
-        z, c, err2, ok = carry_depth(cam, rows, depth, depth_j, conf_j, T_ji, valid_j)
+    for T_j_i, depth_j, conf_j, valid_j in views:
+        z, c, err2, ok = carry_depth(cam, rows, depth, depth_j, conf_j, T_j_i, valid_j)
         log_z = np.log(z)
         use = ok & (np.abs(log_z - log_d) < max_log_dev)
         wgt = np.where(use, (c ** CONFIDENCE_POWER + PRIOR_WEIGHT) * np.exp(-err2 * inv_var), 0.0)

@@ -9,7 +9,7 @@ few neighbours on both sides, with no two-view pose error, at the poses' scale. 
 the paper's flow loss does through the network, solved in closed form per pixel.
 
 For frame i and each reference j (default i-8 and i+8; i-8, i-4, i+4, i+8 measured 0.0423 vs 0.0417 AbsRel on the loop, at twice the cost): DIS flow i -> j with a
-forward-backward check, midpoint triangulation with T_ji = inv(P_j) P_i, triangulation angle
+forward-backward check, midpoint triangulation with T_j_i = inv(T_w_j) T_w_i, triangulation angle
 as confidence. Measurements that disagree with the optimised depth by more than
 ``max_log_dev`` in log depth (after one global ratio; 0.6) are dropped (occlusions, flow on moving
 objects, textureless areas); the rest are fused in inverse depth with weights = angle^2

@@ -93,18 +93,19 @@ def _left_jacobian(w: torch.Tensor) -> torch.Tensor:
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
-    """SE(3) exponential: twist (..., 6) = (v, w) -> (..., 4, 4)."""
-    v, w = xi[..., :3], xi[..., 3:]
+    """SE(3) exponential: twist (..., 6) = (w, v) (rotation rad first, as ``stages.geometry.se3`` and
+    gtsam) -> (..., 4, 4)."""
+    w, v = xi[..., :3], xi[..., 3:]
     R = so3_exp(w)
     t = (_left_jacobian(w) @ v[..., None])[..., 0]
     return _assemble(R, t)
 
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:
-    """SE(3) logarithm: (..., 4, 4) -> twist (..., 6) = (v, w)."""
+    """SE(3) logarithm: (..., 4, 4) -> twist (..., 6) = (w, v), the inverse of :func:`se3_exp`."""
     w = so3_log(T[..., :3, :3])
     v = torch.linalg.solve(_left_jacobian(w), T[..., :3, 3:4])[..., 0]
-    return torch.cat([v, w], -1)
+    return torch.cat([w, v], -1)
 
 
 def _assemble(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -2,7 +2,7 @@
 
 Both parameterisations output, per frame, a 6-vector ``(r, t)`` (axis-angle rad, translation in
 scene units) that is *right-multiplied* onto an initial camera-to-world pose:
-``P_i = P_init_i @ pose_from_rt(delta_i)`` (a correction in the camera's own frame).
+``T_w_i = T_w_i_init @ pose_from_rt(delta_i)`` (a correction in the camera's own frame).
 
 - ``PoseNet``: GCVD's design. A fixed, seeded random conv encoder (never trained) summarises the
   image, a sinusoidal encoding of the frame index is appended, and an MLP decoder (trainable; last

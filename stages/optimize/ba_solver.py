@@ -13,11 +13,12 @@ the same cost and :func:`total_cost` equals gtsam's ``graph.error``:
   behind camera k (depth <= 0) gets gtsam's cheirality residual (2 fx, 2 fx) and no gradient;
 * each residual under a Cauchy loss of scale k px (gtsam's noiseModel.mEstimator.Cauchy over an
   isotropic sigma of 1 px): cost 0.5 k^2 log(1 + |r|^2 / k^2), IRLS weight 1 / (1 + |r|^2 / k^2);
-* a prior per pose (PriorFactorPose3): residual Logmap(inv(P_k) T_k) in gtsam's Pose3 tangent
-  order (rotation rad, translation m), cost 0.5 sum(info * residual^2).
+* a prior per pose (PriorFactorPose3): residual Logmap(inv(T_w_k_prior) T_w_k) in the twist
+  order (rotation rad, translation m; ``stages.geometry.se3``), cost 0.5 sum(info * residual^2).
 
 Poses are updated as gtsam's Pose3.retract does: T <- T Exp(xi), xi = (omega, v) (the SE(3)
-exponential; checked against gtsam in tests/test_bundle_adjustment.py); landmarks additively.
+exponential of ``stages.geometry.se3``; checked against gtsam in tests/test_bundle_adjustment.py);
+landmarks additively.
 
 Why a custom solver: gtsam_unstable's inverse-depth factors differentiate numerically and gtsam
 eliminates the ~20k landmarks through its general multifrontal machinery; here one linearisation
@@ -35,7 +36,8 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
-from scipy.spatial.transform import Rotation
+
+from stages.geometry.se3 import se3_dlog, se3_exp, se3_log
 
 MIN_DIAGONAL, MAX_DIAGONAL = 1e-6, 1e32  # clamp of the Marquardt damping diagonal (gtsam's defaults)
 MIN_MODEL_FIDELITY = 1e-3  # a step is kept when it achieves this fraction of the predicted decrease
@@ -63,65 +65,6 @@ class SolveResult(NamedTuple):
     iterations: int  # linearisations (gtsam's LevenbergMarquardtOptimizer.iterations())
     initial_cost: float
     final_cost: float
-
-
-# ------------------------------------------------------------------------------------------ SE(3)
-def _hat(w: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices."""
-    z = np.zeros(len(w))
-    return np.stack([z, -w[:, 2], w[:, 1], w[:, 2], z, -w[:, 0], -w[:, 1], w[:, 0], z], -1).reshape(-1, 3, 3)
-
-
-def _v_coefficients(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """sin(t)/t, (1 - cos t)/t^2, (t - sin t)/t^3 with their series below 1e-4 rad (no 0/0)."""
-    small = theta < 1e-4
-    t = np.where(small, 1.0, theta)
-    a = np.where(small, 1 - theta**2 / 6, np.sin(t) / t)
-    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(t)) / t**2)
-    c = np.where(small, 1 / 6 - theta**2 / 120, (t - np.sin(t)) / t**3)
-    return a, b, c
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """gtsam's Pose3.Expmap: xi (N, 6) = (omega rad, v) -> (N, 4, 4); R = exp(omega^),
-    t = V(omega) v with V = I + (1 - cos t)/t^2 W + (t - sin t)/t^3 W^2."""
-    w, v = xi[:, :3], xi[:, 3:]
-    W = _hat(w)
-    _, b, c = _v_coefficients(np.linalg.norm(w, axis=1))
-    V = np.eye(3) + b[:, None, None] * W + c[:, None, None] * (W @ W)
-    T = np.tile(np.eye(4), (len(xi), 1, 1))
-    T[:, :3, :3] = Rotation.from_rotvec(w).as_matrix()
-    T[:, :3, 3] = np.einsum("nij,nj->ni", V, v)
-    return T
-
-
-def se3_log(T: np.ndarray) -> np.ndarray:
-    """gtsam's Pose3.Logmap, the inverse of :func:`se3_exp`: (N, 4, 4) -> (N, 6) (omega, v)."""
-    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
-    theta = np.linalg.norm(w, axis=1)
-    a, b, _ = _v_coefficients(theta)
-    # V^-1 = I - W/2 + (1 - a / (2 b)) / t^2 W^2; the coefficient tends to 1/12 at t -> 0
-    small = theta < 1e-4
-    t = np.where(small, 1.0, theta)
-    e = np.where(small, 1 / 12 + theta**2 / 720, (1 - a / (2 * b)) / t**2)
-    W = _hat(w)
-    Vinv = np.eye(3) - 0.5 * W + e[:, None, None] * (W @ W)
-    return np.concatenate([w, np.einsum("nij,nj->ni", Vinv, T[:, :3, 3])], 1)
-
-
-def se3_dlog(xi: np.ndarray, terms: int = 40) -> np.ndarray:
-    """(N, 6) -> (N, 6, 6): d Log(Exp(xi) Exp(d)) / d d at d = 0, the inverse of the right Jacobian
-    J_r(xi) = sum_n (-ad_xi)^n / (n + 1)!, ad_xi = [[W, 0], [V, W]] (gtsam's adjointMap). The
-    series is entire; 40 terms are exact to double precision for |omega| <= pi and the translations
-    a prior residual has (a closed form of the SE(3) Jacobian would be longer and easier to get wrong)."""
-    n = len(xi)
-    ad = np.zeros((n, 6, 6))
-    ad[:, :3, :3] = ad[:, 3:, 3:] = _hat(xi[:, :3])
-    ad[:, 3:, :3] = _hat(xi[:, 3:])
-    J = np.tile(np.eye(6), (n, 1, 1))
-    for k in range(terms, 0, -1):  # Horner: I + (-ad)/2 (I + (-ad)/3 (I + ...))
-        J = np.eye(6) - (ad @ J) / (k + 1)
-    return np.linalg.inv(J)
 
 
 # ------------------------------------------------------------------------------------ the residuals
@@ -233,7 +176,7 @@ def cauchy_cost(r: np.ndarray, k: float) -> np.ndarray:
 
 def prior_terms(problem: Problem, poses: np.ndarray, jacobians: bool = False
                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Residuals (K, 6) Logmap(inv(P_k) T_k) and, with ``jacobians``, their derivatives (K, 6, 6)
+    """Residuals (K, 6) Logmap(inv(T_w_k_prior) T_w_k) and, with ``jacobians``, their derivatives (K, 6, 6)
     by the right perturbation of T_k (the inverse right Jacobian of SE(3) at the residual)."""
     e = se3_log(np.linalg.inv(problem.prior_poses) @ poses)
     return e, (se3_dlog(e) if jacobians else None)
