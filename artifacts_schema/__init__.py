@@ -1,4 +1,5 @@
-"""JSON Schemas of the artifact kinds (one ``<kind>.json`` each) and of the run manifest."""
+"""JSON Schemas of the GCVD artifact kinds (one ``<kind>.json`` each). The engine's own schemas
+(map stages, checkpoints, the shared ``common.json`` these $ref) are in gcvd_flow/engine/schemas/."""
 
 from pathlib import Path
 

@@ -23,6 +23,9 @@ import numpy as np
 
 from gcvd_flow.engine import api as _engine
 from gcvd_flow.engine.api import fsck, gc, open_store, plan, read_run_dir, recorded_output, run, status, why
+from gcvd_flow.runtime import quiet_openmp
+
+quiet_openmp()  # the Python API is an entry point of the product (gcvd_flow/runtime.py)
 
 PIPELINE = "gcvd"
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from gcvd_flow.engine import cli as engine_cli
 from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.runtime import quiet_openmp
 
 
 def add_run_args(p: argparse.ArgumentParser) -> None:
@@ -304,6 +305,7 @@ PRODUCT = engine_cli.Product(
 
 
 def main(argv: list[str] | None = None) -> int:
+    quiet_openmp()  # before any verb loads torch / OpenCV (and so in every worker it starts)
     return engine_cli.main(PRODUCT, argv)
 
 

@@ -916,7 +916,11 @@ PROFILES: dict[str, dict[str, Any]] = {
 
 
 def limit_threads() -> None:
-    """Worker processes share the cores: one torch / OpenCV thread each."""
+    """Worker processes share the cores: one torch / OpenCV thread each, idle OpenMP threads
+    asleep (``gcvd_flow.runtime.quiet_openmp``; workers not started by our CLI, e.g. Dask's)."""
+    from gcvd_flow.runtime import quiet_openmp
+
+    quiet_openmp()
     import cv2
     import torch
 

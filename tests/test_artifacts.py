@@ -74,3 +74,28 @@ def test_schema_violation_names_the_place(store):
         Encoder(store).manifest("flow", {"fwd": np.zeros((2, 2, 2), np.float32)})
     Encoder(store).manifest("keyframes", {"indices": [0, 5], "threshold_px": 12.0})
     validate("map:frames", {"kind": "map:frames", "value": None, "items": ["0" * 64], "summary": None})
+
+
+def test_the_engines_schemas_bite_without_any_pipeline_schemas(store, monkeypatch):
+    # map manifests and checkpoints are the engine's: validated with no folder registered
+    from gcvd_flow.engine import artifacts
+
+    monkeypatch.setattr(artifacts, "_SCHEMA_DIRS", [])
+    artifacts._validator.cache_clear()
+    try:
+        with pytest.raises(ArtifactError, match="map:frames artifact does not match"):
+            validate("map:frames", {"kind": "map:frames", "value": None, "items": ["not a digest"]})
+        with pytest.raises(ArtifactError, match="checkpoint artifact does not match"):
+            Encoder(store).manifest("checkpoint", {"tensors": 3})
+        Encoder(store).manifest("keyframes", {"indices": []})  # a product kind: not registered here
+    finally:
+        artifacts._validator.cache_clear()
+
+
+def test_product_schemas_resolve_the_engines_common_definitions(store):
+    import artifacts_schema
+
+    assert not (artifacts_schema.SCHEMA_DIR / "common.json").exists()
+    with pytest.raises(ArtifactError, match="depth artifact does not match"):
+        validate("depth", {"kind": "depth", "value": {"depth": {"$npy": "x" * 64, "dtype": "<f4", "shape": [2, 2]}}})
+    validate("depth", {"kind": "depth", "value": {"depth": {"$npy": "0" * 64, "dtype": "<f4", "shape": [2, 2]}}})

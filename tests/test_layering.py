@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -171,3 +172,33 @@ def test_reading_data_depends_on_no_exporter_or_report():
     bad = [f"{m} imports {t}" for m, targets in sorted(project_graph().items()) if m.startswith("gcvd_flow.io")
            for t in sorted(targets) if t.startswith(("gcvd_flow.exports", "gcvd_flow.report", "gcvd_flow.evaluate"))]
     assert not bad, "gcvd_flow/io must not depend on the consumers of its data:\n" + "\n".join(bad)
+
+
+def test_importing_the_engine_sets_no_process_setting_the_cli_does():
+    code = ("import os, io, contextlib, sys\n"
+            "import gcvd_flow.engine.api, gcvd_flow.engine.cli, gcvd_flow.engine.executors\n"
+            "assert 'OMP_WAIT_POLICY' not in os.environ, 'set by importing the engine'\n"
+            "from gcvd_flow import cli\n"
+            "assert 'OMP_WAIT_POLICY' not in os.environ, 'set by importing the CLI module'\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    cli.main(['dag'])\n"
+            "print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)\n")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split()[0] == "PASSIVE", p.stdout
+
+
+def test_the_engine_spells_its_name_and_environment_variables_once():
+    # gcvd_flow/engine/names.py holds them; code elsewhere in the engine uses the constants
+    bad = []
+    for p in sorted(ENGINE.rglob("*.py")):
+        if p.name == "names.py":
+            continue
+        tree = ast.parse(p.read_text())
+        docstrings = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings:
+                if "GCVD_FLOW_" in node.value or "gcvd-flow" in node.value or "gcvd_flow.pipelines" in node.value:
+                    bad.append(f"{p.relative_to(ROOT)}:{node.lineno} {node.value!r}")
+    assert not bad, "use gcvd_flow.engine.names instead of:\n" + "\n".join(bad)

@@ -26,6 +26,7 @@ from gcvd_flow.engine.config import build_config
 from gcvd_flow.engine.dag import Pipeline
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import ENGINE_LIBRARIES
+from gcvd_flow.engine.names import ENTRY_POINT_GROUP, TOOL
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
 from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
@@ -68,7 +69,6 @@ class PipelineSpec:
         return {"dirs": sorted(dirs), "files": sorted(files)}
 
 
-ENTRY_POINT_GROUP = "gcvd_flow.pipelines"
 
 
 def registered_pipelines() -> dict[str, str]:
@@ -177,7 +177,7 @@ def read_run_dir(out: str | Path) -> dict[str, Any]:
     try:
         return json.loads(p.read_text())
     except FileNotFoundError:
-        raise UsageError(f"{p}: no run recorded in this directory (run `gcvd-flow run` first)") from None
+        raise UsageError(f"{p}: no run recorded in this directory (run `{TOOL} run` first)") from None
     except json.JSONDecodeError:
         raise UsageError(f"{p}: not a valid run record") from None
 
@@ -238,7 +238,7 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
         except (CorruptObject, MissingObject) as exc:
             passes.append(list(runner.reports.values()))
             if exc.digest in damaged or len(damaged) >= MAX_HEALING_PASSES:
-                raise StoreError(f"{exc}; recomputing did not restore it (run `gcvd-flow fsck`)") from None
+                raise StoreError(f"{exc}; recomputing did not restore it (run `{TOOL} fsck`)") from None
             damaged.append(exc.digest)
             if getattr(exc, "remote", False):
                 from_remote.add(exc.digest)
@@ -373,7 +373,7 @@ def recorded_output(out: str | Path, stage: str, cache: str | None = None, verif
         raise UsageError(f"{Path(out) / RUN_FILE}: no output of stage {stage!r} recorded")
     root = Path(cache).expanduser() if cache else default_cache_dir()
     if not (root / "objects").is_dir():
-        raise StoreError(f"{root} is not a gcvd-flow cache directory")
+        raise StoreError(f"{root} is not a {TOOL} cache directory")
     store = Store(root, verify=verify)
     man = load_manifest(store, digest)
     if "items" not in man:
@@ -405,7 +405,7 @@ def _version() -> str:
     try:
         import importlib.metadata
 
-        return importlib.metadata.version("gcvd-flow")
+        return importlib.metadata.version(TOOL)
     except Exception:
         return "0+unknown"
 

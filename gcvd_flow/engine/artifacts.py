@@ -27,14 +27,20 @@ import numpy as np
 
 from gcvd_flow.engine.store import Store, canonical_json
 
+# The engine's own schemas: map stages' manifests (``map.json``), checkpoints
+# (``checkpoint.json``) and the shared definitions every schema may $ref (``common.json``:
+# digest, array, png, safetensors, ...). Validated whatever the pipeline registers.
+ENGINE_SCHEMA_DIR = Path(__file__).resolve().parent / "schemas"
+ENGINE_KINDS = ("map", "checkpoint")
+
 # Folders of ``<kind>.json`` schemas, registered by the pipelines that define the kinds
 # (``PipelineSpec.schema_dir``); the first folder holding a kind's schema wins.
 _SCHEMA_DIRS: list[Path] = []
 
 
 def register_schema_dir(path: str | Path) -> None:
-    """Validate artifacts of the kinds described in ``path`` (one ``<kind>.json`` each, plus a
-    ``common.json`` with shared definitions)."""
+    """Validate artifacts of the kinds described in ``path`` (one ``<kind>.json`` each; they may
+    $ref the engine's ``https://gcvd-flow/schemas/common.json``)."""
     p = Path(path).resolve()
     if p not in _SCHEMA_DIRS:
         _SCHEMA_DIRS.append(p)
@@ -262,21 +268,24 @@ def manifest_objects(store: Store, digest: str) -> dict[str, int]:
 def _validator(kind: str):
     import jsonschema
 
-    folder = next((d for d in _SCHEMA_DIRS if (d / f"{kind}.json").exists()), None)
+    dirs = [ENGINE_SCHEMA_DIR] if kind in ENGINE_KINDS else _SCHEMA_DIRS
+    folder = next((d for d in dirs if (d / f"{kind}.json").exists()), None)
     if folder is None:
         return None
     from referencing import Registry, Resource
 
     schema = json.loads((folder / f"{kind}.json").read_text())
-    base = json.loads((folder / "common.json").read_text())
+    base = json.loads((ENGINE_SCHEMA_DIR / "common.json").read_text())
     registry = Registry().with_resources([(base["$id"], Resource.from_contents(base))])
     return jsonschema.validators.validator_for(schema)(schema, registry=registry)
 
 
 def validate(kind: str, doc: dict[str, Any]) -> None:
-    """Validate a manifest against ``artifacts_schema/<kind>.json`` (when the schema exists).
+    """Validate a manifest against ``<kind>.json`` of the registered schema folders (when one
+    exists; a product's kinds are in ``artifacts_schema/``).
 
-    Map stages' manifests (kind ``map:<item kind>``) validate against ``map.json``.
+    Map stages' manifests (kind ``map:<item kind>``) validate against the engine's ``map.json``,
+    checkpoints against its ``checkpoint.json``, with or without a registered folder.
     """
     v = _validator("map" if kind.startswith("map:") else kind)
     if v is None:

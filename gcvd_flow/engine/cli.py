@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 from gcvd_flow.engine.errors import StoreError, UsageError
+from gcvd_flow.engine.names import ENV_CACHE, ENV_JOBS, ENV_REMOTES
 
 
 @dataclass
@@ -67,7 +68,7 @@ def _add_run_args(p: argparse.ArgumentParser, input_required: bool = True) -> No
     _add_config_args(p)
     p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",
                    help="map items (and a stage's independent calls) in N worker processes (default auto: "
-                   "$GCVD_FLOW_JOBS, else one per usable core; results do not depend on it)")
+                   f"${ENV_JOBS}, else one per usable core; results do not depend on it)")
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -76,7 +77,7 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter (repeatable)")
     _product().add_run_args(p)
-    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--cache", metavar="DIR", help=f"cache directory (default: ${ENV_CACHE} or the user cache dir)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.add_argument("--no-verify", dest="verify", action="store_false",
                    help="skip re-hashing objects read from the cache (faster, less safe)")
@@ -87,7 +88,7 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 def _add_remote_args(p: argparse.ArgumentParser, help_: str) -> None:
     p.add_argument("--remote", dest="remote_name", metavar="NAME|URL", help=help_)
     p.add_argument("--remotes", dest="remotes_file", metavar="FILE",
-                   help="remotes file (default: $GCVD_FLOW_REMOTES or the user config dir's remotes.toml)")
+                   help=f"remotes file (default: ${ENV_REMOTES} or the user config dir's remotes.toml)")
 
 
 def _add_scale_args(p: argparse.ArgumentParser) -> None:
@@ -115,7 +116,7 @@ def _add_scale_commands(sub: Any) -> None:
     p = sub.add_parser("lineage", help="what produced an artifact: stage, parameters, code, libraries, inputs")
     p.add_argument("target", metavar="RUN_DIR|DIGEST", help="a run directory, or a record key / output / object digest")
     p.add_argument("stage", nargs="?", metavar="STAGE", help="with RUN_DIR: this stage only (default: all)")
-    p.add_argument("--cache", metavar="DIR", help="default: the run's cache, else $GCVD_FLOW_CACHE / the user cache dir")
+    p.add_argument("--cache", metavar="DIR", help=f"default: the run's cache, else ${ENV_CACHE} / the user cache dir")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.set_defaults(handler=_cmd_lineage)
 
@@ -149,13 +150,13 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     p.add_argument("--pipeline", default=product.pipeline, help="installed pipeline (developers: also module:attr)")
 
     p = sub.add_parser("fsck", help="re-hash every cached object; quarantine corrupt ones")
-    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--cache", metavar="DIR", help=f"cache directory (default: ${ENV_CACHE} or the user cache dir)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     _add_remote_args(p, "verify this remote in place instead (lists what is bad; deletes only with --repair)")
     p.add_argument("--repair", action="store_true", help="with --remote: delete bad objects and records")
 
     p = sub.add_parser("gc", help="delete objects not reachable from the last N runs or pins")
-    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--cache", metavar="DIR", help=f"cache directory (default: ${ENV_CACHE} or the user cache dir)")
     p.add_argument("--keep", type=int, default=5, metavar="N", help="runs to keep (default 5; pins are always kept)")
     p.add_argument("--no-wait", action="store_true",
                    help="fail (exit 2) instead of waiting when a run, pull or push is using the cache")
@@ -164,7 +165,7 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
     p = sub.add_parser("pin", help="keep a run's artifacts through gc (until unpinned)")
     p.add_argument("name", help="name of the pin")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory of an earlier run")
-    p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+    p.add_argument("--cache", metavar="DIR", help=f"cache directory (default: ${ENV_CACHE} or the user cache dir)")
     p.add_argument("--remove", action="store_true", help="remove the pin instead")
 
     for name, help_ in (("push", "copy a run's artifacts (or the whole cache) to a remote cache directory"),
@@ -175,7 +176,7 @@ def build_parser(product: Product) -> argparse.ArgumentParser:
         which = p.add_mutually_exclusive_group()
         which.add_argument("--out", metavar="RUN_DIR", help="only this run's stages (default: everything)")
         which.add_argument("--all", action="store_true", help="everything (the default)")
-        p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE or the user cache dir)")
+        p.add_argument("--cache", metavar="DIR", help=f"cache directory (default: ${ENV_CACHE} or the user cache dir)")
         p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
 
     _add_scale_commands(sub)

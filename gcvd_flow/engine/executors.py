@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
 
 from gcvd_flow.engine.artifacts import Encoder, decode_tree, load_value
+from gcvd_flow.engine.names import ENV_JOBS
 from gcvd_flow.engine.store import Store
 
 
@@ -147,7 +148,7 @@ def compute_item(task: ItemTask) -> ItemResult:
                       time.perf_counter() - t0)
 
 
-JOBS_ENV = "GCVD_FLOW_JOBS"
+JOBS_ENV = ENV_JOBS
 
 
 def usable_cores() -> int:

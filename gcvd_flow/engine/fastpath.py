@@ -19,6 +19,8 @@ import sys
 import time
 from typing import Any
 
+from gcvd_flow.engine.names import ENV_CACHE, ENV_FSYNC
+
 STAMP = ".gcvd-stamp.json"
 
 
@@ -61,7 +63,7 @@ def fingerprint(invocation: dict[str, Any], cache: str, out: str, watch: dict[st
         "invocation": invocation,
         "cache": os.path.abspath(cache),
         "python": sys.version,
-        "env": {k: os.environ.get(k) for k in ("GCVD_FLOW_CACHE", "GCVD_FLOW_FSYNC")},
+        "env": {k: os.environ.get(k) for k in (ENV_CACHE, ENV_FSYNC)},
         "input": _tree_stats(invocation["input"]) if invocation.get("input") else {},
         "config_file": _stat(invocation["config_file"]) if invocation.get("config_file") else None,
         "sources": sources,

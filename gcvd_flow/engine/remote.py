@@ -45,6 +45,7 @@ from typing import Any, Callable, Iterable
 
 from gcvd_flow.engine.errors import StoreError, UsageError
 from gcvd_flow.engine.keys import digest_bytes, is_digest
+from gcvd_flow.engine.names import TOOL
 from gcvd_flow.engine.store import Store, canonical_json, record_problem
 
 MAX_RECORD_BYTES = 64 << 20
@@ -478,7 +479,7 @@ def pull(local: Store, remote: str | Remote | None, out: str | None = None, remo
     """Copy a run's records (or all the remote has) into the local cache, verified."""
     r = _as_remote(remote, remotes_file)
     if not r.exists():
-        raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
+        raise UsageError(f"{r.label}: remote not found (not a {TOOL} cache)")
     with local.lease(), _RemoteErrors(r):
         keys = _run_keys(out, local) if out else sorted(r.record_keys())
         d = Downloader(local, r, log)
@@ -616,7 +617,7 @@ def fsck_remote(remote: str | Remote | None, repair: bool = False, remotes_file:
     temporary files) only with ``repair``."""
     r = _as_remote(remote, remotes_file)
     if not r.exists():
-        raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
+        raise UsageError(f"{r.label}: remote not found (not a {TOOL} cache)")
     with _RemoteErrors(r):
         return _fsck_remote(r, repair)
 

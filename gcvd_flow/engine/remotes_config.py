@@ -25,8 +25,9 @@ from pathlib import Path
 from typing import Any
 
 from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.names import ENV_REMOTES, TOOL
 
-ENV_VAR = "GCVD_FLOW_REMOTES"
+ENV_VAR = ENV_REMOTES
 
 
 @dataclass
@@ -48,7 +49,7 @@ def config_path(explicit: str | None = None) -> Path:
         return Path(env).expanduser()
     import platformdirs
 
-    return Path(platformdirs.user_config_dir("gcvd-flow")) / "remotes.toml"
+    return Path(platformdirs.user_config_dir(TOOL)) / "remotes.toml"
 
 
 def load(explicit: str | None = None) -> tuple[Path, dict[str, Any]]:

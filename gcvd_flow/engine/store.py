@@ -42,6 +42,7 @@ import blake3
 
 from gcvd_flow.engine.errors import StoreError  # noqa: F401 - re-exported
 from gcvd_flow.engine.keys import digest_bytes, is_digest, key_of
+from gcvd_flow.engine.names import ENV_FSYNC
 from gcvd_flow.engine.paths import default_cache_dir  # noqa: F401 - re-exported
 
 
@@ -148,7 +149,7 @@ class Store:
         # objects this store lacks but may fetch when read (None: a record naming a missing
         # object is invisible; a read-through run sets the remote's, see ObjectSource)
         self.fallback: ObjectSource | None = None
-        self.fsync_always = os.environ.get("GCVD_FLOW_FSYNC", "") == "always"
+        self.fsync_always = os.environ.get(ENV_FSYNC, "") == "always"
         self._dirs: set[Path] = set()  # fan-out directories known to exist (saves mkdir calls)
         for sub in ("objects", "records", "locks", "tmp", "runs", "pins", "quarantine"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
