@@ -22,9 +22,10 @@ poses T_w_c camera-to-world (4, 4) float64; depth float32 (H, W), one global sca
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import typing
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from pydantic import ConfigDict, Field, create_model, field_validator, model_validator
@@ -37,9 +38,9 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io import run_dir
 from gcvd_flow.io.sources import Source, open_source as _open_source
 from gcvd_flow.io.weights import open_model
-from stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion
-from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, priors as priors_mod
-from stages.graph import keyframes as keyframes_mod
+from stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion, params as depth_params
+from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, params as frontend_params, priors as priors_mod
+from stages.graph import keyframes as keyframes_mod, params as graph_params
 from stages.optimize import params as opt_params
 
 WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
@@ -64,21 +65,47 @@ def declare(stage: Stage) -> Stage:
     return stage
 
 
-# ============================================================================== ingest
-@config_section("ingest")
-class IngestParams(Section):
-    start: int = Field(0, ge=0, description="first source frame")
-    end: int | None = Field(None, description="one past the last source frame (None: all)")
-    stride: int = Field(1, ge=1, description="take every stride-th frame")
-    long_side: int = Field(256, ge=16, description="working resolution, px of the long side (paper: 384)")
-    intrinsics: str | None = Field(None, description="fx,fy,cx,cy at the source resolution")
+def section_from_dataclass(cls: type, name: str) -> type[Section]:
+    """A config section (pydantic, ``Section``) with the fields of a stage's parameter dataclass
+    (``stages/params.py``): same names, types and defaults; each field's ``metadata`` gives its
+    description and constraints (``ge``, ``gt``, ...; ``validator``: value -> value, run as a
+    field validator), and the class's ``check(self)`` runs on the whole section. The parameters
+    are declared only there."""
+    hints = typing.get_type_hints(cls)
+    fields: dict[str, Any] = {}
+    validators: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        md = dict(f.metadata)
+        check = md.pop("validator", None)
+        fields[f.name] = (hints[f.name], Field(f.default, **md))
+        if check is not None:
+            validators[f"_check_{f.name}"] = field_validator(f.name)(_field_check(check))
+    if hasattr(cls, "check"):
+        validators["_check"] = model_validator(mode="after")(_section_check(cls.check))
+    return create_model(name, __base__=Section, __module__=__name__, __doc__=cls.__doc__,
+                        __validators__=validators, **fields)
 
-    @field_validator("intrinsics")
-    @classmethod
-    def _parse(cls, v: str | None) -> str | None:
-        if v is not None:
-            ingest_mod.parse_intrinsics(v)
-        return v
+
+def _field_check(check: Any) -> Any:
+    def run(cls: Any, v: Any) -> Any:
+        return check(v)
+    return run
+
+
+def _section_check(check: Any) -> Any:
+    def run(self: Any) -> Any:
+        check(self)  # reads the section's fields as the dataclass's attributes
+        return self
+    return run
+
+
+def section(name: str, cls: type) -> type[Section]:
+    """``--set NAME.key=value`` configures the section derived from the dataclass ``cls``."""
+    return config_section(name)(section_from_dataclass(cls, "".join(w.title() for w in name.split("_")) + "Params"))
+
+
+# ============================================================================== ingest
+IngestParams = section("ingest", frontend_params.IngestSettings)
 
 
 def _camera_intrinsics(src: Source, p: IngestParams) -> tuple[tuple[float, float, float, float] | None, str]:
@@ -128,24 +155,11 @@ INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", 
 
 
 # ============================================================================== flow
-@config_section("flow")
-class FlowParams(Section):
-    backend: Literal["dis", "raft"] = "dis"
-    preset: Literal["ultrafast", "fast", "medium", "fine"] = Field(
-        "fine", description="DIS preset; 'fine' = medium at full resolution (loop clip: ATE 0.06 % vs "
-        "0.08 % of the path with 'medium', at ~3.5x the flow time)")
-    fb_thresh: float = Field(1.0, gt=0, description="forward-backward consistency, px")
-    weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="RAFT weights file")
-
-    @model_validator(mode="after")
-    def _needs_weights(self) -> "FlowParams":
-        if self.backend == "raft" and not self.weights:
-            raise ValueError("flow.backend=raft needs flow.weights=FILE (raft-things, .pth or .safetensors)")
-        return self
+FlowParams = section("flow", frontend_params.FlowSettings)
 
 
 def _flow_items(view, p: FlowParams):
-    return [{"a": ItemRef("ingest", i), "b": ItemRef("ingest", i + 1)} for i in range(view.len("ingest") - 1)]
+    return [{"a": ItemRef(INGEST, i), "b": ItemRef(INGEST, i + 1)} for i in range(view.len(INGEST) - 1)]
 
 
 def _open_raft(p: FlowParams) -> Any:
@@ -159,7 +173,7 @@ def run_flow(inputs: dict[str, Any], p: FlowParams, ctx: Any) -> dict[str, Any]:
                                   preset=p.preset, fb_thresh=p.fb_thresh, model=model)
 
 
-FLOW = declare(MapStage("flow", run_flow, deps=("ingest",), params="flow", kind="flow", items=_flow_items,
+FLOW = declare(MapStage("flow", run_flow, deps=(INGEST,), params="flow", kind="flow", items=_flow_items,
                 resources={"model": _open_raft}, description="forward/backward flow of adjacent pairs + consistency"))
 
 
@@ -198,23 +212,23 @@ def _far_pairs(n: int, b: Any) -> list[tuple[int, int, str, float]]:
 
 
 def _flow_far_items(view, b: Any):
-    return [{"a": ItemRef("ingest", a), "b": ItemRef("ingest", c), "preset": Const(preset),
-             "fb_thresh": Const(fb)} for a, c, preset, fb in _far_pairs(view.len("ingest"), b)]
+    return [{"a": ItemRef(INGEST, a), "b": ItemRef(INGEST, c), "preset": Const(preset),
+             "fb_thresh": Const(fb)} for a, c, preset, fb in _far_pairs(view.len(INGEST), b)]
 
 
 def _flow_far_summary(view, b: Any) -> dict[str, Any]:
-    return {"pairs": [list(pr) for pr in _far_pairs(view.len("ingest"), b)]}
+    return {"pairs": [list(pr) for pr in _far_pairs(view.len(INGEST), b)]}
 
 
 def _far_index(view) -> dict[tuple, int]:
     """flow_far's pairs (a, b, preset, fb_thresh) -> item index, from its summary."""
-    return {tuple(pr): k for k, pr in enumerate(view.summary("flow_far")["pairs"])}
+    return {tuple(pr): k for k, pr in enumerate(view.summary(FLOW_FAR)["pairs"])}
 
 
 def _far_refs(index: dict[tuple, int], i: int, js: list[int], preset: str, fb_thresh: float) -> dict[str, Any]:
     """Item inputs reading frame i's flows to frames js from flow_far: refs (the pair items)
     and ref_dirs ("fwd": i is the pair's first frame, "bwd": its second)."""
-    return {"refs": [ItemRef("flow_far", index[_far_pair(i, j, preset, fb_thresh)]) for j in js],
+    return {"refs": [ItemRef(FLOW_FAR, index[_far_pair(i, j, preset, fb_thresh)]) for j in js],
             "ref_dirs": Const(["fwd" if i < j else "bwd" for j in js])}
 
 
@@ -231,31 +245,14 @@ def _far_flow(fl: dict[str, Any], direction: str) -> tuple[np.ndarray, np.ndarra
     return np.asarray(fl["bwd"]), np.asarray(fl["bwd_valid"], bool)
 
 
-FLOW_FAR = declare(MapStage("flow_far", run_flow_far, deps=("ingest",), params=("priors", "depth_fusion"),
+FLOW_FAR = declare(MapStage("flow_far", run_flow_far, deps=(INGEST,), params=("priors", "depth_fusion"),
                    kind="flow_far", items=_flow_far_items, summary=_flow_far_summary,
                    selection_params=("priors", "depth_fusion"),
                    description="direct flows of the pairs priors and depth_fusion triangulate, once per pair"))
 
 
 # ============================================================================== masks
-@config_section("masks")
-class MasksParams(Section):
-    backend: Literal["motion", "maskrcnn", "motion+maskrcnn", "none"] = Field(
-        "motion", description="motion: flow vs. static geometry; maskrcnn: COCO instances of moving "
-        "classes (needs weights); motion+maskrcnn: dynamic if either says so")
-    dilate: int = Field(5, ge=0)
-    span: int = Field(6, ge=1, description="frames spanned by the chained flow (an object moving "
-                      "along epipolar lines over 1 frame rarely does over several)")
-    weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="Mask R-CNN weights file")
-    score_thresh: float = Field(0.5, ge=0, le=1, description="Mask R-CNN detections scoring less are ignored")
-    min_size: int = Field(800, ge=32, description="Mask R-CNN input short side, px (torchvision: 800)")
-
-    @model_validator(mode="after")
-    def _needs_weights(self) -> "MasksParams":
-        if "maskrcnn" in self.backend and not self.weights:
-            raise ValueError(f"masks.backend={self.backend} needs masks.weights=FILE "
-                             "(torchvision maskrcnn_resnet50_fpn weights, .pth or .safetensors)")
-        return self
+MasksParams = section("masks", frontend_params.MasksSettings)
 
 
 def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
@@ -265,23 +262,23 @@ def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
     refs: dict[str, Any] = {}
     if i >= span or i >= n - 1 - i:
         refs["direction"] = Const("bwd")
-        refs["chain"] = [ItemRef("flow", i - 1 - k) for k in range(min(span, i))]
+        refs["chain"] = [ItemRef(FLOW, i - 1 - k) for k in range(min(span, i))]
     else:
         refs["direction"] = Const("fwd")
-        refs["chain"] = [ItemRef("flow", i + k) for k in range(min(span, n - 1 - i))]
+        refs["chain"] = [ItemRef(FLOW, i + k) for k in range(min(span, n - 1 - i))]
     return refs
 
 
 def _mask_items(view, p: MasksParams):
     # The semantic backend reads the frame itself; the motion backend its flows (only).
-    n = view.len("ingest")
+    n = view.len(INGEST)
     out = []
     for i in range(n):
         it: dict[str, Any] = {}
         if p.backend != "maskrcnn":
-            it = {"K": PartRef("ingest", ("K",), summary=True), **_chain_refs(i, n, p.span)}
+            it = {"K": PartRef(INGEST, ("K",), summary=True), **_chain_refs(i, n, p.span)}
         if "maskrcnn" in p.backend:
-            it["image"] = ItemRef("ingest", i)
+            it["image"] = ItemRef(INGEST, i)
         out.append(it)
     return out
 
@@ -314,27 +311,12 @@ def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any
     return {"static": motion if semantic is None else np.minimum(motion, semantic)}
 
 
-MASKS = declare(MapStage("masks", run_masks, deps=("ingest", "flow"), params="masks", kind="mask",
+MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, FLOW), params="masks", kind="mask",
                  items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static"))
 
 
 # ============================================================================== priors
-@config_section("priors")
-class PriorsParams(Section):
-    backend: Literal["geometric", "midas"] = "geometric"
-    span: int = Field(8, ge=1, description="frames between a frame and its reference for triangulation")
-    preset: Literal["ultrafast", "fast", "medium", "fine"] = Field(
-        "fine", description="DIS preset of the prior's direct flows ('fine': full-resolution "
-        "finest level; prior AbsRel 0.058 vs 0.095 with 'medium' on the synthetic loop)")
-    fb_thresh: float = Field(1.0, gt=0)
-    weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="MiDaS weights file")
-
-    @model_validator(mode="after")
-    def _needs_weights(self) -> "PriorsParams":
-        if self.backend == "midas" and not self.weights:
-            raise ValueError("priors.backend=midas needs priors.weights=FILE "
-                             "(MiDaS v2.1 small, .pt or .safetensors)")
-        return self
+PriorsParams = section("priors", frontend_params.PriorsSettings)
 
 
 def _prior_items(view, p: PriorsParams):
@@ -342,11 +324,11 @@ def _prior_items(view, p: PriorsParams):
     # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
     # link, which on ICL turned 2-view poses off by degrees (AbsRel 0.25 vs 0.085 direct).
     # The direct flows are flow_far's items (shared with depth_fusion).
-    n = view.len("ingest")
+    n = view.len(INGEST)
     index = _far_index(view) if p.backend == "geometric" else {}
     out = []
     for i in range(n):
-        it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
+        it: dict[str, Any] = {"image": ItemRef(INGEST, i), "K": PartRef(INGEST, ("K",), summary=True)}
         js = _prior_refs(i, n, p)
         if js:
             it.update(_far_refs(index, i, js, p.preset, p.fb_thresh))
@@ -382,17 +364,13 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = declare(MapStage("priors", run_priors, deps=("ingest", "flow_far"), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, FLOW_FAR), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
                   description="MiDaS-shaped relative inverse depth"))
 
 
 # ============================================================================== keyframes
-@config_section("keyframes")
-class KeyframesParams(Section):
-    enabled: bool = True
-    delta: float = Field(0.1, gt=0, description="accumulated flow threshold, fraction of min(H, W)")
-    max_gap: int = Field(39, ge=1)
+KeyframesParams = section("keyframes", graph_params.KeyframesSettings)
 
 
 def run_keyframes(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
@@ -412,27 +390,11 @@ def run_keyframes(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
             "enabled": True}
 
 
-KEYFRAMES = declare(Stage("keyframes", run_keyframes, deps=("flow", "masks"), params="keyframes", kind="keyframes"))
+KEYFRAMES = declare(Stage("keyframes", run_keyframes, deps=(FLOW, MASKS), params="keyframes", kind="keyframes"))
 
 
 # ============================================================================== association
-@config_section("association")
-class AssociationParams(Section):
-    enabled: bool = True
-    backend: Literal["default", "resnet18"] = "default"
-    weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="ResNet-18 weights file")
-    threshold: float | None = Field(None, description="descriptor similarity threshold (None: backend default)")
-    nms: int = 8
-    min_separation: int = 8
-    min_inlier_ratio: float = 0.5
-    min_consistent: float = 0.1
-
-    @model_validator(mode="after")
-    def _needs_weights(self) -> "AssociationParams":
-        if self.backend == "resnet18" and not self.weights:
-            raise ValueError("association.backend=resnet18 needs association.weights=FILE "
-                             "(torchvision resnet18, .pth or .safetensors)")
-        return self
+AssociationParams = section("association", graph_params.AssociationSettings)
 
 
 def _open_resnet(p: AssociationParams) -> Any:
@@ -467,22 +429,11 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     return {"graph": graph, "edge_flows": flows_out}
 
 
-ASSOCIATION = declare(Stage("association", run_association, deps=("ingest", "keyframes"), params="association",
+ASSOCIATION = declare(Stage("association", run_association, deps=(INGEST, KEYFRAMES), params="association",
                     kind="graph", resources={"model": _open_resnet}))
 
 
 # ============================================================================== optimisation: shared
-def section_from_dataclass(cls: type, name: str) -> type[Section]:
-    """A config section (pydantic, ``Section``) with the fields of a parameter dataclass of
-    ``stages.optimize.params``: same names, types and defaults; ``metadata`` gives each field's
-    description and constraints (``ge``, ``gt``, ...). The parameters are declared only there."""
-    hints = typing.get_type_hints(cls)
-    fields: dict[str, Any] = {
-        f.name: (hints[f.name], Field(f.default, **dict(f.metadata))) for f in dataclasses.fields(cls)
-    }
-    return create_model(name, __base__=Section, __module__=__name__, __doc__=cls.__doc__, **fields)
-
-
 DepthParams = config_section("depth")(section_from_dataclass(opt_params.DepthModel, "DepthParams"))
 LossParams = config_section("losses")(section_from_dataclass(opt_params.LossWeights, "LossParams"))
 OptimizeKeyframesParams = config_section("optimize_keyframes")(section_from_dataclass(opt_params.KeyframeSettings, "OptimizeKeyframesParams"))
@@ -529,7 +480,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
 
 
 OPTIMIZE_KEYFRAMES = declare(Stage("optimize_keyframes", run_optimize_keyframes,
-                           deps=("ingest", "priors", "masks", "keyframes", "association"), params=OPT,
+                           deps=(INGEST, PRIORS, MASKS, KEYFRAMES, ASSOCIATION), params=OPT,
                            kind="keyframe_solution", uses_seed=True))
 
 
@@ -565,18 +516,12 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
 
 
 OPTIMIZE_EDGES = declare(Stage("optimize_edges", run_optimize_edges,
-                       deps=("ingest", "priors", "masks", "association", "optimize_keyframes"),
+                       deps=(INGEST, PRIORS, MASKS, ASSOCIATION, OPTIMIZE_KEYFRAMES),
                        params=OPT + ("optimize_edges",), kind="edges", uses_seed=True))
 
 
 # ============================================================================== pose_graph
-@config_section("pose_graph")
-class PoseGraphParams(Section):
-    enabled: bool = True
-    kind: Literal["se3", "sim3"] = "se3"
-    max_iterations: int = 100
-    loop_weight: float = 1.0
-    max_loop_rotation_deg: float = Field(30.0, gt=0, description="loop edges disagreeing more with odometry are ignored")
+PoseGraphParams = section("pose_graph", opt_params.PoseGraphSettings)
 
 
 def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
@@ -610,29 +555,12 @@ def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
             "final_error": float(res["final_error"]), "rejected_loops": rejected}
 
 
-POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=("optimize_keyframes", "optimize_edges"),
+POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=(OPTIMIZE_KEYFRAMES, OPTIMIZE_EDGES),
                    params="pose_graph", kind="poses"))
 
 
 # ============================================================================== bundle_adjustment
-@config_section("bundle_adjustment")
-class BundleAdjustmentParams(Section):
-    enabled: bool = Field(True, description="refine keyframe poses over flow tracks (robust reprojection "
-                          "factors) after the pose graph")
-    stride: int = Field(12, ge=2, description="px between track starts in every keyframe")
-    track_length: int = Field(8, ge=2, description="keyframes a track follows at most (plus one hop "
-                              "across each loop edge)")
-    min_views: int = Field(3, ge=2, description="keyframes that must see a point")
-    robust_px: float = Field(0.3, gt=0, description="Cauchy scale of the reprojection error, px")
-    prior_rot_sigma: float = Field(0.05, gt=0, description="weak prior to the pose graph, rad")
-    prior_trans_frac: float = Field(0.05, gt=0, description="weak prior to the pose graph, x median depth")
-    max_iterations: int = Field(30, ge=1)
-    consistent_px: float = Field(0.25, ge=0, description="keep the pose graph's poses when they already "
-                                 "reproject the tracks to this median error, px (flow noise, no drift)")
-    solver: Literal["schur", "gtsam"] = Field("schur", description="Levenberg-Marquardt of the same cost: "
-                                              "'schur' (numpy, analytic Jacobians, landmarks eliminated by the "
-                                              "Schur complement; ~10x faster) or 'gtsam' (gtsam_unstable's "
-                                              "inverse-depth factors, numerical derivatives; the reference)")
+BundleAdjustmentParams = section("bundle_adjustment", opt_params.BundleAdjustmentSettings)
 
 
 def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx: Any) -> dict[str, Any]:
@@ -670,7 +598,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
 
 
 BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,
-                                  deps=("ingest", "association", "optimize_keyframes", "pose_graph"),
+                                  deps=(INGEST, ASSOCIATION, OPTIMIZE_KEYFRAMES, POSE_GRAPH),
                                   params="bundle_adjustment", kind="poses"))
 
 
@@ -727,36 +655,24 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
 
 
 OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
-                          deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "bundle_adjustment"),
+                          deps=(INGEST, FLOW, PRIORS, MASKS, OPTIMIZE_KEYFRAMES, BUNDLE_ADJUSTMENT),
                           params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True))
 
 
 # ============================================================================== depth_fusion
-@config_section("depth_fusion")
-class DepthFusionParams(Section):
-    enabled: bool = True
-    offsets: tuple[int, ...] = Field((-8, 8), description="reference frames (relative "
-                                     "index) triangulated against each frame with the final poses")
-    preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
-    fb_thresh: float = Field(1.0, gt=0, description="forward-backward consistency, px")
-    min_angle_deg: float = Field(0.2, ge=0, description="smallest usable triangulation angle")
-    max_log_dev: float = Field(0.6, gt=0, description="measurements further from the optimised "
-                               "depth (|log ratio|) are dropped (0.3 until 2026-11-24: AbsRel ICL "
-                               "0.0530 -> 0.0523, loop 0.0419 -> 0.0405)")
-    agree_log_dev: float = Field(0.3, gt=0, description="measurements within this of the optimised "
-                                 "depth count as agreeing in the confidence")
+DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
 
 
 def _fusion_items(view, p: DepthFusionParams):
     # the flows to the references are flow_far's items (shared with priors)
-    n = view.len("ingest")
+    n = view.len(INGEST)
     index = _far_index(view) if p.enabled else {}
     out = []
     for i in range(n):
         refs = _fusion_refs(i, n, p)
-        out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
-                    "poses": PartRef("optimize_segments", ("poses",)),
-                    "depth": PartRef("optimize_segments", ("depths", i)),
+        out.append({"index": Const(i), "K": PartRef(INGEST, ("K",), summary=True),
+                    "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
+                    "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
                     **_far_refs(index, i, refs, p.preset, p.fb_thresh), "ref_indices": Const(refs)})
     return out
 
@@ -777,32 +693,23 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "flow_far", "optimize_segments"),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, FLOW_FAR, OPTIMIZE_SEGMENTS),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 
 
 # ============================================================================== depth_filter
-@config_section("depth_filter")
-class DepthFilterParams(Section):
-    enabled: bool = True
-    radius: int = Field(4, ge=0)
-    border: int = 4
-    fill_from: float = Field(0.7, ge=0, le=1, description="depth confidence of the pixels an edge-aware "
-                             "fill of uncertain depth is made from")
-    fill_below: float = Field(0.0, ge=0, le=1, description="pixels less confident than this are pulled "
-                              "towards that fill (in proportion; 0 = off, the default: it helps ICL, "
-                              "AbsRel 0.053 -> 0.049, and hurts the synthetic loop, 0.042 -> 0.129)")
+DepthFilterParams = section("depth_filter", depth_params.DepthFilterSettings)
 
 
 def _filter_items(view, p: DepthFilterParams):
-    n = view.len("ingest")
+    n = view.len(INGEST)
     r = p.radius if p.enabled else 0
     out = []
     for i in range(n):
         lo, hi = max(0, i - r), min(n - 1, i + r)
-        out.append({"center": Const(i - lo), "depths": [ItemRef("depth_fusion", j) for j in range(lo, hi + 1)],
-                    "flows": [ItemRef("flow", j) for j in range(lo, hi)], "image": ItemRef("ingest", i)})
+        out.append({"center": Const(i - lo), "depths": [ItemRef(DEPTH_FUSION, j) for j in range(lo, hi + 1)],
+                    "flows": [ItemRef(FLOW, j) for j in range(lo, hi)], "image": ItemRef(INGEST, i)})
     return out
 
 
@@ -825,39 +732,23 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
     return {"depth": out, "confidence": conf}
 
 
-DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=("ingest", "flow", "depth_fusion"), params="depth_filter",
+DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=(INGEST, FLOW, DEPTH_FUSION), params="depth_filter",
                         kind="depth", items=_filter_items))
 
 
 # ============================================================================== depth_consensus
-@config_section("depth_consensus")
-class DepthConsensusParams(Section):
-    enabled: bool = True
-    offsets: tuple[int, ...] = Field((8, 16, 24, 32, 48, 64), description="references (frames i - k "
-                                     "and i + k) whose filtered depth is carried into frame i with the "
-                                     "final poses")
-    max_log_dev: float = Field(0.2, gt=0, description="a carried depth further from frame i's (|log "
-                               "ratio|) is another surface (an occlusion) and not used")
-    reproj_sigma_px: float = Field(3.0, gt=0, description="round-trip reprojection error scale, px "
-                                   "(weight exp(-(e / sigma)^2))")
-
-    @field_validator("offsets")
-    @classmethod
-    def _positive_offsets(cls, v: tuple[int, ...]) -> tuple[int, ...]:
-        if any(k <= 0 for k in v):
-            raise ValueError("offsets are frame distances k > 0 (frames i - k and i + k are used)")
-        return tuple(sorted(set(v)))
+DepthConsensusParams = section("depth_consensus", depth_params.DepthConsensusSettings)
 
 
 def _consensus_items(view, p: DepthConsensusParams):
-    n = view.len("ingest")
+    n = view.len(INGEST)
     out = []
     for i in range(n):
         refs = [j for k in (p.offsets if p.enabled else ()) for j in (i - k, i + k) if 0 <= j < n]
-        out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
-                    "poses": PartRef("optimize_segments", ("poses",)), "depth": ItemRef("depth_filter", i),
-                    "refs": [ItemRef("depth_filter", j) for j in refs], "ref_indices": Const(refs),
-                    "static": [ItemRef("masks", j) for j in [i, *refs]] if refs else []})
+        out.append({"index": Const(i), "K": PartRef(INGEST, ("K",), summary=True),
+                    "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)), "depth": ItemRef(DEPTH_FILTER, i),
+                    "refs": [ItemRef(DEPTH_FILTER, j) for j in refs], "ref_indices": Const(refs),
+                    "static": [ItemRef(MASKS, j) for j in [i, *refs]] if refs else []})
     return out
 
 
@@ -881,7 +772,7 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
 
 
 DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
-                                   deps=("ingest", "masks", "optimize_segments", "depth_filter"),
+                                   deps=(INGEST, MASKS, OPTIMIZE_SEGMENTS, DEPTH_FILTER),
                                    params="depth_consensus",
                                    kind="depth", items=_consensus_items,
                                    description="filtered depth averaged with what confident views of the "
@@ -970,5 +861,10 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     return src
 
 
+# What RUN_DIR is written from (and what its readers look up in the cache): the final frames,
+# keyframes, poses and depth of the DAG above.
+RUN_DIR_SOURCES = run_dir.RunSources(frames=INGEST, keyframes=KEYFRAMES, poses=OPTIMIZE_SEGMENTS, depth=DEPTH_CONSENSUS)
+
 SPEC = PipelineSpec("gcvd", PIPELINE, GCVDConfig, PROFILES, open_source=open_source,
-                    export=run_dir.write_run_dir, schema_dir=artifacts_schema.SCHEMA_DIR)
+                    export=functools.partial(run_dir.write_run_dir, sources=RUN_DIR_SOURCES),
+                    schema_dir=artifacts_schema.SCHEMA_DIR)

@@ -40,19 +40,36 @@ class PipelineError(ValueError):
 # ------------------------------------------------------------------------------ references
 
 
-@dataclass(frozen=True)
+def stage_name(stage: str | Stage) -> str:
+    """A stage's name from its declaration (the object ``declare`` returned) or the name itself."""
+    return stage if isinstance(stage, str) else stage.name
+
+
+@dataclass(frozen=True, init=False)
 class ItemRef:
+    """Item ``index`` of a map stage (given as its declaration or its name; held by name)."""
+
     stage: str
     index: int
 
+    def __init__(self, stage: str | Stage, index: int) -> None:
+        object.__setattr__(self, "stage", stage_name(stage))
+        object.__setattr__(self, "index", index)
 
-@dataclass(frozen=True)
+
+@dataclass(frozen=True, init=False)
 class PartRef:
-    """A sub-tree of a whole stage's value (``path`` of keys / indices); () is the whole."""
+    """A sub-tree of a whole stage's value (``path`` of keys / indices); () is the whole. The
+    stage is given as its declaration or its name (held by name)."""
 
     stage: str
     path: tuple = ()
     summary: bool = False  # True: a sub-tree of a map stage's summary instead
+
+    def __init__(self, stage: str | Stage, path: tuple = (), summary: bool = False) -> None:
+        object.__setattr__(self, "stage", stage_name(stage))
+        object.__setattr__(self, "path", tuple(path))
+        object.__setattr__(self, "summary", summary)
 
 
 @dataclass(frozen=True)
@@ -79,6 +96,8 @@ ItemInputs = dict[str, "Ref | list[Ref]"]  # what an ``items`` function returns 
 class Stage:
     name: str
     fn: Callable[..., Any]
+    # the stages this one reads, by declaration (the objects ``declare`` returned, as hloc passes
+    # handles) or by name; held as names
     deps: tuple[str, ...] = ()
     params: str | tuple[str, ...] | None = None  # config section(s) of this stage's parameters
     kind: str = "generic"  # artifact schema kind of the output
@@ -89,6 +108,9 @@ class Stage:
     uses_seed: bool = False  # the run's seed is part of the key
     # name -> picklable ``open(params) -> object``; see the module docstring
     resources: dict[str, Callable[[Any], Any]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.deps = tuple(stage_name(d) for d in self.deps)
 
     @property
     def is_map(self) -> bool:
@@ -146,7 +168,8 @@ class Pipeline:
 
         return numeric_env(self.numeric_libraries, self.numeric_settings)
 
-    def get(self, name: str) -> Stage:
+    def get(self, stage: str | Stage) -> Stage:
+        name = stage_name(stage)
         for s in self.stages:
             if s.name == name:
                 return s
@@ -178,11 +201,11 @@ class DepsView(Protocol):
 
     source: Any
 
-    def len(self, stage: str) -> int: ...
+    def len(self, stage: str | Stage) -> int: ...
 
-    def value(self, stage: str) -> Any: ...
+    def value(self, stage: str | Stage) -> Any: ...
 
-    def summary(self, stage: str) -> Any: ...
+    def summary(self, stage: str | Stage) -> Any: ...
 
 
 class MapValue(Sequence):

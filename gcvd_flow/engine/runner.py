@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterable, Iterator, Mapping
 
 from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
-from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage
+from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage, stage_name
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, make_executor, open_resource
 from gcvd_flow.engine.store import Store
@@ -235,14 +235,14 @@ class _View:
         self._r = runner
         self.source = runner.source
 
-    def len(self, stage: str) -> int:
-        return len(self._r._items[stage])
+    def len(self, stage: str | Stage) -> int:
+        return len(self._r._items[stage_name(stage)])
 
-    def value(self, stage: str) -> Any:
+    def value(self, stage: str | Stage) -> Any:
         return self._r.value(stage)
 
-    def summary(self, stage: str) -> Any:
-        return decode_tree(self._r.store, self._r._manifest(stage).get("summary"))
+    def summary(self, stage: str | Stage) -> Any:
+        return decode_tree(self._r.store, self._r._manifest(stage_name(stage)).get("summary"))
 
 
 class Runner:
@@ -290,8 +290,10 @@ class Runner:
     def output(self, stage: str) -> str:
         return self._outputs[stage]
 
-    def value(self, stage: str) -> Any:
-        """The decoded output of a finished stage (a MapValue for map stages)."""
+    def value(self, stage: str | Stage) -> Any:
+        """The decoded output of a finished stage (given by declaration or name; a MapValue for
+        map stages)."""
+        stage = stage_name(stage)
         if stage in self._values:
             return self._values[stage]
         st = self.pipeline.get(stage)
@@ -305,9 +307,10 @@ class Runner:
         self._values[stage] = v
         return v
 
-    def part(self, stage: str, path: tuple = ()) -> Any:
+    def part(self, stage: str | Stage, path: tuple = ()) -> Any:
         """A sub-tree of a finished whole stage's output (keys / indices in ``path``), decoding
         only the objects under it: e.g. the poses of a stage whose other outputs are large."""
+        stage = stage_name(stage)
         if stage in self._values:
             node = self._values[stage]
             for p in path:

@@ -102,7 +102,9 @@ def export_run(run_dir: str | Path, formats: Sequence[str], to: str | Path | Non
     except OSError as exc:
         raise UsageError(f"{out}: cannot create the export directory ({exc.strerror})") from None
     if any(images_use(WRITERS[f]) for f in fmts):
-        attach_images(run, cache, verify)
+        from gcvd_flow.pipeline import RUN_DIR_SOURCES
+
+        attach_images(run, cache, verify, frames_stage=RUN_DIR_SOURCES.frames)
     ctx = ExportContext(run, out, opt, log)
     doc: dict[str, Any] = {"out": str(out), "frames": len(run), "formats": {}, "skipped": {}}
     for f in fmts:

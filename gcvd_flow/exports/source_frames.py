@@ -54,12 +54,13 @@ def scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
 def source_view(run: RunData) -> FrameView | str:
     """The source-resolution view, or the reason it is unavailable (a str)."""
     from gcvd_flow.io.sources import open_source
+    from gcvd_flow.pipeline import RUN_DIR_SOURCES
 
     try:
         doc = json.loads((run.run_dir / "run.json").read_text())
         cams = json.loads((run.run_dir / "cameras.json").read_text())
         src_w, src_h = int(cams["source_width"]), int(cams["source_height"])
-        recorded = doc["stages"]["ingest"]["fields"]["inputs"]["source"]
+        recorded = doc["stages"][RUN_DIR_SOURCES.frames]["fields"]["inputs"]["source"]
         input_ = doc["invocation"]["input"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return f"run.json / cameras.json do not say where the source frames are ({exc})"

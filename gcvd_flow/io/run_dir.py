@@ -9,8 +9,9 @@
                          timestamps and what they are, keyframes, fps
     run.json             written by the engine: resolved config, every stage's key and output digest
 
-``write_run_dir`` is the pipeline's export hook; ``load_run`` reads and checks a RUN_DIR with
-one-line errors naming the file; ``attach_images`` adds the run's frames from the cache.
+``write_run_dir`` is the pipeline's export hook, told by the pipeline which stages it reads
+(``RunSources``: ``gcvd_flow.pipeline.RUN_DIR_SOURCES``); ``load_run`` reads and checks a RUN_DIR
+with one-line errors naming the file; ``attach_images`` adds the run's frames from the cache.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from gcvd_flow.engine.dag import MapValue
+from gcvd_flow.engine.dag import MapValue, Stage, stage_name
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io.formats import write_tum_poses
 
@@ -29,6 +30,23 @@ if TYPE_CHECKING:
 
 
 # ------------------------------------------------------------------------------ writing a run
+
+
+@dataclass(frozen=True, init=False)
+class RunSources:
+    """The stages RUN_DIR is written from, given by their declarations (or names; held by name):
+    ``frames`` a map stage, summary = the camera (K, width, height, source size, frame_indices,
+    fps, layout, guessed, origin); ``keyframes`` {indices: keyframe positions}; ``poses`` {poses:
+    (N, 4, 4) T_w_c}; ``depth`` a map stage of {depth float32 (H, W), confidence float32 (H, W)}."""
+
+    frames: str
+    keyframes: str
+    poses: str
+    depth: str
+
+    def __init__(self, frames: str | Stage, keyframes: str | Stage, poses: str | Stage, depth: str | Stage) -> None:
+        for k, v in (("frames", frames), ("keyframes", keyframes), ("poses", poses), ("depth", depth)):
+            object.__setattr__(self, k, stage_name(v))
 
 
 def frame_timestamps(source: Any, idx: list[int]) -> tuple[list[float], str]:
@@ -41,17 +59,17 @@ def frame_timestamps(source: Any, idx: list[int]) -> tuple[list[float], str]:
     return [float(i) for i in idx], "frame index"
 
 
-def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
+def write_run_dir(out: Path, runner: Any, config: Any, sources: RunSources) -> dict[str, Any]:
     """Write RUN_DIR from a finished run: poses.txt (TUM, T_w_c), depth/NNNNNN.npy (float32),
     confidence/NNNNNN.npy (float32 in [0, 1]), cameras.json. ``runner`` is the engine's Runner
-    (stage values by name)."""
+    (stage values by name), ``sources`` the stages to read (the pipeline binds them)."""
     import numpy as np
 
-    frames = runner.value("ingest")
+    frames = runner.value(sources.frames)
     cam = frames.summary
     idx = list(cam["frame_indices"])
     # only the poses: decoding the whole segment solution would hold every depth map at once
-    poses = np.asarray(runner.part("optimize_segments", ("poses",)), np.float64)
+    poses = np.asarray(runner.part(sources.poses, ("poses",)), np.float64)
     stamps, stamp_kind = frame_timestamps(getattr(runner, "source", None), idx)
     write_tum_poses(out / "poses.txt", np.asarray(stamps, np.float64), poses)
     depth_dir, conf_dir = out / "depth", out / "confidence"
@@ -59,7 +77,7 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
         d.mkdir(exist_ok=True)
         for old in d.glob("*.npy"):
             old.unlink()
-    final = runner.value("depth_consensus")
+    final = runner.value(sources.depth)
     for k, i in enumerate(idx):
         item = final[k]
         np.save(depth_dir / f"{i:06d}.npy", np.asarray(item["depth"], np.float32), allow_pickle=False)
@@ -71,7 +89,7 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
            "source_height": cam["source_height"], "intrinsics_guessed": cam["guessed"],
            "intrinsics_origin": cam["origin"], "frame_indices": idx, "fps": cam.get("fps"),
            "timestamps": stamps, "timestamp_kind": stamp_kind, "layout": cam.get("layout"),
-           "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
+           "keyframes": [idx[k] for k in runner.value(sources.keyframes)["indices"]]}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
     return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "confidence": str(conf_dir),
             "cameras": str(out / "cameras.json")}
@@ -239,8 +257,9 @@ def recorded_cache(run_dir: str | Path) -> str | None:
     return rec if isinstance(rec, str) and Path(rec).is_dir() else None
 
 
-def attach_images(run: RunData, cache: str | None, verify: bool = True) -> None:
-    """Set ``run.images`` from the run's recorded ``ingest`` output, or ``run.images_error``."""
+def attach_images(run: RunData, cache: str | None, verify: bool = True, *, frames_stage: str | Stage) -> None:
+    """Set ``run.images`` from the run's recorded output of ``frames_stage`` (``RunSources.frames``),
+    or ``run.images_error``."""
     from gcvd_flow.engine import api
     from gcvd_flow.engine.artifacts import ArtifactError
     from gcvd_flow.engine.store import StoreError
@@ -248,7 +267,7 @@ def attach_images(run: RunData, cache: str | None, verify: bool = True) -> None:
     cache = cache or recorded_cache(run.run_dir)
     where = cache or str(api.default_cache_dir())
     try:
-        frames = api.recorded_output(run.run_dir, "ingest", cache, verify)
+        frames = api.recorded_output(run.run_dir, stage_name(frames_stage), cache, verify)
     except (UsageError, StoreError, ArtifactError) as exc:
         run.images_error = f"the run's RGB frames are not available from the cache {where} ({exc})"
         return

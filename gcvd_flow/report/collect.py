@@ -138,10 +138,12 @@ def _trajectory(data: ReportData, gt: str | Path | None) -> None:
 
 def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
     """Keyframes and gaps, loop edges found / verified / used, pose-graph residual."""
+    from gcvd_flow import pipeline as G  # the stage names as the pipeline declares them
+
     n, kf = len(data.run), data.keyframes
     if kf:
         gaps = np.diff([data.run.frame_indices[k] for k in kf]) if len(kf) > 1 else np.array([0])
-        max_gap = int((data.doc.get("config") or {}).get("keyframes", {}).get("max_gap", 39))
+        max_gap = int((data.doc.get("config") or {}).get("keyframes", {}).get("max_gap", G.KeyframesParams().max_gap))
         data.signals.append(Signal(
             "keyframes", f"{len(kf)} of {n} frames", "ok" if len(kf) >= 3 else "warn",
             f"gaps {int(gaps.min())}-{int(gaps.max())} frames (mean {gaps.mean():.1f}); "
@@ -150,11 +152,11 @@ def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
     if store is None:
         return
     try:
-        graph = recorded_part(data.doc, store, "association", ("graph",))
-        edges = recorded_part(data.doc, store, "optimize_edges", ("edges",))
-        pg = {k: recorded_part(data.doc, store, "pose_graph", (k,))
+        graph = recorded_part(data.doc, store, G.ASSOCIATION.name, ("graph",))
+        edges = recorded_part(data.doc, store, G.OPTIMIZE_EDGES.name, ("edges",))
+        pg = {k: recorded_part(data.doc, store, G.POSE_GRAPH.name, (k,))
               for k in ("enabled", "initial_error", "final_error")}
-        rejected = recorded_part(data.doc, store, "pose_graph", ("rejected_loops",)) if pg["enabled"] else []
+        rejected = recorded_part(data.doc, store, G.POSE_GRAPH.name, ("rejected_loops",)) if pg["enabled"] else []
     except CACHE_ERRORS + (IndexError,) as exc:
         data.notes.append(f"loop edges and pose graph: not readable from the cache ({exc})")
         return
@@ -216,6 +218,8 @@ def depth_agreement(run: RunData, keyframes: list[int], pairs: int = 12, stride:
 
 def _frame_signals(data: ReportData, store: Any) -> None:
     """Share of pixels passing flow consistency, static share, valid depth share, intrinsics."""
+    from gcvd_flow import pipeline as G  # the stage names as the pipeline declares them
+
     run = data.run
     valid = [float(np.mean(run.depth(k) > 0)) for k in _sample(len(run), 24)]
     v = float(np.mean(valid))
@@ -233,10 +237,10 @@ def _frame_signals(data: ReportData, store: Any) -> None:
     if store is None:
         return
     try:
-        flows = _map_output(run.run_dir, "flow", data.cache)
+        flows = _map_output(run.run_dir, G.FLOW.name, data.cache)
         fwd = [flows[i] for i in _sample(len(flows), 24)]
         share = float(np.mean([np.mean(f["fwd_valid"]) * 0.5 + np.mean(f["bwd_valid"]) * 0.5 for f in fwd]))
-        masks = _map_output(run.run_dir, "masks", data.cache)
+        masks = _map_output(run.run_dir, G.MASKS.name, data.cache)
         static = float(np.mean([np.mean(masks[i]["static"] > 0) for i in _sample(len(masks), 24)]))
     except CACHE_ERRORS as exc:
         data.notes.append(f"flow and masks: not readable from the cache ({exc})")
@@ -251,13 +255,15 @@ def _frame_signals(data: ReportData, store: Any) -> None:
 
 def _strip(data: ReportData, store: Any, every: int | None, max_frames: int) -> None:
     """Every N-th frame: RGB (from the cache), depth (RUN_DIR), static mask (cache)."""
+    from gcvd_flow import pipeline as G  # the stage names as the pipeline declares them
+
     n = len(data.run)
     step = every or max(1, -(-n // max_frames))
     frames = masks = None
     if store is not None:
         try:
-            frames = _map_output(data.run.run_dir, "ingest", data.cache)
-            masks = _map_output(data.run.run_dir, "masks", data.cache)
+            frames = _map_output(data.run.run_dir, G.RUN_DIR_SOURCES.frames, data.cache)
+            masks = _map_output(data.run.run_dir, G.MASKS.name, data.cache)
         except CACHE_ERRORS as exc:
             data.notes.append(f"frames and masks: not readable from the cache ({exc})")
             frames = masks = None

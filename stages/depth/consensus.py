@@ -37,6 +37,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from stages.depth.params import DepthConsensusSettings
+
 PRIOR_WEIGHT = 0.01  # weight of an estimate with confidence 0: it counts only where no view is sure
 CONFIDENCE_POWER = 2  # a view at confidence 0.9 outweighs one at 0.5 by 3.2
 BLOCK_ROWS = 32  # rows of frame i handled at once (the result is bit-identical for any)
@@ -72,6 +74,9 @@ class _Camera:
         return pu / pz_safe, pv / pz_safe, pz
 
 
+_DEFAULTS = DepthConsensusSettings()  # the stage's parameters (stages/depth/params.py)
+
+
 def carry_depth(cam: _Camera, rows: slice, depth_i: np.ndarray, depth_j: np.ndarray, conf_j: np.ndarray,
                 T_j_i: np.ndarray, valid_j: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Frame j's depth carried to frame i's pixels in ``rows``.
@@ -103,8 +108,8 @@ def consensus_depth(
     pose: np.ndarray,
     refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     K: np.ndarray,
-    max_log_dev: float = 0.2,
-    reproj_sigma_px: float = 3.0,
+    max_log_dev: float = _DEFAULTS.max_log_dev,
+    reproj_sigma_px: float = _DEFAULTS.reproj_sigma_px,
     static: np.ndarray | None = None,
     ref_static: Sequence[np.ndarray] | None = None,
 ) -> np.ndarray:

@@ -27,7 +27,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from stages.depth.params import DepthFilterSettings
 from stages.geometry.image import inside_image
+
+_DEFAULTS = DepthFilterSettings()  # the stage's parameters (stages/depth/params.py)
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +105,8 @@ def filter_depth(
     fwd_flows: np.ndarray,
     bwd_flows: np.ndarray,
     center: int,
-    radius: int = 4,
-    border: int = 4,
+    radius: int = _DEFAULTS.radius,
+    border: int = _DEFAULTS.border,
 ) -> np.ndarray:
     """Filter the depth of frame ``center`` with its ±radius neighbours.
 

@@ -32,11 +32,15 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from stages.depth.params import DepthFusionSettings
 from stages.frontend import flow as flow_mod
 from stages.geometry.two_view import triangulate_depths
 
 MIN_MEASUREMENTS = 30  # per reference: fewer triangulated pixels say nothing about the scale
 ANGLE_SCALE_DEG = 1.0  # a 1 deg triangulation angle gives confidence 0.63 (x agreement, coverage)
+
+
+_DEFAULTS = DepthFusionSettings()  # the stage's parameters (stages/depth/params.py)
 
 
 def _angles_deg(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -54,11 +58,11 @@ def fuse_depth(
     pose: np.ndarray,
     refs: Sequence[tuple[np.ndarray, np.ndarray]],
     K: np.ndarray,
-    preset: str = "fine",
-    fb_thresh: float = 1.0,
-    min_angle_deg: float = 0.2,
-    max_log_dev: float = 0.6,
-    agree_log_dev: float = 0.3,
+    preset: str = _DEFAULTS.preset,
+    fb_thresh: float = _DEFAULTS.fb_thresh,
+    min_angle_deg: float = _DEFAULTS.min_angle_deg,
+    max_log_dev: float = _DEFAULTS.max_log_dev,
+    agree_log_dev: float = _DEFAULTS.agree_log_dev,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Fused depth float32 (H, W) of one frame, the fraction of pixels measured, and the
     per-pixel confidence float32 (H, W) in [0, 1] (module docstring).
@@ -98,9 +102,9 @@ def fuse_depth_flows(
     pose: np.ndarray,
     flows: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     K: np.ndarray,
-    min_angle_deg: float = 0.2,
-    max_log_dev: float = 0.6,
-    agree_log_dev: float = 0.3,
+    min_angle_deg: float = _DEFAULTS.min_angle_deg,
+    max_log_dev: float = _DEFAULTS.max_log_dev,
+    agree_log_dev: float = _DEFAULTS.agree_log_dev,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """``fuse_depth`` with the flows given: flows [(fwd float32 (H, W, 2) this frame -> j,
     fwd_valid bool (H, W) its forward-backward consistency, pose_j (4, 4) camera-to-world), ...]

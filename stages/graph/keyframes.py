@@ -15,10 +15,12 @@ from typing import Any, Iterable, Mapping, TypedDict
 
 import numpy as np
 
+from stages.graph.params import KeyframesSettings
+
 log = logging.getLogger(__name__)
 
-DEFAULT_DELTA: float = 0.1
-DEFAULT_MAX_GAP: int = 39
+
+_DEFAULTS = KeyframesSettings()  # the keyframes stage's parameters (stages/graph/params.py)
 
 
 class KeyframeSelection(TypedDict):
@@ -60,8 +62,8 @@ def select_keyframes(
     motion: np.ndarray | list[float],
     height: int,
     width: int,
-    delta: float = DEFAULT_DELTA,
-    max_gap: int = DEFAULT_MAX_GAP,
+    delta: float = _DEFAULTS.delta,
+    max_gap: int = _DEFAULTS.max_gap,
 ) -> KeyframeSelection:
     """Select keyframes from per-pair image motion.
 

@@ -33,9 +33,12 @@ from typing import TYPE_CHECKING, Literal, Mapping, Sequence, TypedDict
 import numpy as np
 
 from stages.optimize import ba_solver
+from stages.optimize.params import BundleAdjustmentSettings
 
 if TYPE_CHECKING:
     import gtsam
+
+_DEFAULTS = BundleAdjustmentSettings()  # the stage's parameters (stages/optimize/params.py)
 
 log = logging.getLogger(__name__)
 
@@ -177,10 +180,12 @@ def _median_error(problem: ba_solver.Problem, poses: np.ndarray, landmarks: np.n
 
 def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                         edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
-                        K: np.ndarray, stride: int = 12, track_length: int = 8, min_views: int = 3,
-                        robust_px: float = 0.3, prior_rot_sigma: float = 0.05, prior_trans_frac: float = 0.05,
-                        max_iterations: int = 30, consistent_px: float = 0.25,
-                        solver: Literal["schur", "gtsam"] = "schur") -> BundleResult:
+                        K: np.ndarray, stride: int = _DEFAULTS.stride, track_length: int = _DEFAULTS.track_length,
+                        min_views: int = _DEFAULTS.min_views, robust_px: float = _DEFAULTS.robust_px,
+                        prior_rot_sigma: float = _DEFAULTS.prior_rot_sigma,
+                        prior_trans_frac: float = _DEFAULTS.prior_trans_frac,
+                        max_iterations: int = _DEFAULTS.max_iterations, consistent_px: float = _DEFAULTS.consistent_px,
+                        solver: Literal["schur", "gtsam"] = _DEFAULTS.solver) -> BundleResult:
     """Refine keyframe poses T_w_k (K, 4, 4) over tracks of the keyframe graph
     (:func:`build_tracks`), landmarks as inverse depth in their first keyframe.
 

@@ -1,7 +1,8 @@
-"""Parameters of the three optimisations, declared once (plain dataclasses, one per concern).
+"""Parameters of the optimisations, declared once (plain dataclasses, one per concern).
 
 The pipeline derives its config sections from these classes (``gcvd_flow.pipeline``:
-``depth``, ``losses``, ``optimize_keyframes``, ``optimize_edges``, ``optimize_segments``), so a
+``depth``, ``losses``, ``optimize_keyframes``, ``optimize_edges``, ``optimize_segments``,
+``pose_graph``, ``bundle_adjustment``; see ``stages/params.py``), so a
 field's name, default, description and constraint are written here only. ``metadata`` holds the
 ``description`` and the numeric constraints (``ge``, ``gt``, ...) the config section enforces.
 The stage functions read the fields as attributes, so they accept these dataclasses and the
@@ -13,18 +14,13 @@ the losses are evaluated; ``points`` = samples per ordered frame pair per step.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
-__all__ = ["DepthModel", "LossWeights", "KeyframeSettings", "EdgeSettings", "SegmentSettings"]
+from stages.params import param as _f
 
-
-def _f(default: Any, description: str = "", **constraints: Any) -> Any:
-    """A dataclass field with a config description and pydantic-style constraints."""
-    md: dict[str, Any] = dict(constraints)
-    if description:
-        md["description"] = description
-    return field(default=default, metadata=md)
+__all__ = ["DepthModel", "LossWeights", "KeyframeSettings", "EdgeSettings", "SegmentSettings",
+           "PoseGraphSettings", "BundleAdjustmentSettings"]
 
 
 @dataclass(frozen=True)
@@ -123,3 +119,35 @@ class SegmentSettings:
     threads: int = _f(1, "torch threads per window; the windows are independent and run side by side on "
                       "the run's worker processes (--jobs), so one thread each keeps every core busy "
                       "(results are bit-identical only for the same count, whatever --jobs is)", ge=1)
+
+
+@dataclass(frozen=True)
+class PoseGraphSettings:
+    """Pose graph over the keyframes (stages.optimize.pose_graph)."""
+
+    enabled: bool = True
+    kind: Literal["se3", "sim3"] = "se3"
+    max_iterations: int = 100
+    loop_weight: float = 1.0
+    max_loop_rotation_deg: float = _f(30.0, "loop edges disagreeing more with odometry are ignored", gt=0)
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentSettings:
+    """Bundle adjustment of the keyframe poses over flow tracks (stages.optimize.bundle_adjustment)."""
+
+    enabled: bool = _f(True, "refine keyframe poses over flow tracks (robust reprojection "
+                       "factors) after the pose graph")
+    stride: int = _f(12, "px between track starts in every keyframe", ge=2)
+    track_length: int = _f(8, "keyframes a track follows at most (plus one hop across each loop edge)", ge=2)
+    min_views: int = _f(3, "keyframes that must see a point", ge=2)
+    robust_px: float = _f(0.3, "Cauchy scale of the reprojection error, px", gt=0)
+    prior_rot_sigma: float = _f(0.05, "weak prior to the pose graph, rad", gt=0)
+    prior_trans_frac: float = _f(0.05, "weak prior to the pose graph, x median depth", gt=0)
+    max_iterations: int = _f(30, ge=1)
+    consistent_px: float = _f(0.25, "keep the pose graph's poses when they already reproject the tracks "
+                              "to this median error, px (flow noise, no drift)", ge=0)
+    solver: Literal["schur", "gtsam"] = _f("schur", "Levenberg-Marquardt of the same cost: 'schur' (numpy, "
+                                           "analytic Jacobians, landmarks eliminated by the Schur complement; "
+                                           "~10x faster) or 'gtsam' (gtsam_unstable's inverse-depth factors, "
+                                           "numerical derivatives; the reference)")

@@ -1,0 +1,60 @@
+"""Parameters of the depth stages (depth_fusion, depth_filter, depth_consensus): one frozen
+dataclass per stage; the pipeline derives each config section from it (``stages/params.py``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from stages.params import param
+
+
+def _positive_offsets(v: tuple[int, ...]) -> tuple[int, ...]:
+    if any(k <= 0 for k in v):
+        raise ValueError("offsets are frame distances k > 0 (frames i - k and i + k are used)")
+    return tuple(sorted(set(v)))
+
+
+@dataclass(frozen=True)
+class DepthFusionSettings:
+    """Optimised depth fused with multi-view triangulation (stages.depth.fusion)."""
+
+    enabled: bool = True
+    offsets: tuple[int, ...] = param((-8, 8), "reference frames (relative index) triangulated against each "
+                                     "frame with the final poses")
+    preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
+    fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
+    min_angle_deg: float = param(0.2, "smallest usable triangulation angle", ge=0)
+    max_log_dev: float = param(0.6, "measurements further from the optimised depth (|log ratio|) are "
+                               "dropped (0.3 until 2026-11-24: AbsRel ICL 0.0530 -> 0.0523, loop 0.0419 -> 0.0405)",
+                               gt=0)
+    agree_log_dev: float = param(0.3, "measurements within this of the optimised depth count as agreeing in "
+                                 "the confidence", gt=0)
+
+
+@dataclass(frozen=True)
+class DepthFilterSettings:
+    """CVD2-style depth filter over +-radius neighbours (stages.depth.filter)."""
+
+    enabled: bool = True
+    radius: int = param(4, ge=0)
+    border: int = 4
+    fill_from: float = param(0.7, "depth confidence of the pixels an edge-aware fill of uncertain depth is "
+                             "made from", ge=0, le=1)
+    fill_below: float = param(0.0, "pixels less confident than this are pulled towards that fill (in "
+                              "proportion; 0 = off, the default: it helps ICL, AbsRel 0.053 -> 0.049, and "
+                              "hurts the synthetic loop, 0.042 -> 0.129)", ge=0, le=1)
+
+
+@dataclass(frozen=True)
+class DepthConsensusSettings:
+    """Filtered depth averaged with what other views see (stages.depth.consensus)."""
+
+    enabled: bool = True
+    offsets: tuple[int, ...] = param((8, 16, 24, 32, 48, 64), "references (frames i - k and i + k) whose "
+                                     "filtered depth is carried into frame i with the final poses",
+                                     validator=_positive_offsets)
+    max_log_dev: float = param(0.2, "a carried depth further from frame i's (|log ratio|) is another surface "
+                               "(an occlusion) and not used", gt=0)
+    reproj_sigma_px: float = param(3.0, "round-trip reprojection error scale, px (weight exp(-(e / sigma)^2))",
+                                   gt=0)

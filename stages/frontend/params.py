@@ -1,0 +1,80 @@
+"""Parameters of the front-end stages (ingest, flow, masks, priors): one frozen dataclass per
+stage; the pipeline derives each config section from it (``stages/params.py``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from stages.frontend.ingest import parse_intrinsics
+from stages.params import WEIGHTS_FILE, param
+
+DisPreset = Literal["ultrafast", "fast", "medium", "fine"]
+
+
+def _valid_intrinsics(v: str | None) -> str | None:
+    if v is not None:
+        parse_intrinsics(v)  # ValueError naming what is wrong
+    return v
+
+
+@dataclass(frozen=True)
+class IngestSettings:
+    """Which source frames, at which working resolution, with which intrinsics."""
+
+    start: int = param(0, "first source frame", ge=0)
+    end: int | None = param(None, "one past the last source frame (None: all)")
+    stride: int = param(1, "take every stride-th frame", ge=1)
+    long_side: int = param(256, "working resolution, px of the long side (paper: 384)", ge=16)
+    intrinsics: str | None = param(None, "fx,fy,cx,cy at the source resolution", validator=_valid_intrinsics)
+
+
+@dataclass(frozen=True)
+class FlowSettings:
+    """Flow of adjacent pairs (stages.frontend.flow.compute_pair_flow)."""
+
+    backend: Literal["dis", "raft"] = "dis"
+    preset: DisPreset = param("fine", "DIS preset; 'fine' = medium at full resolution (loop clip: ATE 0.06 % vs "
+                              "0.08 % of the path with 'medium', at ~3.5x the flow time)")
+    fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
+    weights: str | None = param(None, "RAFT weights file", json_schema_extra=WEIGHTS_FILE)
+
+    def check(self) -> None:
+        if self.backend == "raft" and not self.weights:
+            raise ValueError("flow.backend=raft needs flow.weights=FILE (raft-things, .pth or .safetensors)")
+
+
+@dataclass(frozen=True)
+class MasksSettings:
+    """Likely-dynamic pixels (stages.frontend.masks, stages.models.maskrcnn)."""
+
+    backend: Literal["motion", "maskrcnn", "motion+maskrcnn", "none"] = param(
+        "motion", "motion: flow vs. static geometry; maskrcnn: COCO instances of moving "
+        "classes (needs weights); motion+maskrcnn: dynamic if either says so")
+    dilate: int = param(5, ge=0)
+    span: int = param(6, "frames spanned by the chained flow (an object moving along epipolar lines over 1 "
+                      "frame rarely does over several)", ge=1)
+    weights: str | None = param(None, "Mask R-CNN weights file", json_schema_extra=WEIGHTS_FILE)
+    score_thresh: float = param(0.5, "Mask R-CNN detections scoring less are ignored", ge=0, le=1)
+    min_size: int = param(800, "Mask R-CNN input short side, px (torchvision: 800)", ge=32)
+
+    def check(self) -> None:
+        if "maskrcnn" in self.backend and not self.weights:
+            raise ValueError(f"masks.backend={self.backend} needs masks.weights=FILE "
+                             "(torchvision maskrcnn_resnet50_fpn weights, .pth or .safetensors)")
+
+
+@dataclass(frozen=True)
+class PriorsSettings:
+    """Single-image depth prior (stages.frontend.priors, stages.models.midas)."""
+
+    backend: Literal["geometric", "midas"] = "geometric"
+    span: int = param(8, "frames between a frame and its reference for triangulation", ge=1)
+    preset: DisPreset = param("fine", "DIS preset of the prior's direct flows ('fine': full-resolution "
+                              "finest level; prior AbsRel 0.058 vs 0.095 with 'medium' on the synthetic loop)")
+    fb_thresh: float = param(1.0, gt=0)
+    weights: str | None = param(None, "MiDaS weights file", json_schema_extra=WEIGHTS_FILE)
+
+    def check(self) -> None:
+        if self.backend == "midas" and not self.weights:
+            raise ValueError("priors.backend=midas needs priors.weights=FILE (MiDaS v2.1 small, .pt or .safetensors)")
