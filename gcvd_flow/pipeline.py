@@ -40,7 +40,7 @@ from gcvd_flow.io.sources import Source, open_source as _open_source
 from gcvd_flow.io.weights import open_model
 from stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion, params as depth_params
 from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, params as frontend_params, priors as priors_mod
-from stages.graph import keyframes as keyframes_mod, params as graph_params
+from stages.graph import keyframes as keyframes_mod, params as graph_params, references
 from stages.optimize import params as opt_params
 
 WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
@@ -185,30 +185,20 @@ FLOW = declare(MapStage("flow", run_flow, deps=(INGEST,), params="flow", kind="f
 # depth_fusion.offsets computes only the new pairs and leaves priors' items cached. Pair (a, b)
 # (a < b) holds compute_pair_flow(a, b): frame b's flow to a is its bwd / bwd_valid, exactly
 # what compute_pair_flow(b, a) returns as fwd / fwd_valid.
-def _prior_refs(i: int, n: int, p: "PriorsParams") -> list[int]:
-    """Frame i's prior references: span and span/2 frames back, forward for the first frames."""
-    if p.backend != "geometric":
-        return []
-    step = -1 if (i >= p.span or i >= n - 1 - i) else 1
-    js = [min(max(i + step * k, 0), n - 1) for k in (p.span, max(1, p.span // 2))]
-    return [j for j in js if j != i]
+def _prior_refs(i: int, n: int, p: Any) -> list[int]:
+    """Frame i's prior references (the geometric backend only): stages.graph.references."""
+    return references.prior_references(i, n, p.span) if p.backend == "geometric" else []
 
 
-def _fusion_refs(i: int, n: int, p: "DepthFusionParams") -> list[int]:
-    return [i + off for off in p.offsets if 0 <= i + off < n and off != 0] if p.enabled else []
+def _fusion_refs(i: int, n: int, p: Any) -> list[int]:
+    return references.offset_references(i, n, p.offsets) if p.enabled else []
 
 
-def _far_pair(i: int, j: int, preset: str, fb_thresh: float) -> tuple[int, int, str, float]:
-    return (min(i, j), max(i, j), preset, float(fb_thresh))
-
-
-def _far_pairs(n: int, b: Any) -> list[tuple[int, int, str, float]]:
-    pairs = set()
-    for i in range(n):
-        pairs.update(_far_pair(i, j, b.priors.preset, b.priors.fb_thresh) for j in _prior_refs(i, n, b.priors))
-        pairs.update(_far_pair(i, j, b.depth_fusion.preset, b.depth_fusion.fb_thresh)
-                     for j in _fusion_refs(i, n, b.depth_fusion))
-    return sorted(pairs)
+def _far_pairs(n: int, b: Any) -> list[references.FarPair]:
+    """The pairs flow_far computes: what priors and depth_fusion (bundle ``b``) ask for."""
+    return references.far_pairs(n, [(lambda i: _prior_refs(i, n, b.priors), b.priors.preset, b.priors.fb_thresh),
+                                    (lambda i: _fusion_refs(i, n, b.depth_fusion), b.depth_fusion.preset,
+                                     b.depth_fusion.fb_thresh)])
 
 
 def _flow_far_items(view, b: Any):
@@ -228,7 +218,7 @@ def _far_index(view) -> dict[tuple, int]:
 def _far_refs(index: dict[tuple, int], i: int, js: list[int], preset: str, fb_thresh: float) -> dict[str, Any]:
     """Item inputs reading frame i's flows to frames js from flow_far: refs (the pair items)
     and ref_dirs ("fwd": i is the pair's first frame, "bwd": its second)."""
-    return {"refs": [ItemRef(FLOW_FAR, index[_far_pair(i, j, preset, fb_thresh)]) for j in js],
+    return {"refs": [ItemRef(FLOW_FAR, index[references.far_pair(i, j, preset, fb_thresh)]) for j in js],
             "ref_dirs": Const(["fwd" if i < j else "bwd" for j in js])}
 
 
@@ -256,17 +246,9 @@ MasksParams = section("masks", frontend_params.MasksSettings)
 
 
 def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
-    """Flows from frame i toward a reference `span` frames away: backward (i -> i-1 -> ...),
-    or forward for the first `span` frames. Existing items never read later frames once the
-    clip has 2*span frames, so extending a clip only adds items."""
-    refs: dict[str, Any] = {}
-    if i >= span or i >= n - 1 - i:
-        refs["direction"] = Const("bwd")
-        refs["chain"] = [ItemRef(FLOW, i - 1 - k) for k in range(min(span, i))]
-    else:
-        refs["direction"] = Const("fwd")
-        refs["chain"] = [ItemRef(FLOW, i + k) for k in range(min(span, n - 1 - i))]
-    return refs
+    """Flows from frame i toward a reference `span` frames away (stages.graph.references.flow_chain)."""
+    direction, flows = references.flow_chain(i, n, span)
+    return {"direction": Const(direction), "chain": [ItemRef(FLOW, k) for k in flows]}
 
 
 def _mask_items(view, p: MasksParams):
@@ -707,7 +689,7 @@ def _filter_items(view, p: DepthFilterParams):
     r = p.radius if p.enabled else 0
     out = []
     for i in range(n):
-        lo, hi = max(0, i - r), min(n - 1, i + r)
+        lo, hi = references.window(i, n, r)
         out.append({"center": Const(i - lo), "depths": [ItemRef(DEPTH_FUSION, j) for j in range(lo, hi + 1)],
                     "flows": [ItemRef(FLOW, j) for j in range(lo, hi)], "image": ItemRef(INGEST, i)})
     return out
@@ -744,7 +726,7 @@ def _consensus_items(view, p: DepthConsensusParams):
     n = view.len(INGEST)
     out = []
     for i in range(n):
-        refs = [j for k in (p.offsets if p.enabled else ()) for j in (i - k, i + k) if 0 <= j < n]
+        refs = references.symmetric_references(i, n, p.offsets) if p.enabled else []
         out.append({"index": Const(i), "K": PartRef(INGEST, ("K",), summary=True),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)), "depth": ItemRef(DEPTH_FILTER, i),
                     "refs": [ItemRef(DEPTH_FILTER, j) for j in refs], "ref_indices": Const(refs),
