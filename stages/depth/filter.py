@@ -39,7 +39,9 @@ INCONSISTENCY_WEIGHT: float = 0.1
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear sample ``img`` (H, W[, C]) at float pixel positions (x, y) (H', W')."""
+    """Bilinear sample ``img`` (H, W[, C]) at float pixel positions (x, y) (H', W') with OpenCV
+    (positions quantised to 1/32 px, border replicated): not ``warp_sample``, whose exact
+    positions would change the filter's results."""
     return cv2.remap(
         np.ascontiguousarray(img, dtype=np.float32),
         np.ascontiguousarray(x, dtype=np.float32),

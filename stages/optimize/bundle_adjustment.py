@@ -57,7 +57,10 @@ class BundleResult(TypedDict):
 
 
 def _bilinear(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """field (H, W, C) sampled at float pixel positions (x, y) (M,) -> (M, C)."""
+    """field (H, W, C) sampled at float pixel positions (x, y) (M,) -> (M, C); positions past the
+    last pixel extrapolate the border cell. Not ``stages.frontend.flow.warp_sample``: that one
+    clamps positions and multiplies f * (1 - fx) * (1 - fy) where this groups
+    ((1 - fx) * (1 - fy)) * f, so merging them would change bundle adjustment's bits (1e-16 apart)."""
     h, w = field.shape[:2]
     x0 = np.clip(np.floor(x).astype(np.int64), 0, w - 2)
     y0 = np.clip(np.floor(y).astype(np.int64), 0, h - 2)
