@@ -509,26 +509,24 @@ PoseGraphParams = section("pose_graph", opt_params.PoseGraphSettings)
 def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     """Keyframe poses + sequential and loop edges -> globally consistent keyframe poses."""
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
+    from stages.geometry import se3
     from stages.optimize import pose_graph as pose_graph_mod
 
     okf = inputs["optimize_keyframes"]
     T_w_k = np.asarray(okf["poses"], np.float64)
     if not p.enabled or len(T_w_k) < 2:
         return {"poses": T_w_k, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
-    # the optimisations give T_b_a = inv(T_w_b) @ T_w_a; the pose graph measures T_a_b = inv(T_w_a) @ T_w_b
-    edges = [{"a": r["a"], "b": r["b"], "T_a_b": _inv(r["T_b_a"]), "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
+    # edges T_b_a = inv(T_w_b) @ T_w_a as the optimisations give them (the pose graph inverts)
+    edges = [{"a": r["a"], "b": r["b"], "T_b_a": r["T_b_a"], "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
     rejected = []
     for e in inputs["optimize_edges"]["edges"]:
-        T_a_b = _inv(e["T_b_a"])
         # Gate gross outliers: drift bends a trajectory by degrees, not tens of degrees, so a
         # loop measurement that disagrees that much with odometry is a failed edge optimisation.
-        T_a_b_odo = np.linalg.inv(T_w_k[e["a"]]) @ T_w_k[e["b"]]
-        dR = T_a_b_odo[:3, :3].T @ T_a_b[:3, :3]
-        angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        angle = se3.loop_disagreement_deg(T_w_k[e["a"]], T_w_k[e["b"]], e["T_b_a"])
         if angle > p.max_loop_rotation_deg:
             rejected.append({"i": e["i"], "j": e["j"], "rotation_disagreement_deg": angle})
             continue
-        edges.append({"a": e["a"], "b": e["b"], "T_a_b": T_a_b, "weight": p.loop_weight})
+        edges.append({"a": e["a"], "b": e["b"], "T_b_a": e["T_b_a"], "weight": p.loop_weight})
     if rejected:
         ctx.log(f"ignored {len(rejected)} loop edge(s) disagreeing with odometry by > {p.max_loop_rotation_deg} deg")
     res = pose_graph_mod.optimize_pose_graph(T_w_k, edges, kind=p.kind, max_iterations=p.max_iterations)

@@ -210,3 +210,14 @@ def test_backbones_are_seeded() -> None:
     a, b, c = DepthNet(seed=3), DepthNet(seed=3), DepthNet(seed=4)
     assert torch.equal(a.unet.e1.weight, b.unet.e1.weight)
     assert not torch.equal(a.unet.e1.weight, c.unet.e1.weight)
+
+
+def test_loop_disagreement_is_the_rotation_between_measurement_and_odometry() -> None:
+    from stages.geometry import se3
+
+    T_w_a, T_w_b = G.se3_exp(0.3 * _rand_twists(1, 8))[0].numpy(), G.se3_exp(0.3 * _rand_twists(1, 9))[0].numpy()
+    T_b_a = np.linalg.inv(T_w_b) @ T_w_a
+    assert se3.loop_disagreement_deg(T_w_a, T_w_b, T_b_a) < 1e-5
+    turn = np.eye(4)
+    turn[:3, :3] = G.so3_exp(torch.tensor([0.0, 0.0, np.radians(40.0)], dtype=torch.float64)).numpy()
+    assert abs(se3.loop_disagreement_deg(T_w_a, T_w_b, turn @ T_b_a) - 40.0) < 1e-6

@@ -22,6 +22,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from stages.frontend.params import MasksSettings
+
 log = logging.getLogger(__name__)
 
 GRID_STEP = 4  # px between sampled correspondences for the robust fit
@@ -81,7 +83,7 @@ def motion_residual(K: np.ndarray, flow: np.ndarray, valid: np.ndarray, seed: in
     return res.reshape(h, w).astype(np.float32)
 
 
-def motion_static_mask(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], dilate: int = 5,
+def motion_static_mask(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], dilate: int = MasksSettings.dilate,
                        min_threshold: float = 1.0, sigma_mult: float = 4.0, min_area: float = 0.002,
                        seed: int = 0) -> np.ndarray:
     """Static mask of one frame from its flows to neighbours: uint8 (H, W), 1 = static.

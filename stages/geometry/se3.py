@@ -69,3 +69,12 @@ def se3_dlog(xi: np.ndarray, terms: int = 40) -> np.ndarray:
     for k in range(terms, 0, -1):  # Horner: I + (-ad)/2 (I + (-ad)/3 (I + ...))
         J = np.eye(6) - (ad @ J) / (k + 1)
     return np.linalg.inv(J)
+
+
+def loop_disagreement_deg(T_w_a: np.ndarray, T_w_b: np.ndarray, T_b_a: np.ndarray) -> float:
+    """Rotation angle (degrees) between a measured relative pose T_b_a = inv(T_w_b) @ T_w_a (a loop
+    edge, (4, 4)) and the one the camera-to-world poses T_w_a, T_w_b (4, 4 float64) imply."""
+    T_a_b = np.linalg.inv(np.asarray(T_b_a, np.float64))
+    T_a_b_odo = np.linalg.inv(T_w_a) @ T_w_b
+    dR = T_a_b_odo[:3, :3].T @ T_a_b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
