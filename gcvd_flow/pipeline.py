@@ -43,8 +43,6 @@ from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, para
 from stages.graph import keyframes as keyframes_mod, params as graph_params, references
 from stages.optimize import params as opt_params
 
-WEIGHTS = {"file": True}  # marks a path parameter: its content digest enters the key
-
 # What the blocks below declare, in order: the config sections (name -> model) and the stages.
 # GCVDConfig and PIPELINE at the end are assembled from them, so adding a stage is one block.
 _SECTIONS: dict[str, type[Section]] = {}
