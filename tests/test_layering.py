@@ -5,6 +5,11 @@
   cv2 nor torch, at module level or inside functions;
 * ``stages/`` never imports ``gcvd_flow`` or ``artifacts_schema`` and never touches the file
   system (the engine serialises, the product reads files);
+* only ``gcvd_flow/pipeline.py`` and the weights opener import ``stages/``;
+* no import cycle among the project's modules (imports inside functions count), and reading data
+  (``gcvd_flow/io``) depends on no exporter, report or evaluation;
+* importing the engine sets no process setting (the product's entry points do), and the engine
+  spells its name and environment variables once (``gcvd_flow/engine/names.py``);
 * no function in ``stages/`` or ``gcvd_flow/`` is longer than 80 lines unless a comment on the
   line before it says why it must be long.
 """
