@@ -7,7 +7,9 @@ pose ``T_b_a`` (4, 4) maps camera-a coordinates to camera-b coordinates:
 
 The 6-vector pose parameterisation used by the optimiser is ``(r, t)``: axis-angle rotation
 ``r`` (rad) and translation ``t`` (scene units), ``T = [[R(r), t], [0, 1]]``. Proper SE(3)
-``se3_exp`` / ``se3_log`` (twist ``(v, w)`` with the left Jacobian) are provided as well.
+``se3_exp`` / ``se3_log`` are provided as well, with the twist in the order used everywhere in
+gcvd-flow: ``(w, v)`` = (rotation rad, then translation), as ``stages.geometry.se3`` (numpy) and
+gtsam's Pose3, and as ``(r, t)`` above.
 """
 
 from __future__ import annotations
