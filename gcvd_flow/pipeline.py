@@ -6,9 +6,11 @@
     -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] (reads flow_far)
     -> depth_filter [map: frame] -> depth_consensus [map: frame]
 
-Each block holds everything about one stage: its parameters (a pydantic section: ``--set
-section.key=value``), for a map stage the inputs of each item (typed references: an item of
-another stage, a list of them, a part of a whole stage's output, a constant), the function the
+Each block holds everything about one stage: its parameters (a pydantic section, ``--set
+section.key=value``, derived from the stage's parameter dataclass in ``stages/*/params.py``), for
+a map stage the inputs of each item (typed references to the declared stages: an item of another
+stage, a list of them, a part of a whole stage's output, a constant; which frames an item reads
+is ``stages/graph/references.py``'s), the function the
 engine calls — ``run_<stage>(inputs, params, ctx)``, which unpacks the inputs by the names the
 items declared and calls the algorithm in ``stages/`` — and the declaration. Each map item
 reads exactly the pieces it needs (a frame, its neighbours' flows, ...), so a trimmed, extended
