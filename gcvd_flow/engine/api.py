@@ -24,7 +24,10 @@ from typing import Any, Callable
 from gcvd_flow.engine.artifacts import register_schema_dir
 from gcvd_flow.engine.config import build_config
 from gcvd_flow.engine.dag import Pipeline
+from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.keys import is_digest
+from gcvd_flow.engine.outputs import check_out_dir, digest_outputs, outputs_of, run_dir_lock
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
 from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
@@ -132,21 +135,6 @@ def open_store(cache: str | None, verify: bool = True) -> Store:
     return store
 
 
-def check_out_dir(out: str | Path) -> Path:
-    """RUN_DIR must be (or be creatable as) a writable directory: checked before any work."""
-    p = Path(out)
-    if p.exists() and not p.is_dir():
-        raise UsageError(f"{p}: exists and is not a directory (--out needs a directory)")
-    anc = p
-    while not anc.exists():
-        anc = anc.parent
-    if not anc.is_dir():
-        raise UsageError(f"{anc}: is not a directory, so {p} cannot be created")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise UsageError(f"{anc}: not writable, so {p} cannot be {'written' if anc == p else 'created'}")
-    return p
-
-
 def _prepare(inv: Invocation, log: Callable[[str], None], target: str | None = None,
              allow_module_ref: bool = True, writes_out: bool = True) -> tuple[PipelineSpec, Any, Runner]:
     if not inv.pipeline:
@@ -172,24 +160,58 @@ def _stderr(msg: str) -> None:
 
 
 def read_run_dir(out: str | Path) -> dict[str, Any]:
+    """RUN_DIR/run.json, checked for the shape the engine writes (``check_run_doc``); every
+    problem is a one-line UsageError naming the file and the key."""
     p = Path(out) / RUN_FILE
-    try:
-        return json.loads(p.read_text())
-    except FileNotFoundError:
-        raise UsageError(f"{p}: no run recorded in this directory (run `gcvd-flow run` first)") from None
-    except json.JSONDecodeError:
-        raise UsageError(f"{p}: not a valid run record") from None
+    doc = jsonio.load_file(p, "run record", missing="no run recorded in this directory (run `gcvd-flow run` first)")
+    return check_run_doc(doc, str(p))
+
+
+_STAGE_FIELD_MAPS = ("params", "code_files", "inputs", "libraries", "env")
+
+
+def check_run_doc(doc: Any, where: str) -> dict[str, Any]:
+    """``doc`` if it has run.json's shape: an object whose ``stages`` maps names to
+    {key, output: digest or null, fields: object}, ``stage_order`` a list of its stage names,
+    ``invocation`` / ``config`` objects, ``cache`` a string and ``files`` path -> digest (all
+    optional but ``stages``). Raises UsageError("<where>: <key> ...") otherwise."""
+    if not isinstance(doc, dict):
+        raise UsageError(f"{where}: not a run record (a JSON object expected)")
+    stages = jsonio.field(doc, "stages", dict, where)
+    for name, st in stages.items():
+        if not isinstance(st, dict):
+            raise UsageError(f"{where}: stages.{name} must be an object")
+        for k in ("key", "output"):
+            if st.get(k) is not None and not is_digest(st[k]):
+                raise UsageError(f"{where}: stages.{name}.{k} must be a digest or null")
+        fields = jsonio.field(st, "fields", dict, f"{where}: stages.{name}", optional=True)
+        for k in _STAGE_FIELD_MAPS:
+            jsonio.field(fields or {}, k, dict, f"{where}: stages.{name}.fields", optional=True)
+    order = jsonio.field(doc, "stage_order", list, where, optional=True)
+    if order is not None and not all(isinstance(s, str) for s in order):
+        raise UsageError(f"{where}: stage_order must be a list of stage names")
+    for k in ("invocation", "config", "env"):
+        jsonio.field(doc, k, dict, where, optional=True)
+    inv = doc.get("invocation") or {}
+    for k in ("input", "config_file", "profile", "pipeline"):
+        jsonio.field(inv, k, str, f"{where}: invocation", optional=True)
+    sets = jsonio.field(inv, "sets", list, f"{where}: invocation", optional=True)
+    if sets is not None and not all(isinstance(s, str) for s in sets):
+        raise UsageError(f"{where}: invocation.sets must be a list of strings")
+    jsonio.field(doc, "cache", str, where, optional=True)
+    files = jsonio.field(doc, "files", dict, where, optional=True)
+    if files is not None and not all(isinstance(k, str) and is_digest(v) for k, v in files.items()):
+        raise UsageError(f"{where}: files must map paths to digests")
+    return doc
 
 
 def _previous_stages(out: str | None) -> dict[str, Any] | None:
-    if not out:
-        return None
-    p = Path(out) / RUN_FILE
-    if not p.exists():
+    """The stages run.json recorded, for `plan`'s reasons (None: no or an unusable run.json)."""
+    if not out or not (Path(out) / RUN_FILE).exists():
         return None
     try:
-        return json.loads(p.read_text()).get("stages")
-    except json.JSONDecodeError:
+        return read_run_dir(out)["stages"]
+    except UsageError:
         return None
 
 
@@ -220,6 +242,14 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
     recomputes exactly what it held; the run ends normally with one warning line naming the
     damaged objects and the stages that recomputed something. The same object failing twice
     (a recomputation that cannot restore it) is an error."""
+    if not inv.out:
+        return _run(inv, log, target, executor)
+    check_out_dir(inv.out)
+    with run_dir_lock(inv.out):  # one writer of RUN_DIR at a time (engine/outputs.py)
+        return _run(inv, log, target, executor)
+
+
+def _run(inv: Invocation, log: Callable[[str], None], target: str | None, executor: Any) -> dict[str, Any]:
     t0 = time.perf_counter()
     damaged: list[str] = []
     from_remote: set[str] = set()  # objects the remote could not supply (it said so on one line)
@@ -280,10 +310,11 @@ def _finish_run(inv: Invocation, spec: PipelineSpec, config: Any, runner: Runner
         out.mkdir(parents=True, exist_ok=True)
         if spec.export is not None and target is None:
             result["outputs"] = spec.export(out, runner, config)
+        files = digest_outputs(out, outputs_of(result))  # what compare --check and the fast path verify
         doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
                "stages": stage_records, "stage_order": list(stage_records),
                "env": spec.pipeline.numeric_env(), "gcvd_flow": _version(),
-               "cache": str(runner.store.root.resolve())}
+               "cache": str(runner.store.root.resolve()), "files": files}
         tmp = out / (RUN_FILE + ".tmp")
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
         os.replace(tmp, out / RUN_FILE)

@@ -237,6 +237,16 @@ def _print_run(res: dict[str, Any], json_mode: bool) -> None:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
+    if not a.out:
+        return _cmd_run_locked(a)
+    from gcvd_flow.engine.outputs import check_out_dir, run_dir_lock
+
+    check_out_dir(a.out)
+    with run_dir_lock(a.out):  # the fast path's answer and the stamp belong to this run only
+        return _cmd_run_locked(a)
+
+
+def _cmd_run_locked(a: argparse.Namespace) -> int:
     res = None if a.push else _fast_noop(a)  # --push: check the remote has everything
     if res is not None:
         _print_run(res, a.json_mode)

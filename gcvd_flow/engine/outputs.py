@@ -1,0 +1,169 @@
+"""RUN_DIR's own files: their digests in run.json, checking them, and one writer at a time.
+
+A run records in run.json (``files``) the BLAKE3 digest of every file its export wrote
+(relative path -> digest). ``check_files`` re-hashes them: `compare --check` calls two run
+dirs identical only when both match what their run.json says, and the no-op fast path stamps a
+run dir only after its files were checked against its run.json (a run dir mixed by two writers,
+or edited by hand, is never taken as up to date).
+
+``run_dir_lock`` is an OS lock on ``RUN_DIR/.gcvd-lock`` held while a run writes RUN_DIR (export,
+run.json, the fast-path stamp): a second run into the same RUN_DIR exits 2 with one line instead
+of interleaving its files with the first one's. The kernel releases it when the holder dies.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import stat
+import threading
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+from gcvd_flow.engine.errors import UsageError
+
+LOCK = ".gcvd-lock"
+# files in RUN_DIR that are not outputs: the engine's own bookkeeping, and what later commands
+# (eval, report, export) add to a finished run
+NOT_OUTPUTS = ("run.json", "run.json.tmp", ".gcvd-stamp.json", ".gcvd-stamp.json.tmp", LOCK)
+
+_held: dict[str, tuple[int, int, bool]] = {}  # abspath -> (fd, depth, created): reentrant within a process
+_held_lock = threading.Lock()
+
+
+def check_out_dir(out: str | Path) -> Path:
+    """RUN_DIR must be (or be creatable as) a writable directory: checked before any work."""
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{p}: exists and is not a directory (--out needs a directory)")
+    anc = p
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise UsageError(f"{anc}: is not a directory, so {p} cannot be created")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise UsageError(f"{anc}: not writable, so {p} cannot be {'written' if anc == p else 'created'}")
+    return p
+
+
+@contextlib.contextmanager
+def run_dir_lock(out: str | Path) -> Iterator[None]:
+    """Hold RUN_DIR's writer lock (creating RUN_DIR); UsageError at once when another process
+    holds it. Reentrant in one process (the CLI holds it around api.run, which takes it too)."""
+    key = os.path.abspath(out)
+    with _held_lock:
+        if key in _held:
+            fd, depth, created = _held[key]
+            _held[key] = (fd, depth + 1, created)
+        else:
+            created = not os.path.exists(key)
+            Path(key).mkdir(parents=True, exist_ok=True)
+            fd = os.open(os.path.join(key, LOCK), os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                _remove_if_empty(key, created)
+                if exc.errno in (errno.EAGAIN, errno.EACCES):
+                    raise UsageError(f"{out}: another run is writing this run directory; wait for it to "
+                                     f"finish or use another --out") from None
+                raise
+            _held[key] = (fd, 1, created)
+    try:
+        yield
+    finally:
+        with _held_lock:
+            fd, depth, created = _held[key]
+            if depth > 1:
+                _held[key] = (fd, depth - 1, created)
+            else:
+                del _held[key]
+                _remove_if_empty(key, created)
+                os.close(fd)  # releases the flock
+
+
+def _remove_if_empty(d: str, created: bool) -> None:
+    """A RUN_DIR this lock created and nothing wrote into (the run failed early) is removed."""
+    if not created:
+        return
+    try:
+        if os.listdir(d) == [LOCK]:
+            os.unlink(os.path.join(d, LOCK))
+            os.rmdir(d)
+    except OSError:
+        pass
+
+
+def _regular_files(root: Path, paths: Iterable[str | Path]) -> list[Path]:
+    """The regular files among ``paths`` and, for folders, under them (symlinks not followed)."""
+    out: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        try:
+            st = p.lstat()
+        except OSError:
+            continue
+        if stat.S_ISREG(st.st_mode):
+            out.append(p)
+        elif stat.S_ISDIR(st.st_mode):
+            for dirpath, dirnames, filenames in os.walk(p):  # os.walk follows no symlinked folders
+                dirnames.sort()
+                for f in sorted(filenames):
+                    q = Path(dirpath) / f
+                    if stat.S_ISREG(q.lstat().st_mode):
+                        out.append(q)
+    return sorted({q for q in out if q.name not in NOT_OUTPUTS})
+
+
+def digest_outputs(out: str | Path, paths: Iterable[str | Path]) -> dict[str, str]:
+    """Relative path (posix) -> BLAKE3 of every regular file among / under ``paths`` (what the
+    export returned), for run.json's ``files``."""
+    from gcvd_flow.engine.keys import digest_file
+
+    root = Path(out)
+    res = {}
+    for f in _regular_files(root, paths):
+        try:
+            rel = f.resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            continue  # an export that wrote outside RUN_DIR: not RUN_DIR's file
+        res[rel] = digest_file(f)
+    return dict(sorted(res.items()))
+
+
+def check_files(out: str | Path, files: dict[str, str] | None) -> list[str]:
+    """What differs between RUN_DIR's files and the digests its run.json records (``files``):
+    one line per missing, unreadable or changed file; one line when nothing is recorded (a run
+    dir from before file digests existed: it cannot be checked)."""
+    from gcvd_flow.engine.keys import digest_file
+
+    if files is None:
+        return ["run.json records no file digests (written by an older version; run again)"]
+    root = Path(out)
+    problems = []
+    for rel, want in sorted(files.items()):
+        p = root / rel
+        if ".." in Path(rel).parts or Path(rel).is_absolute():
+            problems.append(f"{rel}: not a path inside the run directory")
+            continue
+        try:
+            if not stat.S_ISREG(p.lstat().st_mode):
+                problems.append(f"{rel}: not a regular file")
+                continue
+            got = digest_file(p)
+        except FileNotFoundError:
+            problems.append(f"{rel}: missing")
+            continue
+        except OSError as exc:
+            problems.append(f"{rel}: unreadable ({exc.strerror or exc})")
+            continue
+        if got != want:
+            problems.append(f"{rel}: differs from what run.json records")
+    return problems
+
+
+def outputs_of(result: dict[str, Any]) -> list[str]:
+    """The paths an export returned (``result["outputs"]``: name -> path)."""
+    return [v for v in (result.get("outputs") or {}).values() if isinstance(v, str)]

@@ -1,0 +1,108 @@
+"""Hostile round two (issue 32): compare, eval's gate, run-many, remotes and the local store
+against wrong results that exit 0, data loss outside the cache, and hangs.
+
+Each test here fails without its fix. Two 16-frame GCVD runs (``base`` and ``var``, which
+differs in optimize_segments.steps) are made once for the module; the engine cases use the toy
+pipeline.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, cli, cli_json, make_toy_input
+
+TOY = ("--pipeline", "toy")
+
+
+def one_line_error(p: subprocess.CompletedProcess, *fragments: str) -> str:
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip() and not ln.startswith(("camera:", "warning:"))]
+    assert len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
+    assert lines[0].startswith("gcvd-flow: error: "), p.stderr
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def gruns(tmp_path_factory) -> dict[str, Path]:
+    """A 16-frame clip and two runs of it in one cache: base and var (optimize_segments.steps=5)."""
+    d = tmp_path_factory.mktemp("hostile")
+    clip, cache = d / "clip", d / "cache"
+    cli("synth", str(clip), "--frames", "16", "--size", "128x96", check=True)
+    c = ("--cache", str(cache), "--profile", "fast")
+    cli("run", str(clip), "--out", str(d / "base"), *c, check=True)
+    cli("run", str(clip), "--out", str(d / "var"), *c, "--set", "optimize_segments.steps=5", check=True)
+    return {"dir": d, "clip": clip, "cache": cache, "base": d / "base", "var": d / "var"}
+
+
+@pytest.fixture
+def toy(tmp_path) -> dict[str, Path]:
+    inp = make_toy_input(tmp_path / "input", n=6)
+    return {"input": inp, "cache": tmp_path / "cache", "out": tmp_path / "out", "tmp": tmp_path}
+
+
+def toy_run(t: dict[str, Path], *extra: str, out: Path | None = None, check: bool = True):
+    p = cli("run", str(t["input"]), "--out", str(out or t["out"]), "--cache", str(t["cache"]), *TOY, *extra)
+    if check:
+        assert p.returncode == 0, p.stderr
+    return p
+
+
+# ------------------------------------------------------------------------------ 1. compare --check
+
+
+def test_compare_check_verifies_the_run_dirs_own_files(gruns, tmp_path):
+    base, var = gruns["base"], gruns["var"]
+    doc = json.loads((base / "run.json").read_text())
+    assert "poses.txt" in doc["files"] and "depth/000003.npy" in doc["files"] and "cameras.json" in doc["files"]
+    same = tmp_path / "same"
+    shutil.copytree(base, same)
+    p = cli("compare", str(base), str(same), "--check")
+    assert p.returncode == 0 and "identical" in p.stdout, p.stdout + p.stderr
+    for what in ("poses.txt", "depth/000003.npy"):  # var's file in a copy of base: digests all equal
+        b = tmp_path / what.replace("/", "_")
+        shutil.copytree(base, b)
+        shutil.copyfile(var / what, b / what)
+        p = cli("compare", str(base), str(b), "--check")
+        assert p.returncode == 1, p.stdout
+        assert "identical" not in p.stdout and f"RUN_B files: {what}: differs" in p.stdout, p.stdout
+        doc = cli_json("compare", str(base), str(b))
+        assert doc["identical"] is False and doc["files"]["b"] and not doc["files"]["a"]
+
+
+# ------------------------------------------------------------------------------ 4. one writer per RUN_DIR
+
+
+def test_a_second_run_into_a_run_dir_being_written_exits_2(toy):
+    from gcvd_flow.engine.outputs import run_dir_lock
+
+    toy_run(toy)
+    with run_dir_lock(toy["out"]):  # as a run in progress holds it
+        p = toy_run(toy, "--set", "transform.scale=3.0", check=False)
+        one_line_error(p, str(toy["out"]), "another run is writing")
+    toy_run(toy, "--set", "transform.scale=3.0")  # released: runs
+
+
+def test_fast_path_never_stamps_a_run_dir_whose_files_differ_from_run_json(toy):
+    from gcvd_flow.engine import fastpath
+
+    toy_run(toy)
+    out = toy["out"]
+    stamp = json.loads((out / fastpath.STAMP).read_text())
+    inv = stamp["fingerprint"]["invocation"]
+    assert fastpath.check(str(out), inv, str(toy["cache"])) is not None  # the no-op answer
+    (out / "report.json").write_text('{"another": "run"}')  # a second writer's file, before the stamp
+    fastpath.write(str(out), inv, str(toy["cache"]), stamp["result"], stamp["records"], stamp["watch"])
+    assert not (out / fastpath.STAMP).exists()
+    assert fastpath.check(str(out), inv, str(toy["cache"])) is None
+    doc = cli_json("run", str(toy["input"]), "--out", str(out), "--cache", str(toy["cache"]), *TOY)
+    assert "noop" not in doc and json.loads((out / "report.json").read_text()) != {"another": "run"}
