@@ -106,3 +106,43 @@ def test_fast_path_never_stamps_a_run_dir_whose_files_differ_from_run_json(toy):
     assert fastpath.check(str(out), inv, str(toy["cache"])) is None
     doc = cli_json("run", str(toy["input"]), "--out", str(out), "--cache", str(toy["cache"]), *TOY)
     assert "noop" not in doc and json.loads((out / "report.json").read_text()) != {"another": "run"}
+
+
+# ------------------------------------------------------------------------------ 2. run-many names
+
+
+def test_run_many_never_writes_two_inputs_into_one_run_dir(tmp_path):
+    from gcvd_flow.engine.many import run_dir_names
+
+    inputs = [make_toy_input(tmp_path / sub, n=3, seed=k) for k, sub in enumerate(("a/clip", "b/clip", "c/clip-2"))]
+    assert len(set(run_dir_names([str(i) for i in inputs]))) == 3
+    out = tmp_path / "runs"
+    doc = cli_json("run-many", *map(str, inputs), "--out", str(out), "--cache", str(tmp_path / "cache"), *TOY)
+    dirs = [Path(r["out"]) for r in doc["runs"]]
+    assert doc["failed"] == 0 and len(set(dirs)) == 3 and sorted(d.name for d in dirs) == ["clip", "clip-2", "clip-3"]
+    for inp, d in zip(inputs, dirs):  # each run dir holds its own input's result
+        assert json.loads((d / "run.json").read_text())["invocation"]["input"] == str(inp.resolve())
+
+
+# ------------------------------------------------------------------------------ 3. eval --baseline fails closed
+
+
+@pytest.mark.parametrize("bad", ['NaN', '"0.01"', 'null', '[0.01]', '1' + '0' * 400, '1e400', '[' * 5000 + ']' * 5000])
+def test_eval_baseline_that_cannot_be_compared_is_exit_2(gruns, tmp_path, bad):
+    base = tmp_path / "baseline.json"
+    base.write_text('{"frames": 16, "ate_rmse": %s, "abs_rel": %s}' % (bad, bad))
+    p = cli("eval", str(gruns["base"]), "--gt", str(gruns["clip"]), "--baseline", str(base), "--no-write")
+    one_line_error(p, str(base))
+    assert "no metric worse" not in p.stdout
+
+
+def test_eval_baseline_still_gates(gruns, tmp_path):
+    doc = cli_json("eval", str(gruns["base"]), "--gt", str(gruns["clip"]), "--no-write")
+    base = tmp_path / "baseline.json"
+    base.write_text(json.dumps(doc))
+    p = cli("eval", str(gruns["base"]), "--gt", str(gruns["clip"]), "--baseline", str(base), "--no-write")
+    assert p.returncode == 0 and "no metric worse" in p.stdout, p.stderr
+    doc["ate_rmse"] /= 10
+    base.write_text(json.dumps(doc))
+    p = cli("eval", str(gruns["base"]), "--gt", str(gruns["clip"]), "--baseline", str(base), "--no-write")
+    assert p.returncode == 1 and "regression: ate_rmse" in p.stderr, p.stderr
