@@ -146,3 +146,97 @@ def test_eval_baseline_still_gates(gruns, tmp_path):
     base.write_text(json.dumps(doc))
     p = cli("eval", str(gruns["base"]), "--gt", str(gruns["clip"]), "--baseline", str(base), "--no-write")
     assert p.returncode == 1 and "regression: ate_rmse" in p.stderr, p.stderr
+
+
+# ------------------------------------------------------------------------------ 5. never outside a remote or the cache
+
+
+def test_fsck_remote_repair_never_follows_a_symlink_out_of_the_remote(toy):
+    toy_run(toy)
+    remote = toy["tmp"] / "remote"
+    cli("push", str(remote), "--cache", str(toy["cache"]), check=True)
+    victim = toy["tmp"] / "victim"
+    (victim / "sub").mkdir(parents=True)
+    for f in (victim / "a", victim / "sub" / "b"):
+        f.write_text("keep")
+        os.utime(f, (1e9, 1e9))  # older than any stale-temp-file age
+    shutil.rmtree(remote / "tmp", ignore_errors=True)
+    (remote / "tmp").symlink_to(victim)
+    (remote / "objects" / "zz").symlink_to(victim)
+    (remote / "records" / "ab").mkdir(exist_ok=True)
+    (remote / "records" / "ab" / ("ab" * 32 + ".json")).symlink_to(victim / "a")
+    doc = cli_json("fsck", "--remote", str(remote))
+    assert not doc["clean"] and len(doc["stray_files"]) == 3, doc
+    doc = cli_json("fsck", "--remote", str(remote), "--repair")
+    assert sorted(p.relative_to(victim).as_posix() for p in victim.rglob("*")) == ["a", "sub", "sub/b"]
+    assert (victim / "a").read_text() == "keep" and (victim / "sub" / "b").read_text() == "keep"
+    assert not (remote / "tmp").exists() and not os.path.lexists(remote / "objects" / "zz")
+    assert cli_json("fsck", "--remote", str(remote))["clean"]
+    assert cli_json("pull", str(remote), "--cache", str(toy["tmp"] / "c2"))["records"] > 0
+
+
+def test_fsck_repair_during_a_push_keeps_the_pushed_records(toy):
+    """A push that lands between fsck's listings: its records name objects fsck's object listing
+    must see (records are listed first); --repair deleted them when objects were listed first."""
+    from gcvd_flow.engine import remote as rm
+    from gcvd_flow.engine.store import Store
+
+    toy_run(toy)
+    r = rm.Remote(str(toy["tmp"] / "remote"))
+    toy_run(toy, "--set", "transform.scale=3.0", out=toy["tmp"] / "out2")
+    store = Store(toy["cache"])
+    first = [json.loads((toy["out"] / "run.json").read_text())["stages"][s]["key"] for s in ("report",)]
+    rm.upload(store, r, [k for k, _ in store.iter_records()][:0] + first)  # the remote holds run 1
+    later = [s["key"] for s in json.loads((toy["tmp"] / "out2" / "run.json").read_text())["stages"].values()]
+    calls = []
+
+    def push_in_between(orig):
+        def listing(*a, **kw):
+            res = orig(*a, **kw)
+            if not calls:
+                calls.append(1)
+                rm.upload(store, r, later)  # a push lands right after fsck's first listing
+            return res
+        return listing
+
+    r.object_sizes = push_in_between(r.object_sizes)
+    r.record_keys = push_in_between(r.record_keys)
+    rep = rm._fsck_remote(r, repair=True)
+    assert calls and rep["bad_records"] == [], rep["bad_records"]
+    assert set(later) <= rm.Remote(str(toy["tmp"] / "remote")).record_keys()
+
+
+def test_pin_names_cannot_leave_the_cache(toy):
+    toy_run(toy)
+    outside = toy["cache"].parent / "x.json"
+    for name in ("../x", "/tmp/x", ".hidden", "a/b", ""):
+        p = cli("pin", name, "--out", str(toy["out"]), "--cache", str(toy["cache"]))
+        one_line_error(p, "pin name")
+        p = cli("pin", name, "--remove", "--out", str(toy["out"]), "--cache", str(toy["cache"]))
+        one_line_error(p, "pin name")
+    assert not outside.exists()
+    outside.write_text("mine")
+    one_line_error(cli("pin", "../x", "--remove", "--out", str(toy["out"]), "--cache", str(toy["cache"])))
+    assert outside.read_text() == "mine"
+    cli("pin", "good-1.0", "--out", str(toy["out"]), "--cache", str(toy["cache"]), check=True)
+
+
+# ------------------------------------------------------------------------------ 6. FIFOs in the local cache
+
+
+def test_a_fifo_in_the_local_cache_neither_hangs_run_nor_fsck(toy):
+    toy_run(toy)
+    cache = toy["cache"]
+    rec = sorted((cache / "records").glob("*/*.json"))[0]
+    rec.unlink()
+    os.mkfifo(rec)
+    obj = sorted((cache / "objects").glob("*/*"))[0]
+    obj.chmod(0o644)
+    obj.unlink()
+    os.mkfifo(obj)
+    p = cli("run", str(toy["input"]), "--out", str(toy["tmp"] / "o2"), "--cache", str(cache), *TOY, timeout=60)
+    assert p.returncode == 0, p.stderr
+    p = cli("fsck", "--cache", str(cache), "--json", timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert not [f for f in cache.rglob("*") if f.is_fifo() and "quarantine" not in f.parts]
+    assert cli_json("fsck", "--cache", str(cache))["corrupt"] == []

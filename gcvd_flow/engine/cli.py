@@ -391,6 +391,8 @@ def _cmd_fsck_remote(a: argparse.Namespace) -> int:
           + ("; clean" if rep["clean"] else "" if rep["repaired"] else "; run with --repair to delete them"))
     for line in rep["bad_objects"] + rep["bad_records"] + rep["stray_files"]:
         print(f"bad: {line}")
+    for path in rep.get("not_deleted", []):
+        print(f"not deleted (not a regular file inside the remote): {path}")
     return 0
 
 

@@ -73,7 +73,10 @@ def read_regular(path: str | Path, limit: int = MAX_FILE_BYTES) -> bytes:
         if st.st_size > limit:
             raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
         with os.fdopen(fd, "rb", closefd=False) as f:
-            return f.read(limit + 1)
+            data = f.read(st.st_size + 1)  # + 1: a file that grew since fstat is found too long
+        if len(data) > limit:
+            raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
+        return data
     finally:
         os.close(fd)
 
