@@ -240,3 +240,92 @@ def test_a_fifo_in_the_local_cache_neither_hangs_run_nor_fsck(toy):
     assert p.returncode == 0, p.stderr
     assert not [f for f in cache.rglob("*") if f.is_fifo() and "quarantine" not in f.parts]
     assert cli_json("fsck", "--cache", str(cache))["corrupt"] == []
+
+
+# ------------------------------------------------------------------------------ 7. one bad remote entry (S3)
+
+
+@pytest.fixture(scope="module")
+def s3_golden(tmp_path_factory):
+    """moto's S3 server on loopback holding a pushed toy run (s3://BUCKET/golden)."""
+    import uuid
+
+    from remote_servers import DUMMY_AWS, moto_s3, s3fs_client
+
+    tmp = tmp_path_factory.mktemp("s3")
+    inp = make_toy_input(tmp / "input", n=8)
+    bucket = f"hostile-{uuid.uuid4().hex[:8]}"
+    with moto_s3() as endpoint:
+        fs = s3fs_client(endpoint)
+        fs.mkdir(bucket)
+        env = {**DUMMY_AWS, "AWS_ENDPOINT_URL": endpoint}
+        url = f"s3://{bucket}/golden"
+        cli("run", str(inp), "--out", str(tmp / "out"), "--cache", str(tmp / "cache"), *TOY, "--remote", url,
+            "--push", env=env, check=True)
+        yield {"fs": fs, "env": env, "url": url, "bucket": bucket, "input": inp, "out": tmp / "out",
+               "cache": tmp / "cache"}
+
+
+def _tamper(s3, kind: str) -> tuple[str, str]:
+    """A copy of the golden remote with one bad entry; (url, the bad entry's key or digest)."""
+    import uuid
+
+    from gcvd_flow.engine.store import Store
+
+    fs, url = s3["fs"], f"s3://{s3['bucket']}/{uuid.uuid4().hex[:8]}"
+    fs.copy(s3["url"].removeprefix("s3://") + "/", url.removeprefix("s3://") + "/", recursive=True)
+    store = Store(s3["cache"])
+    key = json.loads((s3["out"] / "run.json").read_text())["stages"]["transform"]["key"]
+    child = store.get_record(key)["children"][2]  # one item of a map stage
+    rec_path = f"{url.removeprefix('s3://')}/records/{child[:2]}/{child}.json"
+    if kind == "empty object":  # one the export has to read
+        report = json.loads((s3["out"] / "run.json").read_text())["stages"]["report"]["key"]
+        digest = sorted(store.get_record(report)["objects"])[0]
+        fs.pipe(f"{url.removeprefix('s3://')}/objects/{digest[:2]}/{digest[2:]}", b"")
+        return url, digest
+    if kind == "empty record":
+        fs.pipe(rec_path, b"")
+    elif kind == "nested record":
+        fs.pipe(rec_path, b"[" * 200_000)
+    elif kind == "huge size":
+        rec = store.get_record(child)
+        rec["objects"] = {d: 10 ** 100 for d in rec["objects"]}
+        fs.pipe(rec_path, json.dumps(rec).encode())
+    return url, child
+
+
+@pytest.mark.parametrize("kind", ["empty object", "empty record", "nested record", "huge size"])
+def test_one_bad_s3_entry_is_skipped_and_repaired(s3_golden, tmp_path, kind):
+    s3 = s3_golden
+    url, bad = _tamper(s3, kind)
+    env = s3["env"]
+    # a read-through run uses the rest of the remote: only the bad item is recomputed
+    p = cli("run", str(s3["input"]), "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c1"), *TOY,
+            "--remote", url, "--json", env=env)
+    assert p.returncode == 0, p.stderr
+    doc = json.loads(p.stdout)
+    assert "failed" not in doc["remote"] and "damaged" not in p.stderr, p.stderr
+    assert bad[:12] in p.stderr and sum(s["executed"] for s in doc["stages"]) <= 4, (p.stderr, doc["stages"])
+    # pull takes everything else, with one warning
+    p = cli("pull", "--remote", url, "--cache", str(tmp_path / "c2"), "--json", env=env)
+    assert p.returncode == 0, p.stderr
+    assert [ln for ln in p.stderr.splitlines() if ln.strip()] and bad[:12] in p.stderr
+    assert json.loads(p.stdout)["records"] > 8
+    # fsck --remote names it, --repair removes it, and the remote is clean
+    doc = cli_json("fsck", "--remote", url, env=env)
+    assert not doc["clean"] and any(bad in line for line in doc["bad_objects"] + doc["bad_records"]), doc
+    cli("fsck", "--remote", url, "--repair", env=env, check=True)
+    assert cli_json("fsck", "--remote", url, env=env)["clean"]
+
+
+def test_s3_unreachable_or_misconfigured_is_one_line(tmp_path):
+    from remote_servers import DUMMY_AWS
+
+    env = {**DUMMY_AWS, "AWS_ENDPOINT_URL": "http://127.0.0.1:1", "AWS_MAX_ATTEMPTS": "1"}
+    for verb in (("pull",), ("fsck",)):
+        args = (*verb, "--remote", "s3://nobucket/x") + (() if verb[0] == "fsck" else ("--cache", str(tmp_path / "c")))
+        one_line_error(cli(*args, env=env, timeout=120), "s3://nobucket/x")
+    remotes = tmp_path / "remotes.toml"
+    remotes.write_text('[remotes.t]\nurl = "s3://b/p"\nendpoint_url = 12\n')
+    one_line_error(cli("pull", "--remote", "t", "--remotes", str(remotes), "--cache", str(tmp_path / "c")),
+                   "endpoint_url")

@@ -392,7 +392,7 @@ def _cmd_fsck_remote(a: argparse.Namespace) -> int:
     for line in rep["bad_objects"] + rep["bad_records"] + rep["stray_files"]:
         print(f"bad: {line}")
     for path in rep.get("not_deleted", []):
-        print(f"not deleted (not a regular file inside the remote): {path}")
+        print(f"not deleted (a folder, or not inside the remote): {path}")
     return 0
 
 

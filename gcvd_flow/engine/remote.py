@@ -290,9 +290,9 @@ class Remote:
             self.fs.mv(tmp, path)
 
     def delete(self, paths: list[str]) -> list[str]:
-        """Delete files of the remote: only regular files (or links themselves) whose folder's
-        real path is inside the remote's root, never a folder, never through a link. Returns
-        the paths it refused to delete."""
+        """Delete entries of the remote: only a file (a link, FIFO, ... itself: unlinking never
+        follows it) whose folder's real path is inside the remote's root; never a folder, never
+        through a link. Returns the paths it refused to delete."""
         ok, refused = [], []
         for p in paths:
             (ok if self._deletable(p) else refused).append(p)
@@ -314,7 +314,7 @@ class Remote:
             except FileNotFoundError:
                 return False
             inside = os.path.realpath(parent) == root or os.path.realpath(parent).startswith(root + os.sep)
-            return inside and (stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode))
+            return inside and not stat.S_ISDIR(st.st_mode)
         ftp = getattr(self.fs, "ftp", None)
         if ftp is not None and hasattr(ftp, "lstat") and hasattr(ftp, "normalize"):  # SFTP
             try:
@@ -323,7 +323,7 @@ class Remote:
             except OSError:
                 return False
             inside = real_parent == root or real_parent.startswith(root.rstrip("/") + "/")
-            return inside and (stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode))
+            return inside and not stat.S_ISDIR(st.st_mode)
         return True  # object stores: keys, no links, no folders to escape through
 
     def tmp_files(self) -> list[dict[str, Any]]:
@@ -570,9 +570,9 @@ def pull(local: Store, remote: str | Remote | None, out: str | None = None, remo
          log: Log = _stderr) -> dict[str, Any]:
     """Copy a run's records (or all the remote has) into the local cache, verified."""
     r = _as_remote(remote, remotes_file)
-    if not r.exists():
-        raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
     with local.lease(), _RemoteErrors(r):
+        if not r.exists():
+            raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
         keys = _run_keys(out, local) if out else sorted(r.record_keys())
         d = Downloader(local, r, log)
         installed = d.download(keys)
@@ -708,9 +708,9 @@ def fsck_remote(remote: str | Remote | None, repair: bool = False, remotes_file:
     present with their sizes, children present). Lists what is bad; deletes it (and stale
     temporary files) only with ``repair``."""
     r = _as_remote(remote, remotes_file)
-    if not r.exists():
-        raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
     with _RemoteErrors(r):
+        if not r.exists():
+            raise UsageError(f"{r.label}: remote not found (not a gcvd-flow cache)")
         return _fsck_remote(r, repair)
 
 
