@@ -329,3 +329,20 @@ def test_s3_unreachable_or_misconfigured_is_one_line(tmp_path):
     remotes.write_text('[remotes.t]\nurl = "s3://b/p"\nendpoint_url = 12\n')
     one_line_error(cli("pull", "--remote", "t", "--remotes", str(remotes), "--cache", str(tmp_path / "c")),
                    "endpoint_url")
+
+
+# ------------------------------------------------------------------------------ 8. a full disk under RUN_DIR
+
+
+def test_full_disk_under_run_dir_names_it(gruns, tmp_path):
+    small = tmp_path / "small"
+    small.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(small)], capture_output=True).returncode:
+        pytest.skip("cannot mount a small tmpfs here (needs root / CAP_SYS_ADMIN)")
+    try:  # every stage is cached: only the export writes, and the depth maps do not fit
+        p = cli("run", str(gruns["clip"]), "--out", str(small / "out"), "--cache", str(gruns["cache"]),
+                "--profile", "fast")
+        line = one_line_error(p, str(small / "out"))
+        assert "disk full" in line or "No space left" in line, line
+    finally:
+        subprocess.run(["umount", "-l", str(small)], capture_output=True)

@@ -24,10 +24,9 @@ from typing import Any, Callable
 from gcvd_flow.engine.artifacts import register_schema_dir
 from gcvd_flow.engine.config import build_config
 from gcvd_flow.engine.dag import Pipeline
-from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import UsageError
-from gcvd_flow.engine.keys import is_digest
-from gcvd_flow.engine.outputs import check_out_dir, digest_outputs, outputs_of, run_dir_lock
+from gcvd_flow.engine.outputs import (check_out_dir, check_run_doc, digest_outputs, outputs_of,  # noqa: F401
+                                      read_run_dir, run_dir_lock)
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
 from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
@@ -159,52 +158,6 @@ def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def read_run_dir(out: str | Path) -> dict[str, Any]:
-    """RUN_DIR/run.json, checked for the shape the engine writes (``check_run_doc``); every
-    problem is a one-line UsageError naming the file and the key."""
-    p = Path(out) / RUN_FILE
-    doc = jsonio.load_file(p, "run record", missing="no run recorded in this directory (run `gcvd-flow run` first)")
-    return check_run_doc(doc, str(p))
-
-
-_STAGE_FIELD_MAPS = ("params", "code_files", "inputs", "libraries", "env")
-
-
-def check_run_doc(doc: Any, where: str) -> dict[str, Any]:
-    """``doc`` if it has run.json's shape: an object whose ``stages`` maps names to
-    {key, output: digest or null, fields: object}, ``stage_order`` a list of its stage names,
-    ``invocation`` / ``config`` objects, ``cache`` a string and ``files`` path -> digest (all
-    optional but ``stages``). Raises UsageError("<where>: <key> ...") otherwise."""
-    if not isinstance(doc, dict):
-        raise UsageError(f"{where}: not a run record (a JSON object expected)")
-    stages = jsonio.field(doc, "stages", dict, where)
-    for name, st in stages.items():
-        if not isinstance(st, dict):
-            raise UsageError(f"{where}: stages.{name} must be an object")
-        for k in ("key", "output"):
-            if st.get(k) is not None and not is_digest(st[k]):
-                raise UsageError(f"{where}: stages.{name}.{k} must be a digest or null")
-        fields = jsonio.field(st, "fields", dict, f"{where}: stages.{name}", optional=True)
-        for k in _STAGE_FIELD_MAPS:
-            jsonio.field(fields or {}, k, dict, f"{where}: stages.{name}.fields", optional=True)
-    order = jsonio.field(doc, "stage_order", list, where, optional=True)
-    if order is not None and not all(isinstance(s, str) for s in order):
-        raise UsageError(f"{where}: stage_order must be a list of stage names")
-    for k in ("invocation", "config", "env"):
-        jsonio.field(doc, k, dict, where, optional=True)
-    inv = doc.get("invocation") or {}
-    for k in ("input", "config_file", "profile", "pipeline"):
-        jsonio.field(inv, k, str, f"{where}: invocation", optional=True)
-    sets = jsonio.field(inv, "sets", list, f"{where}: invocation", optional=True)
-    if sets is not None and not all(isinstance(s, str) for s in sets):
-        raise UsageError(f"{where}: invocation.sets must be a list of strings")
-    jsonio.field(doc, "cache", str, where, optional=True)
-    files = jsonio.field(doc, "files", dict, where, optional=True)
-    if files is not None and not all(isinstance(k, str) and is_digest(v) for k, v in files.items()):
-        raise UsageError(f"{where}: files must map paths to digests")
-    return doc
-
-
 def _previous_stages(out: str | None) -> dict[str, Any] | None:
     """The stages run.json recorded, for `plan`'s reasons (None: no or an unusable run.json)."""
     if not out or not (Path(out) / RUN_FILE).exists():
@@ -309,7 +262,14 @@ def _finish_run(inv: Invocation, spec: PipelineSpec, config: Any, runner: Runner
         out = Path(inv.out)
         out.mkdir(parents=True, exist_ok=True)
         if spec.export is not None and target is None:
-            result["outputs"] = spec.export(out, runner, config)
+            try:
+                result["outputs"] = spec.export(out, runner, config)
+            except OSError as exc:  # a full disk under RUN_DIR: say where (numpy's errors name no file)
+                if exc.filename is not None:
+                    raise
+                what = exc.strerror or (f"cannot write the run's outputs ({exc}; is the disk full?)" if str(exc)
+                                        else "cannot write the run's outputs (is the disk full?)")
+                raise OSError(exc.errno, what, str(out)) from exc
         files = digest_outputs(out, outputs_of(result))  # what compare --check and the fast path verify
         doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
                "stages": stage_records, "stage_order": list(stage_records),

@@ -448,8 +448,9 @@ def main(product: Product, argv: Sequence[str] | None = None) -> int:
         return 2
     except OSError as exc:  # the environment: permissions, a full disk, a file where a folder must be
         where = exc.filename if exc.filename is not None else ""
-        what = exc.strerror or type(exc).__name__
-        hint = "; the cache is consistent, free space and run again" if exc.errno == errno.ENOSPC else ""
+        what = exc.strerror or (str(exc).splitlines() or [""])[0] or type(exc).__name__
+        full = exc.errno == errno.ENOSPC or "No space left" in what
+        hint = "; the cache is consistent, free space and run again" if full else ""
         print(f"{product.prog}: error: {where}{': ' if where else ''}{what}{hint}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback

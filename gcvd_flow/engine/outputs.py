@@ -22,12 +22,18 @@ import threading
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import UsageError
 
 LOCK = ".gcvd-lock"
 # files in RUN_DIR that are not outputs: the engine's own bookkeeping, and what later commands
 # (eval, report, export) add to a finished run
 NOT_OUTPUTS = ("run.json", "run.json.tmp", ".gcvd-stamp.json", ".gcvd-stamp.json.tmp", LOCK)
+
+def is_digest(s: Any) -> bool:
+    """keys.is_digest without importing keys (numpy): this module serves the no-op fast path."""
+    return isinstance(s, str) and len(s) == 64 and all(c in "0123456789abcdef" for c in s)
+
 
 _held: dict[str, tuple[int, int, bool]] = {}  # abspath -> (fd, depth, created): reentrant within a process
 _held_lock = threading.Lock()
@@ -167,3 +173,52 @@ def check_files(out: str | Path, files: dict[str, str] | None) -> list[str]:
 def outputs_of(result: dict[str, Any]) -> list[str]:
     """The paths an export returned (``result["outputs"]``: name -> path)."""
     return [v for v in (result.get("outputs") or {}).values() if isinstance(v, str)]
+
+
+# ------------------------------------------------------------------------------ run.json
+
+
+def read_run_dir(out: str | Path) -> dict[str, Any]:
+    """RUN_DIR/run.json, checked for the shape the engine writes (``check_run_doc``); every
+    problem is a one-line UsageError naming the file and the key."""
+    p = Path(out) / "run.json"
+    doc = jsonio.load_file(p, "run record", missing="no run recorded in this directory (run `gcvd-flow run` first)")
+    return check_run_doc(doc, str(p))
+
+
+_STAGE_FIELD_MAPS = ("params", "code_files", "inputs", "libraries", "env")
+
+
+def check_run_doc(doc: Any, where: str) -> dict[str, Any]:
+    """``doc`` if it has run.json's shape: an object whose ``stages`` maps names to
+    {key, output: digest or null, fields: object}, ``stage_order`` a list of its stage names,
+    ``invocation`` / ``config`` objects, ``cache`` a string and ``files`` path -> digest (all
+    optional but ``stages``). Raises UsageError("<where>: <key> ...") otherwise."""
+    if not isinstance(doc, dict):
+        raise UsageError(f"{where}: not a run record (a JSON object expected)")
+    stages = jsonio.field(doc, "stages", dict, where)
+    for name, st in stages.items():
+        if not isinstance(st, dict):
+            raise UsageError(f"{where}: stages.{name} must be an object")
+        for k in ("key", "output"):
+            if st.get(k) is not None and not is_digest(st[k]):
+                raise UsageError(f"{where}: stages.{name}.{k} must be a digest or null")
+        fields = jsonio.field(st, "fields", dict, f"{where}: stages.{name}", optional=True)
+        for k in _STAGE_FIELD_MAPS:
+            jsonio.field(fields or {}, k, dict, f"{where}: stages.{name}.fields", optional=True)
+    order = jsonio.field(doc, "stage_order", list, where, optional=True)
+    if order is not None and not all(isinstance(s, str) for s in order):
+        raise UsageError(f"{where}: stage_order must be a list of stage names")
+    for k in ("invocation", "config", "env"):
+        jsonio.field(doc, k, dict, where, optional=True)
+    inv = doc.get("invocation") or {}
+    for k in ("input", "config_file", "profile", "pipeline"):
+        jsonio.field(inv, k, str, f"{where}: invocation", optional=True)
+    sets = jsonio.field(inv, "sets", list, f"{where}: invocation", optional=True)
+    if sets is not None and not all(isinstance(s, str) for s in sets):
+        raise UsageError(f"{where}: invocation.sets must be a list of strings")
+    jsonio.field(doc, "cache", str, where, optional=True)
+    files = jsonio.field(doc, "files", dict, where, optional=True)
+    if files is not None and not all(isinstance(k, str) and is_digest(v) for k, v in files.items()):
+        raise UsageError(f"{where}: files must map paths to digests")
+    return doc

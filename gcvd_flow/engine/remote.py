@@ -34,7 +34,6 @@ it was done honestly). Restrict write access to the remote (docs/teams.md).
 
 from __future__ import annotations
 
-import json
 import os
 import stat
 import threading
@@ -525,11 +524,9 @@ class Downloader:
 def _run_keys(out: str | None, store: Store) -> list[str]:
     if out is None:
         return [k for k, _ in store.iter_records()]
-    p = Path(out) / "run.json"
-    try:
-        stages = json.loads(p.read_text())["stages"]
-    except (OSError, ValueError, KeyError):
-        raise UsageError(f"{p}: not a run record") from None
+    from gcvd_flow.engine.outputs import read_run_dir
+
+    stages = read_run_dir(out)["stages"]  # one-line UsageError for any other shape
     return [s["key"] for s in stages.values() if s.get("key")]
 
 

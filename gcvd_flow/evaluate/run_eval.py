@@ -111,10 +111,9 @@ class Matched:
 def _run_frames(run: Path) -> tuple[np.ndarray, np.ndarray, list[int], dict[str, Any]]:
     if not (run / "poses.txt").exists():
         raise UsageError(f"{run / 'poses.txt'}: missing (is {run} a finished run?)")
-    try:
-        cams = json.loads((run / "cameras.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"{run / 'cameras.json'}: missing or not valid JSON ({exc})") from None
+    from gcvd_flow.io.run_dir import read_cameras
+
+    cams = read_cameras(run)
     stamps, est = read_tum_poses(run / "poses.txt")
     idx = cams.get("frame_indices")
     if not isinstance(idx, list) or len(idx) != len(est):
@@ -203,7 +202,9 @@ def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -
     """ATE / RPE of poses.txt and depth errors of depth/*.npy against a ground-truth folder."""
     run = Path(run_dir)
     m = match_gt(run, gt_dir)
-    cams = json.loads((run / "cameras.json").read_text())
+    from gcvd_flow.io.run_dir import read_cameras
+
+    cams = read_cameras(run)
     res: dict[str, Any] = {"frames": len(m.run_pos)}
     if len(m.run_pos) != m.run_frames:
         res["run_frames"] = m.run_frames
