@@ -127,6 +127,17 @@ def test_fuzz_run_dir_files(made, tmp_path):
                 ("export", "{b}", "--format", "tum", "--to", "{tmp}/exp"), ("pin", "p", "--out", "{b}",
                 "--cache", "{tmp}/pc"), ("push", "{tmp}/rem", "--out", "{b}", "--cache", str(cache))]
     b = _copy(g, tmp_path / "b")
+    # the shapes a hostile probe used first, then random ones
+    fixed = [{"stages": [1]}, {"stages": {"ingest": 1}}, {"stages": {"ingest": {"output": 5, "key": []}}},
+             {"stage_order": [1]}, {"cache": 5}, {"invocation": []}, {"invocation": {"sets": "x"}},
+             {"files": [1]}, {"config": 1}, {"stages": {"ingest": {"fields": {"params": [1]}}}}]
+    for patch in fixed:  # through every command: each is refused when run.json is read (cheap)
+        (b / "run.json").write_text(json.dumps({**docs["run.json"], **patch}))
+        for cmd in commands:
+            args = tuple(a.format(g=g, b=b, tmp=tmp_path) for a in cmd)
+            code, _, err = run_main(*args)
+            check_clean(args, code, err, verdict_ok=args[0] in ("compare", "eval"), what=f"run.json {patch}")
+    (b / "run.json").write_text(json.dumps(docs["run.json"]))
     for case in range(26 * SCALE):
         name = "run.json" if case % 3 else "cameras.json"
         (b / name).write_text(mutate(docs[name], rng))
