@@ -7,7 +7,10 @@
     confidence/NNNNNN.npy float32 (H, W) per-pixel confidence of that depth in [0, 1], 0 = unmeasured
     cameras.json         intrinsics at working resolution, sizes, frame indices (NNNNNN),
                          timestamps and what they are, keyframes, fps
-    run.json             written by the engine: resolved config, every stage's key and output digest
+    run.json             written by the engine: resolved config, every stage's key and output digest,
+                         and the BLAKE3 digest of every file above (``files``: relative path ->
+                         digest; ``compare --check`` and the no-op fast path verify them)
+    .gcvd-lock           the writer lock a run holds while it writes RUN_DIR (engine/outputs.py)
 
 ``write_run_dir`` is the pipeline's export hook; ``load_run`` reads and checks a RUN_DIR with
 one-line errors naming the file; ``attach_images`` adds the run's frames from the cache.
