@@ -201,7 +201,7 @@ def cmd_eval(a: argparse.Namespace) -> int:
     res = evaluate(a.run_dir, a.gt, a.max_depth)
     if a.write:
         write_metrics(a.run_dir, res)
-    worse = compare_to_baseline(res, base, tol) if base is not None else []
+    worse = compare_to_baseline(res, base, tol, a.baseline) if base is not None else []
     if a.json_mode:
         doc = dict(res)
         if base is not None:

@@ -27,6 +27,7 @@ from gcvd_flow.engine.dag import Pipeline
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import ENGINE_LIBRARIES
 from gcvd_flow.engine.names import ENTRY_POINT_GROUP, TOOL
+from gcvd_flow.engine.outputs import check_out_dir, check_run_doc, digest_outputs, outputs_of, read_run_dir, run_dir_lock  # noqa: F401
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
 from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
@@ -133,21 +134,6 @@ def open_store(cache: str | None, verify: bool = True) -> Store:
     return store
 
 
-def check_out_dir(out: str | Path) -> Path:
-    """RUN_DIR must be (or be creatable as) a writable directory: checked before any work."""
-    p = Path(out)
-    if p.exists() and not p.is_dir():
-        raise UsageError(f"{p}: exists and is not a directory (--out needs a directory)")
-    anc = p
-    while not anc.exists():
-        anc = anc.parent
-    if not anc.is_dir():
-        raise UsageError(f"{anc}: is not a directory, so {p} cannot be created")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise UsageError(f"{anc}: not writable, so {p} cannot be {'written' if anc == p else 'created'}")
-    return p
-
-
 def _prepare(inv: Invocation, log: Callable[[str], None], target: str | None = None,
              allow_module_ref: bool = True, writes_out: bool = True) -> tuple[PipelineSpec, Any, Runner]:
     if not inv.pipeline:
@@ -172,25 +158,13 @@ def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def read_run_dir(out: str | Path) -> dict[str, Any]:
-    p = Path(out) / RUN_FILE
-    try:
-        return json.loads(p.read_text())
-    except FileNotFoundError:
-        raise UsageError(f"{p}: no run recorded in this directory (run `{TOOL} run` first)") from None
-    except json.JSONDecodeError:
-        raise UsageError(f"{p}: not a valid run record") from None
-
-
 def _previous_stages(out: str | None) -> dict[str, Any] | None:
-    if not out:
-        return None
-    p = Path(out) / RUN_FILE
-    if not p.exists():
+    """The stages run.json recorded, for `plan`'s reasons (None: no or an unusable run.json)."""
+    if not out or not (Path(out) / RUN_FILE).exists():
         return None
     try:
-        return json.loads(p.read_text()).get("stages")
-    except json.JSONDecodeError:
+        return read_run_dir(out)["stages"]
+    except UsageError:
         return None
 
 
@@ -221,6 +195,14 @@ def run(inv: Invocation, log: Callable[[str], None] = _stderr, target: str | Non
     recomputes exactly what it held; the run ends normally with one warning line naming the
     damaged objects and the stages that recomputed something. The same object failing twice
     (a recomputation that cannot restore it) is an error."""
+    if not inv.out:
+        return _run(inv, log, target, executor)
+    check_out_dir(inv.out)
+    with run_dir_lock(inv.out):  # one writer of RUN_DIR at a time (engine/outputs.py)
+        return _run(inv, log, target, executor)
+
+
+def _run(inv: Invocation, log: Callable[[str], None], target: str | None, executor: Any) -> dict[str, Any]:
     t0 = time.perf_counter()
     damaged: list[str] = []
     from_remote: set[str] = set()  # objects the remote could not supply (it said so on one line)
@@ -280,11 +262,19 @@ def _finish_run(inv: Invocation, spec: PipelineSpec, config: Any, runner: Runner
         out = Path(inv.out)
         out.mkdir(parents=True, exist_ok=True)
         if spec.export is not None and target is None:
-            result["outputs"] = spec.export(out, runner, config)
+            try:
+                result["outputs"] = spec.export(out, runner, config)
+            except OSError as exc:  # a full disk under RUN_DIR: say where (numpy's errors name no file)
+                if exc.filename is not None:
+                    raise
+                what = exc.strerror or (f"cannot write the run's outputs ({exc}; is the disk full?)" if str(exc)
+                                        else "cannot write the run's outputs (is the disk full?)")
+                raise OSError(exc.errno, what, str(out)) from exc
+        files = digest_outputs(out, outputs_of(result))  # what compare --check and the fast path verify
         doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
                "stages": stage_records, "stage_order": list(stage_records),
                "env": spec.pipeline.numeric_env(), "gcvd_flow": _version(),
-               "cache": str(runner.store.root.resolve())}
+               "cache": str(runner.store.root.resolve()), "files": files}
         tmp = out / (RUN_FILE + ".tmp")
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
         os.replace(tmp, out / RUN_FILE)

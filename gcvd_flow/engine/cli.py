@@ -106,7 +106,8 @@ def _add_scale_args(p: argparse.ArgumentParser) -> None:
 def _add_scale_commands(sub: Any) -> None:
     p = sub.add_parser("run-many", help="run many inputs through one DAG and one cache; a summary table")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="videos / image folders / dataset folders")
-    p.add_argument("--out", required=True, metavar="DIR", help="one run directory per input: DIR/<input name>")
+    p.add_argument("--out", required=True, metavar="DIR", help="one run directory per input: DIR/<input name>; a repeated name gets the first "
+                   "free -2, -3, ... (never one shared by two inputs)")
     _add_config_args(p)
     p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",
                    help="map items in N worker processes / Dask workers (default auto: one per usable core)")
@@ -238,6 +239,16 @@ def _print_run(res: dict[str, Any], json_mode: bool) -> None:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
+    if not a.out:
+        return _cmd_run_locked(a)
+    from gcvd_flow.engine.outputs import check_out_dir, run_dir_lock
+
+    check_out_dir(a.out)
+    with run_dir_lock(a.out):  # the fast path's answer and the stamp belong to this run only
+        return _cmd_run_locked(a)
+
+
+def _cmd_run_locked(a: argparse.Namespace) -> int:
     res = None if a.push else _fast_noop(a)  # --push: check the remote has everything
     if res is not None:
         _print_run(res, a.json_mode)
@@ -382,6 +393,8 @@ def _cmd_fsck_remote(a: argparse.Namespace) -> int:
           + ("; clean" if rep["clean"] else "" if rep["repaired"] else "; run with --repair to delete them"))
     for line in rep["bad_objects"] + rep["bad_records"] + rep["stray_files"]:
         print(f"bad: {line}")
+    for path in rep.get("not_deleted", []):
+        print(f"not deleted (a folder, or not inside the remote): {path}")
     return 0
 
 
@@ -437,8 +450,9 @@ def main(product: Product, argv: Sequence[str] | None = None) -> int:
         return 2
     except OSError as exc:  # the environment: permissions, a full disk, a file where a folder must be
         where = exc.filename if exc.filename is not None else ""
-        what = exc.strerror or type(exc).__name__
-        hint = "; the cache is consistent, free space and run again" if exc.errno == errno.ENOSPC else ""
+        what = exc.strerror or (str(exc).splitlines() or [""])[0] or type(exc).__name__
+        full = exc.errno == errno.ENOSPC or "No space left" in what
+        hint = "; the cache is consistent, free space and run again" if full else ""
         print(f"{product.prog}: error: {where}{': ' if where else ''}{what}{hint}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback

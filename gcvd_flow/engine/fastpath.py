@@ -8,11 +8,14 @@ with the same invocation finds every one of those unchanged and every record sti
 cache, nothing can have changed, so it answers from the stamp without importing the
 pipeline — the way make, ninja and DVC's state database skip unchanged work. Anything
 different (a touched file, a --set, a deleted record or output) falls through to the full
-runner, which decides by content hashes as usual.
+runner, which decides by content hashes as usual. A stamp is written only after RUN_DIR's
+files were re-hashed and found to be what its run.json records (``outputs.check_files``): a
+run dir mixed by two writers or edited is never answered from a stamp.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -54,6 +57,14 @@ def _tree_stats(root: str, suffixes: tuple[str, ...] | None = None) -> dict[str,
     return dict(sorted(out.items()))
 
 
+def _outputs(out: str) -> dict[str, list[int] | None]:
+    """Metadata of every file in RUN_DIR but the stamp and the writer lock."""
+    from gcvd_flow.engine.outputs import LOCK
+
+    return {p: s for p, s in _tree_stats(out).items()
+            if not p.endswith(STAMP) and not p.endswith(STAMP + ".tmp") and os.path.basename(p) != LOCK}
+
+
 def fingerprint(invocation: dict[str, Any], cache: str, out: str, watch: dict[str, list[str]]) -> dict[str, Any]:
     """Everything a no-op decision depends on, from metadata only."""
     sources: dict[str, Any] = {}
@@ -74,8 +85,21 @@ def fingerprint(invocation: dict[str, Any], cache: str, out: str, watch: dict[st
 
 def write(out: str, invocation: dict[str, Any], cache: str, result: dict[str, Any],
           record_paths: list[str], watch: dict[str, list[str]]) -> None:
+    from gcvd_flow.engine import jsonio
+    from gcvd_flow.engine.outputs import check_files
+
+    stamp = os.path.join(out, STAMP)
+    try:  # only a run dir whose files are what its run.json records is ever answered from the stamp
+        files = jsonio.load_file(os.path.join(out, "run.json"), "run record").get("files")
+        ok = isinstance(files, dict) and not check_files(out, files)
+    except (AttributeError, ValueError):  # UsageError is a ValueError
+        ok = False
+    if not ok:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(stamp)
+        return
     fp = fingerprint(invocation, cache, out, watch)
-    outputs = {p: s for p, s in _tree_stats(out).items() if not p.endswith(STAMP)}
+    outputs = _outputs(out)
     doc = {"fingerprint": fp, "watch": watch, "result": result, "records": sorted(record_paths),
            "outputs": outputs}
     tmp = os.path.join(out, STAMP + ".tmp")
@@ -85,25 +109,34 @@ def write(out: str, invocation: dict[str, Any], cache: str, result: dict[str, An
 
 
 def check(out: str, invocation: dict[str, Any], cache: str) -> dict[str, Any] | None:
-    """The previous result if nothing changed since the stamped run, else None."""
+    """The previous result if nothing changed since the stamped run, else None (also for a
+    stamp that is unreadable or of another shape: the full runner then decides)."""
     t0 = time.perf_counter()
+    from gcvd_flow.engine import jsonio
+
     try:
-        with open(os.path.join(out, STAMP)) as f:
-            doc = json.load(f)
-    except (OSError, ValueError):
+        doc = jsonio.loads(jsonio.read_regular(os.path.join(out, STAMP)))
+        return _answer(doc, out, invocation, cache, t0)
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
         return None
+
+
+def _answer(doc: Any, out: str, invocation: dict[str, Any], cache: str, t0: float) -> dict[str, Any] | None:
     if not isinstance(doc, dict) or not isinstance(doc.get("watch"), dict):
         return None
-    if doc.get("fingerprint") != fingerprint(invocation, cache, out, doc["watch"]):
+    watch = {k: [str(p) for p in v] for k, v in doc["watch"].items() if isinstance(v, list)}
+    if doc.get("fingerprint") != fingerprint(invocation, cache, out, watch):
         return None
-    if any(not os.path.exists(p) for p in doc.get("records", [])):
+    records = doc.get("records")
+    if not isinstance(records, list) or any(not isinstance(p, str) or not os.path.exists(p) for p in records):
         return None
-    outputs = {p: s for p, s in _tree_stats(out).items() if not p.endswith(STAMP)}
-    if outputs != doc.get("outputs"):
+    if _outputs(out) != doc.get("outputs"):
         return None
-    res = doc["result"]
-    res["stages"] = [{"name": s["name"], "executed": 0, "cached": s["executed"] + s["cached"], "seconds": 0.0}
-                     for s in res["stages"]]
+    res = doc.get("result")
+    if not isinstance(res, dict):
+        return None
+    res["stages"] = [{"name": str(s["name"]), "executed": 0, "cached": int(s["executed"]) + int(s["cached"]),
+                      "seconds": 0.0} for s in res["stages"]]
     res["seconds"] = round(time.perf_counter() - t0, 3)
     res["noop"] = "unchanged since the last run (file metadata)"
     return res

@@ -17,6 +17,7 @@ from typing import Any
 
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import is_digest
+from gcvd_flow.engine.outputs import read_run_dir
 from gcvd_flow.engine.store import Store
 
 MAX_NODES = 10_000
@@ -35,12 +36,9 @@ class _Index:
         if self._full:
             return
         self._full = True
-        for key, path in self.store.iter_records():
-            try:
-                rec = json.loads(path.read_bytes())
-            except (OSError, ValueError):
-                continue
-            if not isinstance(rec, dict) or rec.get("record_kind") == "checkpoint":
+        for key, _path in self.store.iter_records():
+            rec = self.store.read_record(key)  # None: unreadable, not a record, or not this key's
+            if rec is None or rec.get("record_kind") == "checkpoint":
                 continue
             if is_digest(rec.get("outputs")):
                 self.outputs.setdefault(rec["outputs"], key)
@@ -63,19 +61,21 @@ def _node(store: Store, key: str, index: _Index) -> dict[str, Any]:
     rec = store.read_record(key)
     if rec is None:
         return {"key": key, "missing": True}
-    kind, stage, code, keyed, inputs, env = (list(rec["preimage"]) + [None] * 6)[:6]
+    pre = rec["preimage"] if isinstance(rec["preimage"], list) else []  # any JSON that hashes to the key
+    kind, stage, code, keyed, inputs, env = (list(pre) + [None] * 6)[:6]
     keyed = keyed if isinstance(keyed, dict) else {}
+    inputs = inputs if isinstance(inputs, dict) else {}
     node: dict[str, Any] = {"key": key, "record_kind": kind, "stage": stage, "output": rec["outputs"],
                             "code": code, "version": keyed.get("version"), "seed": keyed.get("seed"),
                             "params": keyed.get("params"), "env": env, "inputs": {}}
-    fields = rec.get("fields") or {}
+    fields: dict[str, Any] = rec["fields"] if isinstance(rec.get("fields"), dict) else {}
     if fields.get("code_files"):
         node["code_files"] = fields["code_files"]
     if rec.get("children"):
         node["items"] = len(rec["children"])
     if rec.get("seconds") is not None:
         node["seconds"] = rec["seconds"]
-    for name, d in sorted((inputs or {}).items()):
+    for name, d in sorted(inputs.items()):
         if not isinstance(d, str):
             continue
         src = index.producer(d)
@@ -102,8 +102,7 @@ def _run_dir_cache(out: Path, cache: str | None) -> Store:
 
     if cache:
         return Store(Path(cache).expanduser())
-    doc = json.loads((out / "run.json").read_text())
-    root = doc.get("cache")
+    root = read_run_dir(out).get("cache")
     return Store(Path(root) if root and Path(root, "records").is_dir() else default_cache_dir())
 
 
@@ -112,10 +111,7 @@ def lineage(target: str, stage: str | None = None, cache: str | None = None) -> 
     output digest or an object digest in the cache."""
     p = Path(target)
     if (p / "run.json").is_file():
-        try:
-            stages = json.loads((p / "run.json").read_text())["stages"]
-        except (OSError, ValueError, KeyError):
-            raise UsageError(f"{p / 'run.json'}: not a valid run record") from None
+        stages = read_run_dir(p)["stages"]  # one-line UsageError for any other shape
         if stage is not None and stage not in stages:
             raise UsageError(f"{p / 'run.json'}: no stage {stage!r} (stages: {', '.join(stages)})")
         store = _run_dir_cache(p, cache)

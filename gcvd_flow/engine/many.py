@@ -1,6 +1,6 @@
 """`run-many`: many inputs through one DAG definition and one cache.
 
-Each input runs into ``DIR/<input name>``, all sharing one item executor (one process pool or
+Each input runs into ``DIR/<input name>`` (made unique: ``run_dir_names``), all sharing one item executor (one process pool or
 one Dask cluster, started once) and the cache, so a clip that shares items with an earlier one
 (same frames, same settings) reuses them. With an executor, the map stages that come before the
 first whole stage (for GCVD: ingest, flow, masks, priors) run for all inputs at once, so the
@@ -23,15 +23,25 @@ MAX_EXIT = 100
 
 
 def run_dir_names(inputs: list[str]) -> list[str]:
-    """One distinct directory name per input: its file stem or folder name (-2, -3 on clashes)."""
-    names: list[str] = []
-    seen: dict[str, int] = {}
+    """One distinct directory name per input: its file stem or folder name; on a clash the
+    later input gets the first free ``NAME-2``, ``NAME-3``, ... not already taken by any input's
+    own name (inputs a/clip, b/clip, c/clip-2 give clip, clip-3, clip-2), so no two inputs
+    ever share a run directory."""
+    bases = []
     for inp in inputs:
         p = Path(inp.rstrip("/")) if inp.rstrip("/") else Path(inp)
-        base = (p.stem if p.suffix and not p.is_dir() else p.name) or "input"
-        n = seen.get(base, 0) + 1
-        seen[base] = n
-        names.append(base if n == 1 else f"{base}-{n}")
+        bases.append((p.stem if p.suffix and not p.is_dir() else p.name) or "input")
+    taken = set(bases)  # every input's own name is reserved for the first input bearing it
+    names: list[str] = []
+    used: set[str] = set()
+    for base in bases:
+        name, n = base, 1
+        while name in used or (name != base and name in taken):
+            n += 1
+            name = f"{base}-{n}"
+        used.add(name)
+        names.append(name)
+    assert len(set(names)) == len(names)
     return names
 
 
@@ -135,7 +145,7 @@ def format_table(doc: dict[str, Any]) -> str:
     head = f"{'input':<28} {'status':<7} {'items':>6} {'executed':>9} {'cache hits':>10} {'seconds':>8}"
     lines = [head, "-" * len(head)]
     for r in doc["runs"]:
-        name = Path(r["input"]).name or r["input"]
+        name = Path(r["out"]).name or r["input"]  # the run dir's name: unique, unlike the inputs' names
         if r["ok"]:
             lines.append(f"{name[:28]:<28} {'ok':<7} {r['items']:>6} {r['executed']:>9} {r['cache_hits']:>10} "
                          f"{r['seconds']:>8.2f}")

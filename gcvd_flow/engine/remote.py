@@ -34,7 +34,6 @@ it was done honestly). Restrict write access to the remote (docs/teams.md).
 
 from __future__ import annotations
 
-import json
 import os
 import stat
 import threading
@@ -43,6 +42,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
+from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import StoreError, UsageError
 from gcvd_flow.engine.keys import digest_bytes, is_digest
 from gcvd_flow.engine.names import TOOL
@@ -144,9 +144,56 @@ class Remote:
                 out.append([])
         return out
 
+    def _is_link(self, path: str) -> bool:
+        """Whether ``path`` is a symbolic link (local and SFTP remotes; object stores have none)."""
+        if self.local:
+            return os.path.islink(path)
+        ftp = getattr(self.fs, "ftp", None)
+        if ftp is not None and hasattr(ftp, "lstat"):
+            try:
+                return stat.S_ISLNK(ftp.lstat(path).st_mode)
+            except OSError:  # absent
+                return False
+        return False
+
+    def _local_entries(self, top: str) -> list[dict[str, Any]]:
+        """Everything under ``top`` (a local remote), never through a symbolic link: files as
+        type "file", links as type "link" (listed, not followed), other kinds as "other"."""
+        out = []
+        for dirpath, dirnames, filenames in os.walk(top):  # followlinks=False: linked folders are not entered
+            for name in sorted(dirnames + filenames):
+                path = os.path.join(dirpath, name)
+                try:
+                    st = os.lstat(path)
+                except OSError:
+                    continue
+                if stat.S_ISDIR(st.st_mode):
+                    continue
+                kind = "file" if stat.S_ISREG(st.st_mode) else "link" if stat.S_ISLNK(st.st_mode) else "other"
+                out.append({"name": path, "type": kind, "size": st.st_size, "mtime": st.st_mtime,
+                            "islink": kind == "link"})
+        return out
+
     def _entries(self, area: str, prefixes: Iterable[str] | None) -> list[dict[str, Any]]:
+        """The files of one area (objects, records, tmp), or of its fan-out folders ``prefixes``.
+        Never through a symbolic link: a linked area or fan-out folder is listed as one entry of
+        type "link" (stray: ``fsck --repair`` deletes the link itself, nothing it points to)."""
         self.fs.invalidate_cache()
         prefixes = None if prefixes is None else sorted(set(prefixes))
+        top = f"{self.root}/{area}"
+        if self._is_link(top):
+            return [{"name": top, "type": "link", "size": 0, "islink": True}]
+        if self.local:
+            if prefixes is None or len(prefixes) > LIST_ALL_ABOVE:
+                return self._local_entries(top) if os.path.isdir(top) else []
+            out = []
+            for p in prefixes:
+                d = f"{top}/{p}"
+                if os.path.islink(d):
+                    out.append({"name": d, "type": "link", "size": 0, "islink": True})
+                elif os.path.isdir(d):
+                    out.extend(e for e in self._local_entries(d))
+            return out
         if prefixes is None or len(prefixes) > LIST_ALL_ABOVE:
             try:
                 found = self.fs.find(f"{self.root}/{area}", detail=True)
@@ -200,10 +247,25 @@ class Remote:
         if self.local:
             return [_read_regular(p, lim) for p, lim in zip(paths, limits)]
         res = self.fs.cat_ranges(paths, [0] * len(paths), [lim + 1 for lim in limits], on_error="return")
-        for r in res:  # absent is an answer; anything else (network, credentials) is an error
+        out: list[bytes | None] = []
+        for path, r, lim in zip(paths, res, limits):
             if isinstance(r, BaseException) and not isinstance(r, (FileNotFoundError, IsADirectoryError)):
-                raise r
-        return [r if isinstance(r, bytes) and len(r) <= lim else None for r, lim in zip(res, limits)]
+                r = self._entry_error(path, r)
+            out.append(r if isinstance(r, bytes) and len(r) <= lim else None)
+        return out
+
+    def _entry_error(self, path: str, exc: BaseException) -> bytes | None:
+        """A read of one entry failed: if the remote answers for that entry, the entry is what is
+        bad (an empty object, whose byte range 0..n S3 calls "not satisfiable") and the others are
+        still used: b"" for an empty one, None otherwise. If it does not answer, the remote
+        itself is failing (network, credentials): that error is raised."""
+        try:
+            info = self.fs.info(path)
+        except FileNotFoundError:
+            return None
+        except Exception:  # noqa: BLE001 - the remote does not answer: its error, not the entry's
+            raise exc from None
+        return b"" if info.get("size") == 0 else None
 
     # ------------------------------------------------------------ writes
 
@@ -227,12 +289,43 @@ class Remote:
             self._makedirs(path.rsplit("/", 1)[0])
             self.fs.mv(tmp, path)
 
-    def delete(self, paths: list[str]) -> None:
-        for i in range(0, len(paths), 500):
+    def delete(self, paths: list[str]) -> list[str]:
+        """Delete entries of the remote: only a file (a link, FIFO, ... itself: unlinking never
+        follows it) whose folder's real path is inside the remote's root; never a folder, never
+        through a link. Returns the paths it refused to delete."""
+        ok: list[str] = []
+        refused: list[str] = []
+        for p in paths:
+            (ok if self._deletable(p) else refused).append(p)
+        for i in range(0, len(ok), 500):
             try:
-                self.fs.rm(paths[i:i + 500])
+                self.fs.rm(ok[i:i + 500])
             except FileNotFoundError:
                 pass
+        return refused
+
+    def _deletable(self, path: str) -> bool:
+        if not path.startswith(self.root.rstrip("/") + "/"):
+            return False
+        parent = path.rsplit("/", 1)[0]
+        if self.local:
+            root = os.path.realpath(self.root)
+            try:
+                st = os.lstat(path)
+            except FileNotFoundError:
+                return False
+            inside = os.path.realpath(parent) == root or os.path.realpath(parent).startswith(root + os.sep)
+            return inside and not stat.S_ISDIR(st.st_mode)
+        ftp = getattr(self.fs, "ftp", None)
+        if ftp is not None and hasattr(ftp, "lstat") and hasattr(ftp, "normalize"):  # SFTP
+            try:
+                st = ftp.lstat(path)
+                root, real_parent = ftp.normalize(self.root), ftp.normalize(parent)
+            except OSError:
+                return False
+            inside = real_parent == root or real_parent.startswith(root.rstrip("/") + "/")
+            return inside and not stat.S_ISDIR(st.st_mode)
+        return True  # object stores: keys, no links, no folders to escape through
 
     def tmp_files(self) -> list[dict[str, Any]]:
         return self._entries("tmp", None)
@@ -349,8 +442,8 @@ class Downloader:
                 if raw is None:
                     continue
                 try:
-                    rec = json.loads(raw)
-                except (ValueError, UnicodeDecodeError):
+                    rec = jsonio.loads(raw)  # depth-limited: 200,000 nested [ is a refused record
+                except ValueError:
                     rec = None
                 problem = record_problem(k, rec)
                 if problem is not None:
@@ -433,11 +526,9 @@ class Downloader:
 def _run_keys(out: str | None, store: Store) -> list[str]:
     if out is None:
         return [k for k, _ in store.iter_records()]
-    p = Path(out) / "run.json"
-    try:
-        stages = json.loads(p.read_text())["stages"]
-    except (OSError, ValueError, KeyError):
-        raise UsageError(f"{p}: not a run record") from None
+    from gcvd_flow.engine.outputs import read_run_dir
+
+    stages = read_run_dir(out)["stages"]  # one-line UsageError for any other shape
     return [s["key"] for s in stages.values() if s.get("key")]
 
 
@@ -478,9 +569,9 @@ def pull(local: Store, remote: str | Remote | None, out: str | None = None, remo
          log: Log = _stderr) -> dict[str, Any]:
     """Copy a run's records (or all the remote has) into the local cache, verified."""
     r = _as_remote(remote, remotes_file)
-    if not r.exists():
-        raise UsageError(f"{r.label}: remote not found (not a {TOOL} cache)")
     with local.lease(), _RemoteErrors(r):
+        if not r.exists():
+            raise UsageError(f"{r.label}: remote not found (not a {TOOL} cache)")
         keys = _run_keys(out, local) if out else sorted(r.record_keys())
         d = Downloader(local, r, log)
         installed = d.download(keys)
@@ -616,13 +707,18 @@ def fsck_remote(remote: str | Remote | None, repair: bool = False, remotes_file:
     present with their sizes, children present). Lists what is bad; deletes it (and stale
     temporary files) only with ``repair``."""
     r = _as_remote(remote, remotes_file)
-    if not r.exists():
-        raise UsageError(f"{r.label}: remote not found (not a {TOOL} cache)")
     with _RemoteErrors(r):
+        if not r.exists():
+            raise UsageError(f"{r.label}: remote not found (not a {TOOL} cache)")
         return _fsck_remote(r, repair)
 
 
 def _fsck_remote(r: Remote, repair: bool) -> dict[str, Any]:
+    # Records are listed before objects: a push writes a record only after all its objects, so
+    # every record listed here names objects the later object listing sees. (Listing objects
+    # first made a record pushed in between look as if it lost its objects, and --repair
+    # deleted good records of a push in progress.)
+    keys = sorted(r.record_keys())
     sizes = r.object_sizes()
     bad_objects: dict[str, str] = {}
     for batch in _batches(sorted(sizes.items())):
@@ -633,15 +729,14 @@ def _fsck_remote(r: Remote, repair: bool) -> dict[str, Any]:
             elif digest_bytes(data) != d:
                 bad_objects[d] = "its bytes do not hash to its name"
     good = {d: s for d, s in sizes.items() if d not in bad_objects}
-    keys = sorted(r.record_keys())
     bad_records: dict[str, str] = {}
     recs = {}
     for i in range(0, len(keys), BATCH_COUNT):
         chunk = keys[i:i + BATCH_COUNT]
         for k, raw in zip(chunk, r.read_many([r.rec(k) for k in chunk], [MAX_RECORD_BYTES] * len(chunk))):
             try:
-                rec = json.loads(raw) if raw is not None else None
-            except (ValueError, UnicodeDecodeError):
+                rec = jsonio.loads(raw) if raw is not None else None
+            except ValueError:
                 rec = None
             problem = "unreadable" if raw is None else record_problem(k, rec)
             if problem is None:
@@ -658,18 +753,20 @@ def _fsck_remote(r: Remote, repair: bool) -> dict[str, Any]:
     others = r.other_files()
     now = time.time()
     tmp = r.tmp_files()
-    stale = [e["name"] for e in tmp if now - _mtime(e, now) > STALE_TMP_S]
+    stray = others["objects"] + others["records"] + [e["name"] for e in tmp if e.get("type") != "file"]
+    stale = [e["name"] for e in tmp if e.get("type") == "file" and now - _mtime(e, now) > STALE_TMP_S]
     rep = {"remote": r.label, "objects": len(sizes), "bytes": sum(sizes.values()), "records": len(keys),
            "bad_objects": [f"{d}: {w}" for d, w in sorted(bad_objects.items())],
            "bad_records": [f"{k}: {w}" for k, w in sorted(bad_records.items())],
-           "stray_files": others["objects"] + others["records"], "tmp_files": len(tmp),
-           "clean": not bad_objects and not bad_records and not others["objects"] + others["records"],
-           "repaired": False}
+           "stray_files": stray, "tmp_files": len(tmp),
+           "clean": not bad_objects and not bad_records and not stray, "repaired": False}
     if repair:
-        r.delete(sorted(r.rec(k) for k in bad_records))  # records first: never one naming a deleted object
-        r.delete(sorted(r.obj(d) for d in bad_objects) + others["objects"] + others["records"] + stale)
+        refused = r.delete(sorted(r.rec(k) for k in bad_records))  # records first: never one naming a deleted object
+        refused += r.delete(sorted(r.obj(d) for d in bad_objects) + stray + stale)
         rep["repaired"] = True
-        rep["tmp_removed"] = len(stale)
+        rep["tmp_removed"] = len([p for p in stale if p not in refused])
+        if refused:  # not a regular file, or not really inside the remote: left alone
+            rep["not_deleted"] = refused
     return rep
 
 

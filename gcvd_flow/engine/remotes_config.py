@@ -20,6 +20,7 @@ S3 reads them from the standard AWS environment and config (``AWS_ACCESS_KEY_ID`
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,8 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.names import ENV_REMOTES, TOOL
 
 ENV_VAR = ENV_REMOTES
+# options whose value is text for every fsspec backend (an endpoint_url = 12 failed deep in botocore)
+_TEXT_OPTION = re.compile(r"(url|host|profile|key|secret|token|user|username|password|region|region_name)$")
 
 
 @dataclass
@@ -93,6 +96,12 @@ def resolve(name_or_url: str | None, explicit_file: str | None = None) -> Remote
     entry = remotes.get(name_or_url)
     if entry is not None:
         opts = {k: v for k, v in entry.items() if k != "url"}
+        for k, v in opts.items():
+            if _TEXT_OPTION.search(k) and not isinstance(v, str):
+                raise UsageError(f"{path}: [remotes.{name_or_url}] {k} must be a string, not {v!r}")
+            if not isinstance(v, (str, int, float, bool)) and k != "client_kwargs" and k != "config_kwargs":
+                raise UsageError(f"{path}: [remotes.{name_or_url}] {k} must be a string, number or "
+                                 f"true/false")
         url = entry.get("url")
         if not isinstance(url, str) or not url:
             raise UsageError(f"{path}: [remotes.{name_or_url}] has no url")

@@ -31,7 +31,9 @@ import errno
 import fcntl
 import json
 import os
+import re
 import shutil
+import stat
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -40,10 +42,32 @@ from typing import Any, Iterable, Iterator, Protocol
 
 import blake3
 
+from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import StoreError  # noqa: F401 - re-exported
+from gcvd_flow.engine.jsonio import read_regular
 from gcvd_flow.engine.keys import digest_bytes, is_digest, key_of
 from gcvd_flow.engine.names import ENV_FSYNC
 from gcvd_flow.engine.paths import default_cache_dir  # noqa: F401 - re-exported
+
+PIN_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}")
+
+
+def _roots_file(path: Path, what: str) -> dict[str, Any]:
+    """A runs/<id>.json or pins/<name>.json: {"records": [record keys], ...}; StoreError naming
+    the file for anything else (unreadable, not a regular file, other JSON shapes)."""
+    try:
+        doc = jsonio.loads(read_regular(path, MAX_ROOTS_BYTES))
+    except (OSError, ValueError) as exc:
+        raise StoreError(f"{path}: not a valid {what} file ({getattr(exc, 'strerror', None) or exc}); "
+                         f"remove it") from None
+    recs = doc.get("records") if isinstance(doc, dict) else None
+    if not isinstance(recs, list) or not all(is_digest(k) for k in recs):
+        raise StoreError(f"{path}: not a valid {what} file (\"records\" must be a list of record keys); remove it")
+    return doc
+
+
+MAX_ROOTS_BYTES = 64 << 20
+MAX_OBJECT_BYTES = 1 << 46  # 64 TiB: a record declaring more (10**100) is malformed
 
 
 def record_problem(key: str, rec: Any) -> str | None:
@@ -52,7 +76,8 @@ def record_problem(key: str, rec: Any) -> str | None:
     if not isinstance(rec, dict) or not is_digest(rec.get("outputs")):
         return "malformed record"
     objs = rec.get("objects")
-    if not isinstance(objs, dict) or not all(is_digest(d) and type(s) is int and s >= 0 for d, s in objs.items()):
+    if not isinstance(objs, dict) or not all(is_digest(d) and type(s) is int and 0 <= s <= MAX_OBJECT_BYTES
+                                             for d, s in objs.items()):
         return "malformed object list"
     if not isinstance(rec.get("children", []), list) or not all(is_digest(c) for c in rec.get("children", [])):
         return "malformed children"
@@ -235,10 +260,16 @@ class Store:
 
     @staticmethod
     def _read(path: Path) -> bytes | None:
+        """The bytes of a regular file; None when absent or not a regular file (a FIFO or a
+        device put in the cache would block a read, or never end)."""
         try:
-            return path.read_bytes()
+            return read_regular(path, 1 << 62)
         except (FileNotFoundError, NotADirectoryError):
             return None
+        except OSError as exc:
+            if exc.errno in (errno.EINVAL, errno.EFBIG, errno.ELOOP):
+                return None
+            raise
 
     def ensure(self, digests: Iterable[str]) -> None:
         """Fetch from the fallback, in one batch (one round trip, not one per object), those of
@@ -259,7 +290,7 @@ class Store:
 
     def quarantine(self, digest: str) -> None:
         src = self.object_path(digest)
-        if src.exists():
+        if os.path.lexists(src):
             dest = self.root / "quarantine" / digest
             os.replace(src, dest)
 
@@ -272,7 +303,7 @@ class Store:
     def iter_objects(self) -> Iterator[str]:
         base = self.root / "objects"
         for d in sorted(base.iterdir()):
-            if d.is_dir():
+            if d.is_dir() and not d.is_symlink():  # never through a link out of the cache
                 for f in sorted(d.iterdir()):
                     yield d.name + f.name
 
@@ -303,12 +334,12 @@ class Store:
     def read_record(self, key: str) -> dict[str, Any] | None:
         """The record filed under ``key`` if it is well-formed and belongs to ``key`` (its
         preimage hashes to ``key``), whether or not its objects are present; else None."""
-        path = self.record_path(key)
-        try:
-            rec = json.loads(path.read_bytes())
-        except (FileNotFoundError, NotADirectoryError):
+        raw = self._read(self.record_path(key))
+        if raw is None:
             return None
-        except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        try:
+            rec = jsonio.loads(raw)
+        except ValueError:  # not JSON, or nested deeper than any record
             return None
         return rec if record_problem(key, rec) is None else None
 
@@ -331,7 +362,7 @@ class Store:
     def iter_records(self) -> Iterator[tuple[str, Path]]:
         base = self.root / "records"
         for d in sorted(base.iterdir()):
-            if d.is_dir():
+            if d.is_dir() and not d.is_symlink():  # never through a link out of the cache
                 for f in sorted(d.glob("*.json")):
                     yield f.stem, f
 
@@ -387,22 +418,28 @@ class Store:
         return run_id
 
     def runs(self) -> list[tuple[str, dict[str, Any]]]:
-        out = []
-        for p in sorted((self.root / "runs").glob("*.json")):
-            try:
-                out.append((p.stem, json.loads(p.read_bytes())))
-            except (OSError, json.JSONDecodeError):
-                continue
-        return out
+        """(id, {records: [keys], ...}) of the finished runs, oldest first. A run file that is
+        not of this shape is a StoreError naming it (gc must not guess which roots to keep)."""
+        return [(p.stem, _roots_file(p, "run list")) for p in sorted((self.root / "runs").glob("*.json"))]
+
+    def _pin_path(self, name: str) -> Path:
+        if not isinstance(name, str) or not PIN_NAME.fullmatch(name):
+            raise StoreError(f"pin name {name!r}: use letters, digits, '.', '_' and '-' only (not starting "
+                             f"with '.'), at most 128")
+        return self.root / "pins" / f"{name}.json"
 
     def pin(self, name: str, run: dict[str, Any]) -> None:
-        (self.root / "pins" / f"{name}.json").write_bytes(canonical_json(run))
+        path = self._pin_path(name)
+        tmp = self._tmp_file()
+        tmp.write_bytes(canonical_json(run))
+        os.replace(tmp, path)
 
     def unpin(self, name: str) -> None:
-        (self.root / "pins" / f"{name}.json").unlink(missing_ok=True)
+        self._pin_path(name).unlink(missing_ok=True)
 
     def pinned(self) -> list[dict[str, Any]]:
-        return [json.loads(p.read_bytes()) for p in sorted((self.root / "pins").glob("*.json"))]
+        """The pins' roots; a pin file that is not a pin is a StoreError naming it."""
+        return [_roots_file(p, "pin") for p in sorted((self.root / "pins").glob("*.json"))]
 
     def reachable(self, roots: list[str]) -> set[str]:
         """Objects reachable from ``roots`` (record keys) through records and manifests."""
@@ -475,57 +512,83 @@ class Store:
                 "objects_kept": len(live)}
 
     def _clean_tmp(self, older_than_s: float = 0.0) -> int:
-        """Remove temp files of writers that are gone (their pid no longer exists)."""
+        """Remove temp files of writers that are gone (their pid no longer exists): only files
+        named as writers name them (``<pid>-<hex>``), directly in tmp/, never through a link."""
         n = 0
         now = time.time()
-        for p in (self.root / "tmp").iterdir():
-            pid_s = p.name.split("-", 1)[0]
+        tmp_dir = self.root / "tmp"
+        if tmp_dir.is_symlink() or not tmp_dir.is_dir():
+            return 0
+        for p in tmp_dir.iterdir():
+            pid_s, _, rest = p.name.partition("-")
+            if not (pid_s.isdigit() and rest):
+                continue
+            try:
+                st = p.lstat()
+            except FileNotFoundError:
+                continue
+            if not (stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode)):
+                continue
             alive = False
-            if pid_s.isdigit():
-                try:
-                    os.kill(int(pid_s), 0)
-                    alive = True
-                except ProcessLookupError:
-                    alive = False
-                except PermissionError:
-                    alive = True
-            if not alive and now - p.stat().st_mtime >= older_than_s:
+            try:
+                os.kill(int(pid_s), 0)
+                alive = True
+            except (ProcessLookupError, OverflowError, ValueError):
+                alive = False
+            except PermissionError:
+                alive = True
+            if not alive and now - st.st_mtime >= older_than_s:
                 p.unlink(missing_ok=True)
                 n += 1
         return n
 
+    def _load_record_file(self, path: Path) -> Any:
+        """A record file's JSON, or None when it is unreadable, not a regular file or not JSON."""
+        raw = self._read(path)
+        if raw is None:
+            return None
+        try:
+            return jsonio.loads(raw)
+        except ValueError:
+            return None
+
     def fsck(self) -> FsckReport:
-        """Re-hash every object; quarantine mismatches; drop records that lost objects."""
+        """Re-hash every object; quarantine mismatches (and anything in objects/ that is not a
+        regular file: a FIFO would block every reader); drop records that are unreadable, not
+        records, or lost objects."""
         rep = FsckReport(corrupt=[])
         for digest in list(self.iter_objects()):
             path = self.object_path(digest)
             h = blake3.blake3()
-            with open(path, "rb") as f:
-                for block in iter(lambda: f.read(1 << 22), b""):
-                    h.update(block)
-                    rep.bytes += len(block)
+            try:
+                fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+            except FileNotFoundError:
+                continue
+            except OSError:  # a symlink (ELOOP) or unreadable: not an object
+                self.quarantine(digest)
+                rep.corrupt.append(digest)
+                continue
+            with os.fdopen(fd, "rb") as f:
+                if stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                    for block in iter(lambda: f.read(1 << 22), b""):
+                        h.update(block)
+                        rep.bytes += len(block)
             rep.objects += 1
             if h.hexdigest() != digest:
                 self.quarantine(digest)
                 rep.corrupt.append(digest)
-        for _key, path in list(self.iter_records()):
-            try:
-                rec = json.loads(path.read_bytes())
-            except (OSError, json.JSONDecodeError):
+        recs: dict[str, Any] = {}
+        for key, path in list(self.iter_records()):
+            rec = self._load_record_file(path)
+            if record_problem(key, rec) is not None or any(self.object_size(d) != s for d, s in rec["objects"].items()):
                 path.unlink(missing_ok=True)
                 rep.records_removed += 1
-                continue
-            if any(self.object_size(d) != s for d, s in rec.get("objects", {}).items()):
-                path.unlink(missing_ok=True)
-                rep.records_removed += 1
+            else:
+                recs[key] = rec
         # a map stage whose items lost their records is incomplete too
-        for _key, path in list(self.iter_records()):
-            try:
-                rec = json.loads(path.read_bytes())
-            except (OSError, json.JSONDecodeError):
-                continue
-            if any(not self.record_path(c).exists() for c in rec.get("children", [])):
-                path.unlink(missing_ok=True)
+        for key, rec in recs.items():
+            if any(c not in recs for c in rec.get("children", [])):
+                self.record_path(key).unlink(missing_ok=True)
                 rep.records_removed += 1
         rep.tmp_removed = self._clean_tmp()
         return rep

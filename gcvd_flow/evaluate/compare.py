@@ -14,7 +14,9 @@ recorded (or ``--cache``) and measured by what they hold:
 * keyframe indices and loop edges: the sets compared.
 
 Map stages compare only the items whose digests differ (at most ``max_items``, evenly spread).
-The run directories' own outputs (poses.txt, depth/*.npy) are compared too, without any cache.
+The run directories' own outputs (poses.txt, depth/*.npy) are compared too, without any cache,
+and every file is checked against the digest its run.json records (``files``): "identical"
+needs equal stage digests, both run dirs' files matching their run.json, and equal file digests.
 """
 
 from __future__ import annotations
@@ -203,6 +205,20 @@ def _run_dir_diff(a: Path, b: Path) -> dict[str, Any]:
     return res
 
 
+def _files_check(run_a: str | Path, run_b: str | Path, doc_a: dict[str, Any], doc_b: dict[str, Any]) -> dict[str, Any]:
+    """The run directories' own files: each checked against the digests its run.json records
+    (a file swapped, edited or missing is found even when every stage digest is equal), and the
+    two runs' digests compared. {a: [problems], b: [problems], differing: [paths], equal}."""
+    from gcvd_flow.engine.outputs import check_files
+
+    fa, fb = doc_a.get("files"), doc_b.get("files")
+    out: dict[str, Any] = {"a": check_files(run_a, fa), "b": check_files(run_b, fb)}
+    fa, fb = fa or {}, fb or {}
+    out["differing"] = sorted(k for k in set(fa) | set(fb) if fa.get(k) != fb.get(k))
+    out["equal"] = not out["a"] and not out["b"] and not out["differing"]
+    return out
+
+
 def compare_runs(run_a: str | Path, run_b: str | Path, cache: str | None = None, cache_b: str | None = None,
                  max_items: int = 24) -> dict[str, Any]:
     """{stages: [{stage, equal, digest_a, digest_b, ...measures}], identical, outputs: {...}}."""
@@ -211,8 +227,10 @@ def compare_runs(run_a: str | Path, run_b: str | Path, cache: str | None = None,
     st_a, st_b = doc_a.get("stages") or {}, doc_b.get("stages") or {}
     order = list(doc_a.get("stage_order") or st_a) + [s for s in (doc_b.get("stage_order") or st_b) if s not in st_a]
     rows = [_stage_diff(n, st_a.get(n) or {}, st_b.get(n) or {}, sa, sb, max_items) for n in order]
-    res: dict[str, Any] = {"run_a": str(run_a), "run_b": str(run_b), "identical": all(r["equal"] for r in rows),
-                           "stages": rows}
+    files = _files_check(run_a, run_b, doc_a, doc_b)
+    res: dict[str, Any] = {"run_a": str(run_a), "run_b": str(run_b),
+                           "identical": all(r["equal"] for r in rows) and files["equal"],
+                           "stages": rows, "files": files}
     try:
         res["outputs"] = _run_dir_diff(Path(run_a), Path(run_b))
     except UsageError as exc:
@@ -246,6 +264,20 @@ def format_comparison(res: dict[str, Any]) -> str:
                      f"(scale-aligned {out['depth']['median_abs_log_ratio_scale_aligned']:.4g})")
     if "error" in out:
         lines.append(f"RUN_DIR outputs: {out['error']}")
-    lines.append("identical: every stage output is byte-identical" if res["identical"]
-                 else f"{sum(not r['equal'] for r in res['stages'])} stage(s) differ")
+    files = res.get("files") or {}
+    for tag in ("a", "b"):
+        for problem in files.get(tag, [])[:8]:
+            lines.append(f"RUN_{tag.upper()} files: {problem}")
+    if files.get("differing"):
+        d = files["differing"]
+        lines.append(f"{'RUN_DIR files':<20} {len(d)} differ: {', '.join(d[:5])}{' ...' if len(d) > 5 else ''}")
+    n_stages = sum(not r["equal"] for r in res["stages"])
+    if res["identical"]:
+        lines.append("identical: every stage output and every run-directory file is byte-identical")
+    else:
+        why = [f"{n_stages} stage(s) differ"] if n_stages else []
+        if not files.get("equal", True):
+            why.append("the run directories' files differ" if not (files.get("a") or files.get("b"))
+                       else "a run directory's files are not what its run.json records")
+        lines.append("; ".join(why))
     return "\n".join(lines)

@@ -111,10 +111,9 @@ class Matched:
 def _run_frames(run: Path) -> tuple[np.ndarray, np.ndarray, list[int], dict[str, Any]]:
     if not (run / "poses.txt").exists():
         raise UsageError(f"{run / 'poses.txt'}: missing (is {run} a finished run?)")
-    try:
-        cams = json.loads((run / "cameras.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"{run / 'cameras.json'}: missing or not valid JSON ({exc})") from None
+    from gcvd_flow.io.run_dir import read_cameras
+
+    cams = read_cameras(run)
     stamps, est = read_tum_poses(run / "poses.txt")
     idx = cams.get("frame_indices")
     if not isinstance(idx, list) or len(idx) != len(est):
@@ -203,7 +202,9 @@ def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -
     """ATE / RPE of poses.txt and depth errors of depth/*.npy against a ground-truth folder."""
     run = Path(run_dir)
     m = match_gt(run, gt_dir)
-    cams = json.loads((run / "cameras.json").read_text())
+    from gcvd_flow.io.run_dir import read_cameras
+
+    cams = read_cameras(run)
     res: dict[str, Any] = {"frames": len(m.run_pos)}
     if len(m.run_pos) != m.run_frames:
         res["run_frames"] = m.run_frames
@@ -259,35 +260,73 @@ def parse_tolerance(text: str) -> float:
 
 
 def read_baseline(path: str | Path) -> dict[str, Any]:
-    """A metrics.json (what `gcvd-flow eval` writes) or {"metrics": {...}, ...}."""
+    """A metrics.json (what `gcvd-flow eval` writes) or {"metrics": {...}, ...}, checked so that
+    the gate fails closed: every known metric it holds must be a number (a string, null, a list
+    or an integer too large for a float is a one-line UsageError naming the file and the metric,
+    never a silent "no metric worse"), and it must hold at least one. NaN / infinity pass here:
+    ``compare_to_baseline`` accepts them only where the run's metric is not finite either."""
+    from gcvd_flow.engine import jsonio
+
     p = Path(path)
-    try:
-        doc = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise UsageError(f"{p}: baseline file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UsageError(f"{p}: not a JSON metrics file ({exc})") from None
+    doc = jsonio.load_file(p, "baseline", missing="baseline file not found")
     if isinstance(doc, dict) and isinstance(doc.get("metrics"), dict):
         doc = doc["metrics"]
     if not isinstance(doc, dict) or not any(k in doc for k in LOWER_IS_BETTER + HIGHER_IS_BETTER):
         raise UsageError(f"{p}: no metrics (expected the metrics.json of `gcvd-flow eval`)")
+    for k in LOWER_IS_BETTER + HIGHER_IS_BETTER:
+        if k in doc and not _number(doc[k]):
+            raise UsageError(f"{p}: baseline metric {k} is {_show(doc[k])}, not a number: the gate cannot "
+                             f"compare it")
+    if "frames" in doc and not (isinstance(doc["frames"], int) and not isinstance(doc["frames"], bool)
+                                and 0 <= doc["frames"] < 1 << 53):
+        raise UsageError(f"{p}: baseline frames is {_show(doc['frames'])}, not a frame count")
     return doc
 
 
-def compare_to_baseline(res: dict[str, Any], base: dict[str, Any], tolerance: float) -> list[str]:
+def _number(v: Any) -> bool:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        float(v)
+    except OverflowError:  # an integer beyond float's range (10**400)
+        return False
+    return True
+
+
+def _show(v: Any) -> str:
+    text = repr(v) if isinstance(v, (float, int)) and not isinstance(v, bool) else json.dumps(v)
+    return text if len(text) <= 24 else text[:21] + "..."
+
+
+def compare_to_baseline(res: dict[str, Any], base: dict[str, Any], tolerance: float,
+                        where: str = "baseline") -> list[str]:
     """One line per metric of ``res`` worse than ``base`` by more than ``tolerance`` (relative);
     a metric that is 0 in the baseline may grow by 1e-9 (rounding). Also a line when the frame
-    count differs (the metrics would not be comparable)."""
+    count differs (the metrics would not be comparable).
+
+    Fails closed (UsageError naming ``where``): a baseline metric that is NaN or infinite while
+    the run's is finite cannot be compared (it would pass any run), and a baseline of which no
+    metric could be compared at all gates nothing. A metric that is not finite in both (e.g.
+    abs_rel_confident of a run without confident pixels) is the same state and is skipped."""
     lines = []
     if "frames" in base and res.get("frames") != base["frames"]:
         lines.append(f"frames: {base['frames']} -> {res.get('frames')} (the run covers other frames than the baseline)")
+    compared = 0
     for k in LOWER_IS_BETTER + HIGHER_IS_BETTER:
-        if k not in base or not isinstance(base[k], (int, float)):
+        if k not in base:
             continue
+        if not _number(base[k]):
+            raise UsageError(f"{where}: baseline metric {k} is {_show(base[k])}, not a number")
         new = res.get(k)
-        if not isinstance(new, (int, float)) or not np.isfinite(new):
-            if np.isfinite(base[k]):
-                lines.append(f"{k}: {base[k]:.6g} -> {new} (missing or not finite)")
+        new_ok = _number(new) and bool(np.isfinite(float(new)))
+        if not np.isfinite(float(base[k])):
+            if new_ok:
+                raise UsageError(f"{where}: baseline metric {k} is {float(base[k])}, the run's {float(new):.6g}: "
+                                 f"the gate cannot compare them")
+            continue
+        compared += 1
+        if not new_ok:
+            lines.append(f"{k}: {base[k]:.6g} -> {new} (missing or not finite)")
             continue
         b, n = float(base[k]), float(new)
         if k in HIGHER_IS_BETTER:  # compare the failing share 1 - delta1
@@ -298,4 +337,6 @@ def compare_to_baseline(res: dict[str, Any], base: dict[str, Any], tolerance: fl
             what = f"1-{k}" if k in HIGHER_IS_BETTER else k
             lines.append(f"{k}: {float(base[k]):.6g} -> {float(new):.6g} ({what} {rel:+.1f}%, tolerance "
                          f"{tolerance * 100:g}%)")
+    if not compared:
+        raise UsageError(f"{where}: no metric of the baseline could be compared (none is a finite number)")
     return lines

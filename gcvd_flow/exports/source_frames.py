@@ -10,7 +10,6 @@ the ``ingest`` stage recorded. Intrinsics are scaled back with the pixel-centre 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,7 +17,8 @@ import numpy as np
 
 from gcvd_flow.engine.dag import MapValue
 from gcvd_flow.engine.errors import UsageError
-from gcvd_flow.io.run_dir import RunData
+from gcvd_flow.engine.outputs import read_run_dir
+from gcvd_flow.io.run_dir import RunData, read_cameras
 
 
 @dataclass
@@ -57,12 +57,12 @@ def source_view(run: RunData) -> FrameView | str:
     from gcvd_flow.pipeline import RUN_DIR_SOURCES
 
     try:
-        doc = json.loads((run.run_dir / "run.json").read_text())
-        cams = json.loads((run.run_dir / "cameras.json").read_text())
+        doc = read_run_dir(run.run_dir)
+        cams = read_cameras(run.run_dir)
         src_w, src_h = int(cams["source_width"]), int(cams["source_height"])
         recorded = doc["stages"][RUN_DIR_SOURCES.frames]["fields"]["inputs"]["source"]
         input_ = doc["invocation"]["input"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:  # UsageError is a ValueError
         return f"run.json / cameras.json do not say where the source frames are ({exc})"
     if (src_w, src_h) == (run.width, run.height):
         return working_view(run) if run.images is not None else "the run's frames are not available"

@@ -7,7 +7,10 @@
     confidence/NNNNNN.npy float32 (H, W) per-pixel confidence of that depth in [0, 1], 0 = unmeasured
     cameras.json         intrinsics at working resolution, sizes, frame indices (NNNNNN),
                          timestamps and what they are, keyframes, fps
-    run.json             written by the engine: resolved config, every stage's key and output digest
+    run.json             written by the engine: resolved config, every stage's key and output digest,
+                         and the BLAKE3 digest of every file above (``files``: relative path ->
+                         digest; ``compare --check`` and the no-op fast path verify them)
+    .gcvd-lock           the writer lock a run holds while it writes RUN_DIR (engine/outputs.py)
 
 ``write_run_dir`` is the pipeline's export hook, told by the pipeline which stages it reads
 (``RunSources``: ``gcvd_flow.pipeline.RUN_DIR_SOURCES``); ``load_run`` reads and checks a RUN_DIR
@@ -171,6 +174,17 @@ class RunData:
         return self._median
 
 
+def read_cameras(run: Path) -> dict[str, Any]:
+    """RUN_DIR/cameras.json as an object (depth-limited JSON); one-line UsageError otherwise."""
+    from gcvd_flow.engine import jsonio
+
+    p = run / "cameras.json"
+    cams = jsonio.load_file(p, "cameras file", missing=f"missing (is {run} a finished `gcvd-flow run` directory?)")
+    if not isinstance(cams, dict):
+        raise UsageError(f"{p}: not an object of camera fields")
+    return cams
+
+
 def load_run(run_dir: str | Path) -> RunData:
     """Read and check RUN_DIR; every problem is a one-line UsageError naming the file."""
     import numpy as np
@@ -183,19 +197,14 @@ def load_run(run_dir: str | Path) -> RunData:
     if not run.is_dir():
         raise UsageError(f"{run}: not a directory (expected a `gcvd-flow run` output directory)")
     cams_path = run / "cameras.json"
-    try:
-        cams = json.loads(cams_path.read_text())
-    except FileNotFoundError:
-        raise UsageError(f"{cams_path}: missing (is {run} a finished `gcvd-flow run` directory?)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UsageError(f"{cams_path}: not valid JSON ({exc})") from None
+    cams = read_cameras(run)
     try:
         K = np.asarray(cams["K"], np.float64)
         width, height = int(cams["width"]), int(cams["height"])
         idx = [int(i) for i in cams["frame_indices"]]
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or width < 1 or height < 1:
             raise ValueError("bad K / width / height")
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise UsageError(f"{cams_path}: missing or malformed K / width / height / frame_indices ({exc})") from None
     _, poses = read_tum_poses(run / "poses.txt")  # DatasetError (a UsageError) names the file
     if len(poses) != len(idx):

@@ -68,7 +68,10 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
             except pickle.UnpicklingError as exc:
                 why = next((ln.strip() for ln in str(exc).splitlines() if "Unsupported" in ln), "not tensors")
                 raise WeightsError(f"{p}: refused to unpickle: only tensors are allowed ({why[:120]})") from None
-            except (RuntimeError, EOFError, ValueError, AttributeError, ImportError, TypeError) as exc:
+            except (MemoryError, RecursionError) as exc:
+                raise WeightsError(f"{p}: not a readable torch weights file ({type(exc).__name__})") from None
+            except Exception as exc:  # noqa: BLE001 - any failure parsing a hostile file is the file's
+                # (a garbage file made torch.load raise KeyError, IndexError, struct.error, ...)
                 raise WeightsError(f"{p}: not a readable torch weights file ({type(exc).__name__})") from None
     except OSError as exc:
         raise WeightsError(f"{p}: cannot read ({exc.strerror or exc})") from None

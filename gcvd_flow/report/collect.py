@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from gcvd_flow.engine.errors import StoreError, UsageError
-from gcvd_flow.io.run_dir import RunData, load_run
+from gcvd_flow.io.run_dir import RunData, load_run, read_cameras
 
 
 @dataclass
@@ -102,14 +102,15 @@ def collect(run_dir: str | Path, gt: str | Path | None = None, cache: str | None
 
     run = load_run(run_dir)  # one-line UsageError naming the file
     doc = read_run_dir(run_dir)
-    cams = json.loads((Path(run_dir) / "cameras.json").read_text())
+    cams = read_cameras(Path(run_dir))  # checked by load_run: an object
     data = ReportData(run=run, doc=doc, cams=cams, cache=resolve_cache(doc, cache))
     store = _open_store(data.cache)
     if store is None:
         data.notes.append(f"the cache {data.cache} is not available: frames, masks and health signals "
                           "from stage outputs are left out (pass --cache DIR)")
     pos = {f: k for k, f in enumerate(run.frame_indices)}
-    data.keyframes = [pos[f] for f in cams.get("keyframes") or [] if f in pos]
+    kf = cams.get("keyframes")
+    data.keyframes = [pos[f] for f in kf if isinstance(f, int) and f in pos] if isinstance(kf, list) else []
     _graph_signals(data, store, pos)
     _trajectory(data, gt)
     _frame_signals(data, store)
@@ -299,11 +300,13 @@ def _last_invocation(run_dir: Path, stages: dict[str, Any]) -> dict[str, dict[st
     """executed / cached / seconds per stage from RUN_DIR/.gcvd-stamp.json when it belongs to
     the run.json at hand (the same stage records), else {}."""
     try:
-        stamp = json.loads((run_dir / ".gcvd-stamp.json").read_text())
-        recs = " ".join(stamp.get("records") or [])
+        from gcvd_flow.engine import jsonio
+
+        stamp = jsonio.loads(jsonio.read_regular(run_dir / ".gcvd-stamp.json"))
+        recs = " ".join(str(r) for r in stamp.get("records") or [])
         out = {s["name"]: {"seconds": s["seconds"], "executed": s["executed"], "cached": s["cached"]}
                for s in stamp["result"]["stages"]}
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):  # a stamp of another shape: none
         return {}
     if any(r.get("key") and r["key"] not in recs for r in stages.values()):
         return {}
