@@ -84,9 +84,12 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
                 rows.append(_row(inp, out, None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}".splitlines()[0]))
             if not rows[-1]["ok"]:
                 log(f"[{name}] failed: {rows[-1]['error']}")
-    finally:
-        if executor is not None:
-            executor.close()
+    except BaseException as exc:
+        if executor is not None:  # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the workers at once
+            executor.close(abort=not isinstance(exc, Exception))
+        raise
+    if executor is not None:
+        executor.close()
     failed = sum(1 for r in rows if not r["ok"])
     return {"runs": rows, "failed": failed, "seconds": round(time.perf_counter() - t_all, 3)}
 
