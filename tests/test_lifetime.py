@@ -47,7 +47,8 @@ class Run:
     """`gcvd-flow run` in a session (and process group) of its own, signals at their defaults,
     stdout / stderr in files (a pipe would be held open by any process that outlives it)."""
 
-    def __init__(self, tmp: Path, inp: Path, *args: str, env: dict[str, str] | None = None):
+    def __init__(self, tmp: Path, inp: Path, *args: str, env: dict[str, str] | None = None,
+                 command: tuple[str, ...] | None = None):
         self.cache, self.out = tmp / "cache", tmp / "out"
         # a short TMPDIR: the forkserver's socket address must fit in 108 bytes (with a longer
         # one it goes to multiprocessing's usual place in TMPDIR, and stays there after kill -9)
@@ -55,7 +56,7 @@ class Run:
         e = dict(os.environ, TMPDIR=str(self.tmp), OMP_NUM_THREADS="1", **(env or {}))
         self.err_path = tmp / "stderr.txt"
         with open(tmp / "stdout.txt", "w") as out, open(self.err_path, "w") as err:
-            self.p = subprocess.Popen([sys.executable, "-m", "gcvd_flow", "run", str(inp), "--out", str(self.out),
+            self.p = subprocess.Popen([sys.executable, "-m", "gcvd_flow", *(command or ("run", str(inp))), "--out", str(self.out),
                                        "--cache", str(self.cache), *TOY, *args], cwd=ROOT, env=e, stdout=out,
                                       stderr=err, start_new_session=True, preexec_fn=_default_signals)
 
@@ -208,6 +209,8 @@ def test_sigterm_and_sighup_end_a_run_with_128_plus_signum_and_it_resumes(refere
     assert run.finish() == 128 + sig, run.stderr()
     _one_line(run.stderr(), f"interrupted by {signal.Signals(sig).name}; the cache is consistent")
     _all_gone(run, tree, shm)
+    if sig != signal.SIGTERM:
+        return  # (the resumed run is the same after either)
     # the next run resumes: what finished is cached, the rest computed; the same outputs
     doc = cli_json("run", str(inp), "--out", str(run.out), "--cache", str(run.cache), *TOY, *POOL, "--set",
                    "transform.sleep=0.2")
@@ -230,6 +233,22 @@ def test_a_signal_to_the_process_group_gives_one_line_not_worker_tracebacks(refe
     os.killpg(run.p.pid, sig)
     assert run.finish() == 128 + sig, run.stderr()
     _one_line(run.stderr(), "interrupted")
+    _all_gone(run, tree, shm)
+
+
+def test_sigterm_ends_run_many_while_its_inputs_share_the_workers(reference, tmp_path, runs):
+    """run-many runs the map stages of all inputs at once, on threads sharing the workers: a
+    SIGTERM ends it now, not once those stages are done."""
+    inp, _ = reference
+    other = make_toy_input(tmp_path / "other", n=N, seed=5)
+    run = runs(tmp_path, inp, *POOL, "--set", "transform.sleep=0.5", command=("run-many", str(inp), str(other)))
+    tree = run.wait_for(records=2 * N + 4, workers=2)  # both decodes done, transform under way
+    shm = _shm(tree)
+    t0 = time.time()
+    run.p.send_signal(signal.SIGTERM)
+    assert run.finish() == 128 + signal.SIGTERM, run.stderr()
+    assert time.time() - t0 < 5  # the remaining transform items take ~2 x 24 x 0.5 / 2 = 12 s
+    _one_line(run.stderr(), "interrupted by SIGTERM")
     _all_gone(run, tree, shm)
 
 

@@ -131,7 +131,12 @@ def _map_stages_of_all_inputs(inputs: list[str], names: list[str], root: Path, b
         return {}
     with ThreadPoolExecutor(max_workers=min(len(inputs), 8)) as pool:
         futures = {name: pool.submit(one, inp, name) for inp, name in zip(inputs, names)}
-        return {name: f.result() for name, f in futures.items()}
+        try:
+            return {name: f.result() for name, f in futures.items()}
+        except BaseException as exc:
+            if not isinstance(exc, Exception):  # an interrupt: the threads' items fail now, so they
+                executor.close(abort=True)      # end, instead of computing the whole map prefix
+            raise
 
 
 def format_table(doc: dict[str, Any]) -> str:
