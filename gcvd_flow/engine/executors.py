@@ -524,7 +524,10 @@ class DaskItemExecutor:
                 with dask.config.set({"temporary-directory": tmp}):  # the scheduler's scratch space
                     self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
                                                  dashboard_address=None, silence_logs=logging.CRITICAL,
-                                                 env={"OMP_NUM_THREADS": "1"}, local_directory=tmp)
+                                                 env={"OMP_NUM_THREADS": "1"}, local_directory=tmp,
+                                                 # its HTTP routes (no dashboard) on a free port: on
+                                                 # 8787, taken, it warned on stderr
+                                                 scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
                 self._client = Client(self._cluster)
             except BaseException:  # e.g. Ctrl-C while the workers start: no half-made cluster at exit
                 for c in set(SpecCluster._instances) - before:
