@@ -226,8 +226,8 @@ def test_a_signal_to_the_process_group_gives_one_line_not_worker_tracebacks(refe
     group, while the workers wait between stages (idle workers printed KeyboardInterrupt
     tracebacks): one line, exit 128 + signum, the workers ended by the run."""
     inp, _ = reference
-    run = runs(tmp_path, inp, *executor, "--set", "threshold.sleep=60")
-    tree = run.wait_for(records=2 * (N + 1) + 1, workers=2)  # decode, transform, summarize done
+    run = runs(tmp_path, inp, *executor, "--set", "threshold.sleep=60", "--set", "decode.end=10")
+    tree = run.wait_for(records=2 * (10 + 1) + 1, workers=2)  # decode, transform, summarize done
     time.sleep(0.5)  # into threshold's sleep
     shm = _shm(tree)
     os.killpg(run.p.pid, sig)

@@ -285,7 +285,7 @@ for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
     signal.signal(s, signal.SIG_IGN)
 while os.read(0, 4096):
     pass
-for delay in (0.0, 0.5, 2.0):  # again: a worker that was still ending may have written into it
+for delay in (0.0, 0.5, 1.0):  # again: a worker that was still ending may have written into it
     time.sleep(delay)
     shutil.rmtree(sys.argv[1], ignore_errors=True)
 """
