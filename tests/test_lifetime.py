@@ -207,8 +207,8 @@ def test_sigterm_and_sighup_end_a_run_with_128_plus_signum_and_it_resumes(refere
     shm = _shm(tree)
     run.p.send_signal(sig)
     assert run.finish() == 128 + sig, run.stderr()
-    _one_line(run.stderr(), f"interrupted by {signal.Signals(sig).name}; the cache is consistent")
     _all_gone(run, tree, shm)
+    _one_line(run.stderr(), f"interrupted by {signal.Signals(sig).name}; the cache is consistent")  # late lines too
     if sig != signal.SIGTERM:
         return  # (the resumed run is the same after either)
     # the next run resumes: what finished is cached, the rest computed; the same outputs
@@ -232,8 +232,8 @@ def test_a_signal_to_the_process_group_gives_one_line_not_worker_tracebacks(refe
     shm = _shm(tree)
     os.killpg(run.p.pid, sig)
     assert run.finish() == 128 + sig, run.stderr()
-    _one_line(run.stderr(), "interrupted")
     _all_gone(run, tree, shm)
+    _one_line(run.stderr(), "interrupted")  # also nothing its processes wrote as they ended
 
 
 def test_sigterm_ends_run_many_while_its_inputs_share_the_workers(reference, tmp_path, runs):
@@ -248,8 +248,8 @@ def test_sigterm_ends_run_many_while_its_inputs_share_the_workers(reference, tmp
     run.p.send_signal(signal.SIGTERM)
     assert run.finish() == 128 + signal.SIGTERM, run.stderr()
     assert time.time() - t0 < 5  # the remaining transform items take ~2 x 24 x 0.5 / 2 = 12 s
-    _one_line(run.stderr(), "interrupted by SIGTERM")
     _all_gone(run, tree, shm)
+    _one_line(run.stderr(), "interrupted by SIGTERM")
 
 
 @pytest.mark.parametrize("executor", [POOL, DASK], ids=["process", "dask"])
