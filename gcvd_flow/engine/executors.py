@@ -334,11 +334,17 @@ def _start_forkserver(tmp: str) -> None:
     # that fits a socket address (108 bytes); else in its usual place (left there after kill -9)
     if len(os.fsencode(tmp)) + 34 < 108:
         tempfile.tempdir = tmp
+    # workers run one BLAS / OpenMP thread each (``_worker_init``), which OpenBLAS reads when
+    # numpy loads: in the forkserver's environment, before a worker imports anything
+    omp = os.environ.get("OMP_NUM_THREADS")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
     try:
         with _ctrl_c_blocked():
             forkserver.ensure_running()
     finally:
         tempfile.tempdir = old
+        if omp is None:
+            del os.environ["OMP_NUM_THREADS"]
 
 
 def _exit_with_the_run() -> None:
