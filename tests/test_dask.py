@@ -80,8 +80,10 @@ def test_a_worker_killed_mid_stage_costs_a_retry_not_a_result(reference, tmp_pat
         records = sum(1 for _ in (cache / "records").rglob("*.json")) if (cache / "records").is_dir() else 0
         if records < 30:  # decode finished (24 items + its stage record) and transform under way
             continue
+        # the workers: forked by the run's forkserver (not the forkserver itself, nor the
+        # resource tracker or the janitor)
         workers = [c for c in psutil.Process(p.pid).children(recursive=True)
-                   if "multiprocessing" in " ".join(c.cmdline()) and "resource_tracker" not in " ".join(c.cmdline())]
+                   if "multiprocessing.forkserver" in " ".join(c.parent().cmdline())]
         if workers:
             killed = workers[0].pid
             workers[0].send_signal(signal.SIGKILL)

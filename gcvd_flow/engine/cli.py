@@ -4,21 +4,27 @@ A product builds its CLI on this one (:class:`Product`): it names its pipeline a
 adds its own verbs and options through hooks, and calls :func:`main`. The engine knows nothing
 of what the product computes.
 
-Exit codes: 0 success, 2 bad usage or bad input (one line on stderr, no traceback),
-1 internal error, 130 interrupted (the cache stays consistent; run again to resume).
+Exit codes: 0 success, 2 bad usage or bad input (one line on stderr, no traceback), also lost
+workers (a worker killed again and again, the Dask scheduler gone), 1 internal error, 128 + the
+signal's number when stopped by a signal, handled alike (one line, the worker processes ended,
+the cache consistent; run again to resume): 130 Ctrl-C (SIGINT), 143 SIGTERM (e.g. a CI
+timeout), 129 SIGHUP (the terminal closed). An ignored SIGHUP (nohup) stays ignored.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import json
+import signal
 import sys
+import threading
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
-from gcvd_flow.engine.errors import StoreError, UsageError
+from gcvd_flow.engine.errors import StoreError, UsageError, WorkerError
 from gcvd_flow.engine.names import ENV_CACHE, ENV_JOBS, ENV_REMOTES
 
 
@@ -432,20 +438,58 @@ def dispatch(a: argparse.Namespace) -> int:
     return int(handler(a) or 0)
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread: handled as Ctrl-C is."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, frame: Any) -> None:
+    raise Stopped(signum)
+
+
+@contextlib.contextmanager
+def _stop_signals_interrupt() -> Iterator[None]:
+    """SIGTERM and SIGHUP raise :class:`Stopped` inside the block (unless ignored: nohup), so a
+    run ends through the same path as on Ctrl-C: its executor ends the workers, the store's
+    files stay whole. The previous handlers are back after the block."""
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            if signal.getsignal(sig) == signal.SIG_DFL:
+                old[sig] = signal.signal(sig, _raise_stopped)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _say(line: str) -> None:
+    """One line on stderr, which may be a closed terminal (SIGHUP)."""
+    with contextlib.suppress(OSError, ValueError):
+        print(line, file=sys.stderr)
+
+
 def main(product: Product, argv: Sequence[str] | None = None) -> int:
     ap = build_parser(product)
     a = ap.parse_args(argv)
     try:
-        return dispatch(a)
+        with _stop_signals_interrupt():
+            return dispatch(a)
     except UsageError as exc:
         print(f"{product.prog}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"{product.prog}: interrupted; the cache is consistent, run again to resume", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM / SIGHUP (Stopped)
+        signum = getattr(exc, "signum", signal.SIGINT)
+        how = "interrupted" if signum == signal.SIGINT else f"interrupted by {signal.Signals(signum).name}"
+        _say(f"{product.prog}: {how}; the cache is consistent, run again to resume")
+        return 128 + signum
     except BrokenPipeError:
         return 0
-    except StoreError as exc:  # a cache that cannot serve this run (even after healing)
+    except (StoreError, WorkerError) as exc:  # a cache that cannot serve this run; lost workers
         print(f"{product.prog}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # the environment: permissions, a full disk, a file where a folder must be

@@ -8,3 +8,9 @@ class UsageError(ValueError):
 class StoreError(RuntimeError):
     """The cache cannot serve a request (missing or corrupt objects that could not be healed,
     a directory that is not a cache): reported as one line, exit code 2."""
+
+
+class WorkerError(RuntimeError):
+    """The processes computing map items were lost: a worker killed (out of memory?) again and
+    again, the Dask scheduler gone. Reported as one line, exit code 2; what finished is in the
+    cache, a re-run resumes."""

@@ -4,22 +4,37 @@ An item task carries only digests, JSON sub-trees and picklable loaders, never a
 worker loads its inputs from the store and writes its outputs to the store itself, so the
 parent does not ship megabytes through pipes. Every task takes the item's OS lock and
 re-checks the record first, which is what makes two concurrent runs compute each item once.
+
+The worker processes a run starts end with it, however it ends (docs/design.md, "The process
+tree of a run"): pool workers watch the run through a pipe and exit at its EOF, Dask workers
+are watched the same way by distributed; workers never act on Ctrl-C (the run ends them), and
+what they put in the temp dir lives in a directory of the run that a janitor process removes
+when the run has ended.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import multiprocessing
+import multiprocessing.connection
 import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
 import time
 import uuid
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
 
 from gcvd_flow.engine.artifacts import Encoder, decode_tree, load_value
-from gcvd_flow.engine.names import ENV_JOBS
+from gcvd_flow.engine.errors import WorkerError
+from gcvd_flow.engine.names import ENV_JOBS, TOOL
 from gcvd_flow.engine.store import Store
 
 
@@ -213,7 +228,7 @@ class InProcessExecutor:
     def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
         return map(fn, args)
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         pass
 
 
@@ -248,6 +263,139 @@ def _ordered(submit: Callable[[Any], Any], args: Iterator[Any], jobs: int,
             f.cancel()
 
 
+# ------------------------------------------------------------------------------ process lifetime
+#
+# The worker processes of a run end with it however it ends, kill -9 and the OOM killer
+# included, so none of this relies on the run's own clean-up (docs/design.md, "The process tree
+# of a run"):
+# - a pool worker watches the run through the pipe multiprocessing keeps between them (only the
+#   run holds its write end: EOF once the run has ended) and exits at once;
+# - the forkserver exits when its "alive" pipe, held by the run and the pool workers, reaches
+#   EOF; the resource tracker when its pipe (the same holders and the forkserver) does, and
+#   it then unlinks the semaphores the run left in /dev/shm;
+# - Dask workers of a local cluster are watched the same way by distributed (their nannies
+#   live in the run process);
+# - a janitor removes the run's temp dir (the forkserver's socket, the Dask scratch space) once
+#   the run has ended.
+# Workers never act on Ctrl-C, which the terminal sends to the whole process group (they
+# printed tracebacks): the run ends them (``close(abort=True)``).
+
+_JANITOR = """
+import os, shutil, signal, sys, time
+for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    signal.signal(s, signal.SIG_IGN)
+while os.read(0, 4096):
+    pass
+for delay in (0.0, 0.5, 1.0):  # again: a worker that was still ending may have written into it
+    time.sleep(delay)
+    shutil.rmtree(sys.argv[1], ignore_errors=True)
+"""
+_RUN_TMP: str | None = None
+_JANITOR_PROC: subprocess.Popen | None = None
+
+
+def run_temp_dir() -> str:
+    """A temp directory of this process (the run), removed once the process has ended, however
+    it ended: a janitor (a bare python, in a session of its own so that signals to the run's
+    process group pass it by) reads a pipe whose only write end this process holds and removes
+    the directory at its EOF. Created on first use; the same path for the process's lifetime."""
+    global _RUN_TMP, _JANITOR_PROC
+    if _RUN_TMP is None or _JANITOR_PROC is None or _JANITOR_PROC.poll() is not None:
+        path = tempfile.mkdtemp(prefix=f"{TOOL}-")  # short: the forkserver's socket goes in it
+        _JANITOR_PROC = subprocess.Popen([sys.executable, "-I", "-S", "-c", _JANITOR, path], stdin=subprocess.PIPE,
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        _RUN_TMP = path
+    return _RUN_TMP
+
+
+@contextlib.contextmanager
+def _ctrl_c_blocked() -> Iterator[None]:
+    """Processes started inside begin with SIGINT blocked, which they keep through fork and
+    exec; a Ctrl-C meanwhile reaches this process when the block ends. (Python handles signals
+    in the main thread only.)"""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _start_forkserver(tmp: str) -> None:
+    """Start the forkserver now, from this thread, with SIGINT blocked (its children, the pool
+    workers, inherit that) and its socket in the run's temp dir ``tmp``; by default it starts
+    on the first submit, from whichever thread submits."""
+    from multiprocessing import forkserver, resource_tracker
+
+    resource_tracker.ensure_running()  # first: starting it would unblock SIGINT (it blocks and unblocks it)
+    old = tempfile.tempdir
+    # where multiprocessing makes this process's socket, TMP/pymp-XXXXXXXX/listener-XXXXXXXX, if
+    # that fits a socket address (108 bytes); else in its usual place (left there after kill -9)
+    if len(os.fsencode(tmp)) + 34 < 108:
+        tempfile.tempdir = tmp
+    # workers run one BLAS / OpenMP thread each (``_worker_init``), which OpenBLAS reads when
+    # numpy loads: in the forkserver's environment, before a worker imports anything
+    omp = os.environ.get("OMP_NUM_THREADS")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    try:
+        with _ctrl_c_blocked():
+            forkserver.ensure_running()
+    finally:
+        tempfile.tempdir = old
+        if omp is None:
+            del os.environ["OMP_NUM_THREADS"]
+
+
+def _exit_with_the_run() -> None:
+    """In a pool worker: a thread that waits for EOF on the pipe from the run (the parent
+    sentinel multiprocessing gives every child) and ends this process then, mid-item or idle.
+    An item cut short leaves nothing under a final name (the store renames complete files)."""
+    parent = multiprocessing.parent_process()
+    if parent is None or parent.sentinel is None:
+        return
+    sentinel = parent.sentinel
+
+    def watch() -> None:
+        multiprocessing.connection.wait([sentinel])
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-the-run", daemon=True).start()
+
+
+def _pool_worker_init(pipeline_init: Callable[[], None] | None) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the run ends us
+    _exit_with_the_run()
+    _worker_init(pipeline_init)
+
+
+def _lost_workers(it: Iterator[Any], lost: tuple[type[BaseException], ...],
+                  message: Callable[[BaseException], str]) -> Iterator[Any]:
+    """``it``, with a failure that means the workers were lost (a type in ``lost``) raised as a
+    one-line WorkerError (exit 2) instead of the executor's traceback."""
+    try:
+        yield from it
+    except lost as exc:
+        raise WorkerError(message(exc)) from None
+
+
+_RESUME = "the cache is consistent: finished items are kept, run again to resume"
+
+
+@contextlib.contextmanager
+def closing(executor: Any) -> Iterator[Any]:
+    """Close ``executor`` when the block is left: after its running items have finished, or at
+    once, its workers ended, when an interrupt (Ctrl-C, SIGTERM, SIGHUP: a KeyboardInterrupt)
+    or SystemExit leaves the block."""
+    try:
+        yield executor
+    except BaseException as exc:
+        executor.close(abort=not isinstance(exc, Exception))
+        raise
+    executor.close()
+
+
 def _worker_init(pipeline_init: Callable[[], None] | None) -> None:
     # Workers share the machine's cores: one BLAS / OpenMP thread each; the pipeline pins the
     # thread pools of the libraries its stages use (it knows them, the engine does not).
@@ -271,10 +419,14 @@ class ProcessPoolItemExecutor:
         # forkserver: a clean, thread-free parent for workers (fork after numeric libraries
         # created threads can deadlock).
         ctx = multiprocessing.get_context("forkserver")
+        _start_forkserver(run_temp_dir())
         self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx,
-                                         initializer=_worker_init, initargs=(worker_init,))
+                                         initializer=_pool_worker_init, initargs=(worker_init,))
 
     def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
+        return _lost_workers(self._run(tasks), (BrokenProcessPool,), _pool_lost)
+
+    def _run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
         pending: set[Future] = set()
         it = iter(tasks)
         exhausted = False
@@ -293,10 +445,22 @@ class ProcessPoolItemExecutor:
     def map_calls(self, fn: Callable[[Any], Any], args: Iterable[Any]) -> Iterator[Any]:
         """``fn(arg)`` for each argument on the workers, in argument order (see ``_ordered``);
         fewer than MIN_CALLS calls run here."""
-        return _map_calls(fn, args, lambda a: self._pool.submit(fn, a), self.jobs)
+        return _lost_workers(_map_calls(fn, args, lambda a: self._pool.submit(fn, a), self.jobs),
+                             (BrokenProcessPool,), _pool_lost)
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
+        """Wait for the running items (queued ones are cancelled); ``abort``: end the workers
+        now instead (an interrupt: their items are recomputed by the next run)."""
+        if abort:
+            # the pool keeps its worker processes in ``_processes`` (CPython, since 3.2)
+            for p in list((getattr(self._pool, "_processes", None) or {}).values()):
+                with contextlib.suppress(Exception):
+                    p.kill()
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _pool_lost(exc: BaseException) -> str:
+    return f"a worker process ended unexpectedly (killed, out of memory?); {_RESUME}"
 
 
 _DASK_INIT_DONE = False
@@ -330,10 +494,15 @@ class DaskItemExecutor:
     def __init__(self, jobs: int, worker_init: Callable[[], None] | None = None, scheduler: str | None = None):
         import logging
 
+        import dask
         from distributed import Client, LocalCluster
 
         self.worker_init = worker_init
         self._cluster = None
+        # distributed logs what it retries and what it gives up on, tracebacks included, through
+        # the handlers of its logger: the run reports lost workers or scheduler as one line
+        for handler in logging.getLogger("distributed").handlers:
+            handler.setLevel(logging.CRITICAL)
         if scheduler:
             try:
                 self._client = Client(scheduler, timeout="15s")
@@ -347,9 +516,25 @@ class DaskItemExecutor:
 
             before = set(SpecCluster._instances)
             try:
-                self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
-                                             dashboard_address=None, silence_logs=logging.ERROR,
-                                             env={"OMP_NUM_THREADS": "1"})
+                # the cluster's scratch space in the run's temp dir; its workers forked by the run's
+                # forkserver, which was started with Ctrl-C blocked: they inherit that, from birth
+                # (and so do workers the nannies restart later: the setting stays for the process)
+                tmp = run_temp_dir()
+                _start_forkserver(tmp)
+                dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
+                import distributed.utils as dask_utils
+
+                if getattr(dask_utils, "_forkserver_preload_set", None) is False:
+                    # distributed would import its list of packages into this process to preload
+                    # them in a new forkserver; ours is running already (~1 s for nothing)
+                    dask_utils._forkserver_preload_set = True
+                with dask.config.set({"temporary-directory": tmp}):  # the scheduler's scratch space
+                    self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
+                                                 dashboard_address=None, silence_logs=logging.CRITICAL,
+                                                 env={"OMP_NUM_THREADS": "1"}, local_directory=tmp,
+                                                 # its HTTP routes (no dashboard) on a free port: on
+                                                 # 8787, taken, it warned on stderr
+                                                 scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
                 self._client = Client(self._cluster)
             except BaseException:  # e.g. Ctrl-C while the workers start: no half-made cluster at exit
                 for c in set(SpecCluster._instances) - before:
@@ -358,6 +543,9 @@ class DaskItemExecutor:
         self.jobs = max(1, len(self._client.scheduler_info().get("workers", {})) or jobs)
 
     def run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
+        return _lost_workers(self._run(tasks), _dask_lost_types(), _dask_lost)
+
+    def _run(self, tasks: Iterable[ItemTask]) -> Iterator[ItemResult]:
         from distributed import as_completed
 
         it = iter(tasks)
@@ -383,8 +571,9 @@ class DaskItemExecutor:
         the workers (they are a stage's own inputs, not store digests)."""
         from distributed import wait as dask_wait
 
-        return _map_calls(fn, args, lambda a: self._client.submit(fn, a, pure=False, retries=2), self.jobs,
-                          lambda fs: dask_wait(fs, return_when="FIRST_COMPLETED"))
+        return _lost_workers(_map_calls(fn, args, lambda a: self._client.submit(fn, a, pure=False, retries=2),
+                                        self.jobs, lambda fs: dask_wait(fs, return_when="FIRST_COMPLETED")),
+                             _dask_lost_types(), _dask_lost)
 
     def _submit(self, task: ItemTask):
         # A unique task key per submission: the item's lock and record re-check decide whether
@@ -394,7 +583,7 @@ class DaskItemExecutor:
         return self._client.submit(compute_item_on_dask_worker, task, self.worker_init, pure=False, retries=2,
                                    key=f"{task.stage_name}-{task.index}-{task.key[:16]}-{uuid.uuid4().hex[:8]}")
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         try:
             self._client.close()
         except Exception:  # noqa: BLE001 - closing after Ctrl-C or a lost scheduler
@@ -404,6 +593,29 @@ class DaskItemExecutor:
                 self._cluster.close()
             except Exception:  # noqa: BLE001 - workers already gone (Ctrl-C reaches them too):
                 self._cluster.shutdown_on_close = False  # no second attempt (and traceback) at exit
+
+
+def _dask_lost_types() -> tuple[type[BaseException], ...]:
+    from concurrent.futures import CancelledError
+
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+
+    return (KilledWorker, CancelledError, CommClosedError)
+
+
+def _dask_lost(exc: BaseException) -> str:
+    from distributed import KilledWorker
+
+    if isinstance(exc, KilledWorker):
+        n = exc.allowed_failures + 1
+        what = "item {1} of stage {0}".format(*str(exc.task).split("-")) if str(exc.task).count("-") == 3 else \
+            f"task {exc.task}"  # an item's task key is stage-index-key-nonce (``_submit``)
+        return f"Dask workers died computing {what} ({n} time{'s' if n > 1 else ''}: killed, out of memory?); {_RESUME}"
+    if isinstance(exc, OSError):
+        return f"lost the connection to the Dask scheduler ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); {_RESUME}"
+    why = getattr(exc, "reason", None) or (str(exc).splitlines()[0] if str(exc) else "no reason given")
+    return f"the Dask scheduler cancelled the run's tasks ({why}; was the scheduler stopped?); {_RESUME}"
 
 
 def make_executor(jobs: int, worker_init: Callable[[], None] | None = None, kind: str = "process",

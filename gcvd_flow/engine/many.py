@@ -94,9 +94,12 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
                 rows.append(_row(inp, out, None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}".splitlines()[0]))
             if not rows[-1]["ok"]:
                 log(f"[{name}] failed: {rows[-1]['error']}")
-    finally:
-        if executor is not None:
-            executor.close()
+    except BaseException as exc:
+        if executor is not None:  # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the workers at once
+            executor.close(abort=not isinstance(exc, Exception))
+        raise
+    if executor is not None:
+        executor.close()
     failed = sum(1 for r in rows if not r["ok"])
     return {"runs": rows, "failed": failed, "seconds": round(time.perf_counter() - t_all, 3)}
 
@@ -138,7 +141,12 @@ def _map_stages_of_all_inputs(inputs: list[str], names: list[str], root: Path, b
         return {}
     with ThreadPoolExecutor(max_workers=min(len(inputs), 8)) as pool:
         futures = {name: pool.submit(one, inp, name) for inp, name in zip(inputs, names)}
-        return {name: f.result() for name, f in futures.items()}
+        try:
+            return {name: f.result() for name, f in futures.items()}
+        except BaseException as exc:
+            if not isinstance(exc, Exception):  # an interrupt: the threads' items fail now, so they
+                executor.close(abort=True)      # end, instead of computing the whole map prefix
+            raise
 
 
 def format_table(doc: dict[str, Any]) -> str:

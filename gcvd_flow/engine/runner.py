@@ -8,6 +8,7 @@ item by item, each item keyed by its own inputs) and its record is written last.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import sys
@@ -19,7 +20,7 @@ from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
 from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage, stage_name
 from gcvd_flow.engine.errors import UsageError
-from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, make_executor, open_resource
+from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, closing, make_executor, open_resource
 from gcvd_flow.engine.store import Store
 
 # ------------------------------------------------------------------------------ reports
@@ -438,7 +439,9 @@ class Runner:
                                                          self.executor_kind, self.scheduler)
         stages = list(self.pipeline.upto(target))
         last_reader = {d: k for k, st in enumerate(stages) for d in st.deps}
-        try:
+        # an executor of this run is closed with it (at once, its workers ended, on Ctrl-C,
+        # SIGTERM or SIGHUP); a shared one by its owner
+        with closing(executor) if executor is not self.shared_executor else contextlib.nullcontext():
             for k, stage in enumerate(stages):
                 self.reports[stage.name] = rep = self._run_stage(stage, executor)
                 if self.records is not None:  # write-through (`run --push`)
@@ -447,9 +450,6 @@ class Runner:
                 # for): a long clip's keyframe depths need not live until the last stage
                 for name in [n for n in self._values if last_reader.get(n, -1) <= k]:
                     del self._values[name]
-        finally:
-            if executor is not self.shared_executor:
-                executor.close()
         return [self.reports[s.name] for s in self.pipeline.upto(target)]
 
     def _run_stage(self, stage: Stage, executor) -> StageReport:

@@ -8,6 +8,9 @@ selection parameters, early cutoff, whole stages) without any vision code.
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,9 +40,13 @@ def decode_item(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, Any]
 
 
 def transform_item(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, Any]:
-    """One item scaled by ``params.scale``; ``params.sleep`` seconds of simulated work."""
+    """One item scaled by ``params.scale``; ``params.sleep`` seconds of simulated work. Item
+    ``params.kill_worker``, computed on a worker process, kills that process (SIGKILL, as the
+    out-of-memory killer does) every time: tests of lost workers."""
     if params.sleep:
         time.sleep(params.sleep)
+    if ctx.index == params.kill_worker and multiprocessing.parent_process() is not None:
+        os.kill(os.getpid(), signal.SIGKILL)
     x = inputs["item"]["values"]
     return {"values": _scaled(x, params.scale), "mean": float(x.mean())}
 
@@ -64,7 +71,10 @@ def summarize(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, Any]:
 
 
 def threshold(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, Any]:
-    """Which item means exceed ``params.cut``."""
+    """Which item means exceed ``params.cut``; ``params.sleep`` seconds of work in the run's
+    own process first (the workers idle meanwhile, as during a long whole stage)."""
+    if params.sleep:
+        time.sleep(params.sleep)
     means = inputs["summarize"]["means"]
     return {"above": (means > params.cut).astype(np.uint8), "cut": params.cut}
 
@@ -86,6 +96,7 @@ class DecodeParams(Section):
 class TransformParams(Section):
     scale: float = 2.0
     sleep: float = 0.0  # simulated work per item (tests kill runs mid-stage)
+    kill_worker: int = -1  # this item kills the worker process computing it (tests of lost workers)
 
 
 class SummarizeParams(Section):
@@ -95,6 +106,7 @@ class SummarizeParams(Section):
 
 class ThresholdParams(Section):
     cut: float = 200.0
+    sleep: float = 0.0  # in the run's process, workers idle (tests interrupt a run there)
 
 
 class ToyConfig(BaseModel):
