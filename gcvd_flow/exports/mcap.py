@@ -1,6 +1,7 @@
 """``mcap``: DIR/run.mcap for Foxglove: JSON messages with foxglove JSON schemas (zstd chunks).
 
-Per frame, at log time source frame index / fps (``--fps``, else the input's, else 30):
+Per frame, at log time the frame's source timestamp (TUM RGB-D ``rgb.txt``), else source frame
+index / fps (``--fps``, which also overrides a timestamp, else the input's, else 30):
 ``/camera/image`` ``foxglove.CompressedImage`` (PNG; ``--mcap-images jpeg``, or ``raw`` for
 ``foxglove.RawImage`` rgb8), ``/camera/depth`` ``foxglove.RawImage`` 32FC1,
 ``/camera/calibration`` ``foxglove.CameraCalibration`` (K in the OpenCV pixel convention, no
