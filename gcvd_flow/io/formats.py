@@ -36,8 +36,6 @@ from gcvd_flow.engine.errors import UsageError
 
 PathLike = str | os.PathLike
 
-# cv2 PNG parameters: fixed compression level so bytes do not depend on OpenCV defaults.
-_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 _DEPTH_MAX_MM = np.iinfo(np.uint16).max
 
 
@@ -228,16 +226,26 @@ def write_intrinsics_txt(path: PathLike, K: np.ndarray) -> None:
 def png_bytes(img: np.ndarray) -> bytes:
     """The PNG encoder for files: uint8 (H, W) grey / (H, W, 3) RGB or uint16 (H, W) -> bytes.
 
-    OpenCV at zlib level 3 (fixed, so bytes do not depend on OpenCV defaults); RGB is swapped to
-    OpenCV's BGR here, so callers always pass RGB.
+    The codec of the stored artifacts (``gcvd_flow.engine.artifacts.png_bytes``: Pillow at zlib
+    level 3) for uint8, Pillow at the same level for uint16 (16-bit grey PNG): one PNG writer for
+    the cache and every export. Reading stays with OpenCV (inputs may be any image format).
     """
+    import io
+
+    from PIL import Image
+
+    from gcvd_flow.engine.artifacts import ArtifactError
+    from gcvd_flow.engine.artifacts import png_bytes as artifact_png
+
     img = np.asarray(img)
-    if img.ndim == 3:
-        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", img, _PNG_PARAMS)
-    if not ok:
-        raise OSError("PNG encoding failed")
-    return buf.tobytes()
+    if img.dtype == np.uint16 and img.ndim == 2:
+        buf = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(img)).save(buf, format="PNG", compress_level=3)
+        return buf.getvalue()
+    try:
+        return artifact_png(img)
+    except ArtifactError as exc:
+        raise OSError(f"PNG encoding failed: {exc}") from None
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
