@@ -116,6 +116,8 @@ def _add_scale_commands(sub: Any) -> None:
     p.add_argument("target", metavar="RUN_DIR|DIGEST", help="a run directory, or a record key / output / object digest")
     p.add_argument("stage", nargs="?", metavar="STAGE", help="with RUN_DIR: this stage only (default: all)")
     p.add_argument("--cache", metavar="DIR", help="default: the run's cache, else $GCVD_FLOW_CACHE / the user cache dir")
+    p.add_argument("--full", action="store_true", help="every record's code files, all parameters and environment "
+                   "(default: one line per record, the shared environment once)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.set_defaults(handler=_cmd_lineage)
 
@@ -402,7 +404,7 @@ def _cmd_lineage(a: argparse.Namespace) -> int:
     if a.json_mode:
         _print_json(doc)
     else:
-        print(lineage.format_text(doc))
+        print(lineage.format_text(doc, full=a.full))
     return 0
 
 
