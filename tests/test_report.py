@@ -85,6 +85,8 @@ def test_verdict_metrics_stages_and_settings(run, report):
     verdict = text[text.index('id="verdict"'):text.index("<h2>Trajectory")]
     assert f"{m['ate_rmse'] * 100:.2f} cm" in verdict and f"{m['abs_rel']:.4f}" in verdict
     assert f"{N_FRAMES} / " in verdict and "flow consistency" in verdict and "loop edges" in verdict
+    assert "Verdict: " in verdict and "depth AbsRel, confident pixels" in verdict
+    assert "Every 2nd frame" in text and "seconds (last run): wall time" in text
     stages = text[text.index("id='stages'"):]
     for name in ("ingest", "flow", "masks", "keyframes", "pose_graph", "depth_filter"):
         assert f"<td>{name}</td>" in stages

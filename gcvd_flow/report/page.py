@@ -69,7 +69,9 @@ def _verdict(d: ReportData) -> str:
     if "abs_rel" in m:
         rows.append(("depth AbsRel", f"{m['abs_rel']:.4f}", f"over {m.get('depth_frames', 0)} frames, per-frame median scaling"))
         if "abs_rel_confident" in m:
-            rows.append(("depth AbsRel, confident pixels", f"{m['abs_rel_confident']:.4f}",
+            conf = m["abs_rel_confident"]
+            rows.append(("depth AbsRel, confident pixels",
+                         f"{conf:.4f}" if isinstance(conf, float) and conf == conf else "no confident pixel",
                          "pixels with confidence >= 0.5 only (what the exports' masks keep)"))
         rows.append(("depth δ<1.25", f"{100 * m['delta1']:.1f} %", "share of pixels within 25 %"))
     rows.append(("frames / keyframes", f"{m['frames']} / {kf}",
