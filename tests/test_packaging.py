@@ -97,3 +97,17 @@ def test_one_png_writer_for_the_cache_and_the_exports():
     assert back.dtype == np.uint16 and np.array_equal(back, d16)
     rgb_back = cv2.imdecode(np.frombuffer(png_bytes(rgb), np.uint8), cv2.IMREAD_COLOR)
     assert np.array_equal(rgb_back[..., ::-1], rgb)
+
+
+def test_a_missing_module_is_one_line_naming_it(monkeypatch, capsys, tmp_path):
+    """A package missing from the installation: one line naming the module, exit 2, no traceback."""
+    import gcvd_flow.report
+    from gcvd_flow.cli import main
+
+    def missing(*a, **k):
+        raise ModuleNotFoundError("No module named 'matplotlib'", name="matplotlib")
+
+    monkeypatch.setattr(gcvd_flow.report, "write_report_doc", missing)
+    assert main(["report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'matplotlib' is not installed" in err[0]
