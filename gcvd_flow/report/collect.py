@@ -101,6 +101,9 @@ def collect(run_dir: str | Path, gt: str | Path | None = None, cache: str | None
     if store is None:
         data.notes.append(f"the cache {data.cache} is not available: frames, masks and health signals "
                           "from stage outputs are left out (pass --cache DIR)")
+        # the verdict cannot be "good" on half its checks (flow, bundle adjustment, loop edges)
+        data.signals.append(Signal("cache", "not available", "warn",
+                                   "flow, loop-edge and bundle-adjustment checks need the run's cache (--cache DIR)"))
     pos = {f: k for k, f in enumerate(run.frame_indices)}
     data.keyframes = [pos[f] for f in cams.get("keyframes") or [] if f in pos]
     _graph_signals(data, store, pos)
