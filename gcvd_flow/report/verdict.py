@@ -17,7 +17,9 @@ itself can see:
   poses is from the measured tracks) and after adjustment (what is left), as angles;
 * scale spread: the per-keyframe depth scale bundle adjustment applied (max / min): depth maps of
   one clip that disagree in scale;
-* loop edges found but none kept by the pose graph, or a pose graph whose residual grew.
+* loop edges found but none kept by the pose graph, or a pose graph whose residual grew;
+* valid depth and static pixels under half the image (warn), and a missing cache (warn: the
+  checks above that read stage outputs cannot run). Guessed intrinsics are shown, not judged.
 
 The thresholds were set on runs with ground truth (``benchmarks/bench_verdict.py``, the table in
 docs/benchmarks.md): every run there with ATE > 5 % of the path is suspect or failed, none under
