@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test lint test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress regress-baseline
+.PHONY: setup demo test lint check-install test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress regress-baseline
 
 setup: $(STAMP)
 
@@ -50,6 +50,11 @@ test: $(STAMP) testdeps lint
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m mypy
+
+# a fresh venv (no system site-packages), torch as requirements.txt pins it, `pip install .`, then
+# synth + run + report + export from outside the checkout: catches an undeclared dependency
+check-install: sysdeps
+	PY=$(PY) .ci/check-install
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -x -m "not slow"

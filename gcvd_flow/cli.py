@@ -83,7 +83,8 @@ def _add_report(sub) -> None:
                    help="frame strip: every N-th frame (default: about 8 frames)")
     p.add_argument("--cache", metavar="DIR",
                    help="cache holding the run's stage outputs (default: the one run.json records)")
-    p.add_argument("--json", dest="json_mode", action="store_true", help='print {"report": FILE} as JSON')
+    p.add_argument("--json", dest="json_mode", action="store_true", help='print {"report": FILE, "verdict": good|suspect|failed, '
+                   '"health": [{"name", "value", "status"}]} as JSON')
     p.set_defaults(handler=cmd_report)
 
 
@@ -134,7 +135,8 @@ def _add_export(sub) -> None:
     p.add_argument("--depth-scale", type=float, default=1.0, metavar="F",
                    help="depth-png: multiply depth by F before converting to millimetres (default 1)")
     p.add_argument("--fps", type=float, default=None,
-                   help="mcap: frame rate for log times (default: the input's, else 30)")
+                   help="mcap: log times = frame index / F (default: the source timestamps when the input has them, "
+                   "e.g. TUM RGB-D; else the input's frame rate, else 30)")
     p.add_argument("--mcap-images", default="png", metavar="png|jpeg|raw",
                    help="mcap: RGB as foxglove.CompressedImage png (default) / jpeg, or foxglove.RawImage rgb8")
     p.add_argument("--max-points", type=int, default=20000, metavar="N",
@@ -220,12 +222,12 @@ def cmd_eval(a: argparse.Namespace) -> int:
 
 
 def cmd_report(a: argparse.Namespace) -> int:
-    from gcvd_flow.report import write_report
+    from gcvd_flow.report import write_report_doc
 
     if a.every is not None and a.every < 1:
         raise UsageError("--every must be at least 1")
-    out = write_report(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every)
-    print(json.dumps({"report": str(out)}) if a.json_mode else f"wrote {out}")
+    doc = write_report_doc(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every)
+    print(json.dumps(doc) if a.json_mode else f"wrote {doc['report']} (verdict: {doc['verdict']})")
     return 0
 
 

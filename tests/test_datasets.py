@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -247,7 +248,8 @@ def _tum_folder(root: Path, clip) -> Path:
 
 def test_tum_rgbd_stamps_in_poses_txt_and_eval_by_timestamp(tmp_path):
     """poses.txt carries rgb.txt's stamps (evo associates it with groundtruth.txt out of the box),
-    cameras.json the frame indices; eval matches TUM ground truth by nearest stamp (<= 0.02 s)."""
+    cameras.json the frame indices; eval matches TUM ground truth by nearest stamp (<= 0.01 s, evo's
+    default); the MCAP export logs at those stamps."""
     import json
 
     from conftest import cli, cli_json
@@ -269,7 +271,7 @@ def test_tum_rgbd_stamps_in_poses_txt_and_eval_by_timestamp(tmp_path):
     assert cams["frame_indices"] == list(range(N_TUM)) and cams["timestamp_kind"] == "seconds"
     ref = file_interface.read_tum_trajectory_file(str(tum / "groundtruth.txt"))
     est = file_interface.read_tum_trajectory_file(str(run / "poses.txt"))
-    ref_a, _ = sync.associate_trajectories(ref, est, max_diff=0.02)
+    ref_a, _ = sync.associate_trajectories(ref, est)  # evo's default max_diff
     assert ref_a.num_poses == N_TUM and np.all(ref_a.positions_xyz < 5)  # no decoy matched
     res = cli_json("eval", str(run), "--gt", str(tum))
     assert res["association"] == "timestamp" and res["frames"] == N_TUM and res["depth_frames"] == N_TUM
@@ -278,6 +280,24 @@ def test_tum_rgbd_stamps_in_poses_txt_and_eval_by_timestamp(tmp_path):
     assert by_index["association"] == "frame index"
     assert res["ate_rmse"] == pytest.approx(by_index["ate_rmse"], rel=1e-6)
     assert res["abs_rel"] == pytest.approx(by_index["abs_rel"], abs=2e-3)  # 0.2 vs 1 mm quantisation
+    # ground truth 15 ms off: evo's default (max_diff 0.01 s) matches nothing, and neither does eval
+    late = tmp_path / "late"
+    shutil.copytree(tum, late)
+    (late / "groundtruth.txt").write_text("".join(
+        f"{t + 0.015:.6f} " + " ".join(f"{v:.9f}" for v in (*clip.poses[i, :3, 3], *ds.rotmat_to_quat(
+            clip.poses[i:i + 1, :3, :3])[0])) + "\n" for i, t in enumerate(T0 + np.arange(N_TUM) / RATE)))
+    with pytest.raises(sync.SyncException):  # evo: "found no matching timestamps"
+        sync.associate_trajectories(file_interface.read_tum_trajectory_file(str(late / "groundtruth.txt")), est)
+    p = cli("eval", str(run), "--gt", str(late))
+    assert p.returncode == 2 and "0 of the run's 14 timestamps" in p.stderr
+    # the MCAP export logs each frame at its rgb.txt stamp, not at frame index / 30
+    from mcap.reader import make_reader
+
+    cli("export", str(run), "--format", "mcap", "--to", str(tmp_path / "exp"), "--cache", str(tmp_path / "cache"),
+        check=True)
+    with open(tmp_path / "exp" / "run.mcap", "rb") as f:
+        times = [m.log_time for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/tf"]
+    np.testing.assert_array_equal(times, [round(t * 1e9) for t in cams["timestamps"]])
 
 
 def test_associate_is_nearest_within_max_diff():

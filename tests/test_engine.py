@@ -222,7 +222,8 @@ def test_parallel_jobs_match_serial(toy_input, tmp_path):
 
 
 @pytest.mark.parametrize("args,needle", [
-    (["--set", "threshold.cutt=1"], "unknown config key 'threshold.cutt'"),
+    (["--set", "threshold.cutt=1"], "unknown config key 'threshold.cutt'; did you mean 'threshold.cut'?"),
+    (["--set", "treshold.cut=1"], "unknown config key 'treshold'; did you mean 'threshold'?"),
     (["--set", "threshold.cut=abc"], "threshold.cut"),
     (["--set", "nosuch.key=1"], "unknown config key 'nosuch'"),
     (["--profile", "nope"], "unknown profile 'nope'"),
@@ -431,3 +432,15 @@ def test_runner_drops_decoded_outputs_no_later_stage_reads(tmp_path, monkeypatch
     assert list(held) == ["decode", "transform", "summarize", "threshold", "report"]
     assert all(v == [] for v in held.values()), held
     assert json.loads((tmp_path / "o" / "run.json").read_text())["stages"]["report"]["output"]
+
+
+def test_mistyped_gcvd_key_gets_a_suggestion():
+    """A mistyped --set key names the closest real one (difflib), also across sections."""
+    from gcvd_flow.engine.config import build_config
+    from gcvd_flow.engine.errors import UsageError
+    from gcvd_flow.pipeline import PROFILES, GCVDConfig
+
+    for bad, good in (("keyframes.detla=0.2", "keyframes.delta"), ("association.delta=0.2", "keyframes.delta"),
+                      ("bundle_adjusment.enabled=false", "bundle_adjustment")):
+        with pytest.raises(UsageError, match=f"did you mean '{good}'"):
+            build_config(GCVDConfig, PROFILES, sets=[bad])

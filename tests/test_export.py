@@ -20,6 +20,7 @@ from conftest import cli, cli_json
 from gcvd_flow.io.formats import read_tum_poses
 
 N_FRAMES, W, H = 16, 96, 72
+SCHEMAS = Path(__file__).resolve().parent.parent / "gcvd_flow" / "exports" / "foxglove_schemas"
 # Few optimisation steps: the exports are checked against the run's own outputs, not against
 # ground truth. depth_fusion off: its triangulation needs more parallax than this clip has.
 QUICK = ["--set", "optimize_keyframes.steps=2", "--set", "optimize_edges.steps=2",
@@ -100,7 +101,7 @@ def test_colmap_model_inverts_to_the_run_poses_and_reprojects(run, exported):
     t = np.array([[float(v) for v in ln.split()[5:8]] for ln in heads])
     names = [ln.split()[9] for ln in heads]
     assert names == [f"{i:06d}.png" for i in cams["frame_indices"]]
-    assert all((exported["out"] / "colmap" / "images" / n).is_file() for n in names)
+    assert all((exported["out"] / "images" / n).is_file() for n in names)
     np.testing.assert_allclose(colmap_to_c2w(q, t), poses, atol=1e-6)
     assert 1000 < len(pts) <= 25000
     assert np.mean([len(tr) for _, tr in pts.values()]) > 2  # multi-view tracks
@@ -151,6 +152,26 @@ def test_colmap_text_and_binary_load_in_pycolmap(run, exported, tmp_path):
     assert a.num_points3D() == b.num_points3D() and a.compute_num_observations() == b.compute_num_observations()
 
 
+def test_colmap_export_survives_pycolmap_bundle_adjustment(run, exported):
+    """COLMAP's own bundle adjuster accepts the model: every track has two views at least (a
+    one-view track made `colmap bundle_adjuster` abort and pycolmap.bundle_adjustment raise), and
+    since the observations are the points' projections, adjustment leaves the poses in place."""
+    pycolmap = pytest.importorskip("pycolmap")
+    _, _, poses, _ = _run_data(run["run"])
+    rec = pycolmap.Reconstruction(str(exported["out"] / "colmap/sparse/0"))
+    lengths = [p.track.length() for p in rec.points3D.values()]
+    assert lengths and min(lengths) >= 2
+    opts = pycolmap.BundleAdjustmentOptions()
+    pycolmap.bundle_adjustment(rec, opts)
+    rec.update_point_3d_errors()
+    assert rec.num_points3D() == len(lengths) and rec.compute_mean_reprojection_error() < 1e-3
+    for img in rec.images.values():
+        w2c = np.eye(4)
+        w2c[:3] = img.cam_from_world().matrix()
+        k = img.image_id - 1
+        np.testing.assert_allclose(np.linalg.inv(w2c)[:3, 3], poses[k][:3, 3], atol=1e-4)
+
+
 def test_full_res_images_and_scaled_intrinsics(run, tmp_path):
     """A run at 64x48 of the 96x72 clip: colmap and nerfstudio images are the source frames, the
     intrinsics scaled with pixel centres (c' = (c + 0.5) s - 0.5); --no-full-res keeps 64x48; an
@@ -175,9 +196,8 @@ def test_full_res_images_and_scaled_intrinsics(run, tmp_path):
     ns = json.loads((out / "transforms.json").read_text())
     assert (ns["w"], ns["h"]) == (W, H)
     np.testing.assert_allclose([ns["fl_x"], ns["cx"], ns["cy"]], [fx, cx, cy], rtol=1e-12)
-    for sub in ("colmap/images", "images"):
-        img = cv2.imread(str(out / sub / "000003.png"), cv2.IMREAD_COLOR)
-        np.testing.assert_array_equal(img, cv2.imread(str(run["clip"] / "frames" / "000003.png"), cv2.IMREAD_COLOR))
+    img = cv2.imread(str(out / "images" / "000003.png"), cv2.IMREAD_COLOR)  # colmap and nerfstudio share images/
+    np.testing.assert_array_equal(img, cv2.imread(str(run["clip"] / "frames" / "000003.png"), cv2.IMREAD_COLOR))
     low = cli_json("export", str(small), "--format", "colmap", "--no-full-res", "--to", str(tmp_path / "low"))
     assert (low["formats"]["colmap"]["width"], low["formats"]["colmap"]["resolution"]) == (64, "working")
     moved = tmp_path / "clip-moved"
@@ -208,6 +228,76 @@ def test_nerfstudio_transforms_flip_back_to_the_poses(run, exported):
         np.testing.assert_allclose(gl @ np.diag([1, -1, -1, 1]), poses[k], atol=1e-12)
         # OpenGL cameras look down their -z axis: the same world direction as OpenCV's +z
         np.testing.assert_allclose(-gl[:3, 2], poses[k][:3, 2], atol=1e-12)
+
+
+# nerfstudio's conventions (v1.1.5, nerfstudio/data/dataparsers/), restated for the tests: nerfstudio
+# is too heavy to install here. nerfstudio_dataparser.py: ``applied_transform`` (3x4, saved coords
+# <- our world) from transforms.json, else, when DATA/colmap/sparse/0 exists, the one old COLMAP
+# conversions used. colmap_dataparser.py (defaults images_path "images", colmap_path
+# "colmap/sparse/0", assume_colmap_world_coordinate_convention True): c2w = inv(w2c), camera y
+# and z columns negated (OpenGL), then world rows (0, 2, 1) with the new z negated, which it
+# records as applied_transform.
+NS_OLD_COLMAP = np.array([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]], np.float64)
+
+
+def _ns_applied_transform(data: Path, meta: dict) -> np.ndarray:
+    """nerfstudio_dataparser's applied_transform as a 4x4 (identity when it has none)."""
+    a = np.eye(4)
+    if "applied_transform" in meta:
+        a[:3] = np.asarray(meta["applied_transform"], np.float64)
+    elif (data / "colmap/sparse/0").exists():
+        a[:3] = NS_OLD_COLMAP
+    return a
+
+
+def _ns_colmap_dataparser(data: Path) -> tuple[list[Path], np.ndarray, np.ndarray]:
+    """colmap_dataparser with its defaults: (image files, c2w (N, 4, 4) OpenGL in its coords,
+    applied_transform 4x4)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(data / "colmap/sparse/0"))
+    files, c2ws = [], []
+    for img_id in sorted(rec.images):
+        img = rec.images[img_id]
+        w2c = np.eye(4)
+        w2c[:3] = img.cam_from_world().matrix()
+        c2w = np.linalg.inv(w2c)
+        c2w[0:3, 1:3] *= -1
+        c2w = c2w[np.array([0, 2, 1, 3]), :]
+        c2w[2, :] *= -1
+        files.append(data / "images" / img.name)
+        c2ws.append(c2w)
+    applied = np.eye(4)
+    applied[:3] = np.eye(4)[:3][np.array([0, 2, 1]), :]
+    applied[2, :] *= -1
+    return files, np.array(c2ws), applied
+
+
+def test_nerfstudio_places_the_scene_in_our_world_beside_a_colmap_export(run, exported):
+    """One folder with colmap/ and transforms.json (the README's example): nerfstudio's mapping
+    back to the saved world is the identity, not the old COLMAP conversion's axis swap."""
+    _, _, poses, _ = _run_data(run["run"])
+    out = exported["out"]
+    assert (out / "colmap/sparse/0").is_dir()
+    meta = json.loads((out / "transforms.json").read_text())
+    applied = _ns_applied_transform(out, meta)
+    np.testing.assert_array_equal(applied, np.eye(4))
+    gl = np.array([fr["transform_matrix"] for fr in meta["frames"]])
+    ours = np.linalg.inv(applied) @ gl @ np.diag([1.0, -1, -1, 1])
+    np.testing.assert_allclose(ours, poses, atol=1e-12)
+
+
+def test_nerfstudio_colmap_dataparser_reads_a_colmap_only_export(run, tmp_path):
+    """nerfstudio's COLMAP dataparser with its default paths on a COLMAP-only export: every image
+    where it looks, and its poses mapped back through its applied_transform are the run's."""
+    pytest.importorskip("pycolmap")
+    _, _, poses, _ = _run_data(run["run"])
+    out = tmp_path / "col"
+    cli_json("export", str(run["run"]), "--format", "colmap", "--to", str(out), "--cache", str(run["cache"]))
+    files, c2w_ns, applied = _ns_colmap_dataparser(out)
+    assert len(files) == N_FRAMES and all(f.is_file() for f in files)
+    ours = np.linalg.inv(applied) @ c2w_ns @ np.diag([1.0, -1, -1, 1])
+    np.testing.assert_allclose(ours, poses, atol=1e-6)
 
 
 def test_depth_pngs_are_millimetres(run, exported):
@@ -285,6 +375,9 @@ def test_mcap_topics_schemas_counts_and_poses(run, exported):
         for schema, channel, message in reader.iter_messages(log_time_order=True):
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             assert schema.name == expected[channel.topic][0]
+            # the upstream foxglove-sdk file, byte for byte (vendored, not retyped)
+            assert schema.data == (SCHEMAS / f"{schema.name}.json").read_bytes()
+            assert json.loads(schema.data)["$comment"] == "Generated by https://github.com/foxglove/foxglove-sdk"
             msg = json.loads(message.data)
             if len(seen[channel.topic]) < 2:
                 jsonschema.validate(msg, json.loads(schema.data))
@@ -325,8 +418,6 @@ def test_exported_images_are_the_runs_frames(run, exported):
     src = cv2.imread(str(run["clip"] / "frames" / "000005.png"), cv2.IMREAD_COLOR)
     out = cv2.imread(str(exported["out"] / "images" / "000005.png"), cv2.IMREAD_COLOR)
     np.testing.assert_array_equal(src, out)
-    col = cv2.imread(str(exported["out"] / "colmap" / "images" / "000005.png"), cv2.IMREAD_COLOR)
-    np.testing.assert_array_equal(src, col)
 
 
 def test_missing_cache_exports_what_it_can_and_fails_in_one_line(run, tmp_path):
@@ -338,7 +429,7 @@ def test_missing_cache_exports_what_it_can_and_fails_in_one_line(run, tmp_path):
     err = [ln for ln in p.stderr.splitlines() if ln.startswith("gcvd-flow: error")]
     assert len(err) == 1 and "ply" in err[0] and str(empty) in err[0]
     assert (out / "poses.txt").is_file() and (out / "colmap" / "sparse" / "0" / "images.txt").is_file()
-    assert not (out / "points.ply").exists() and not (out / "colmap" / "images").exists()
+    assert not (out / "points.ply").exists() and not (out / "images").exists()
 
 
 def _main(capsys, *args: str) -> tuple[int, list[str]]:

@@ -29,6 +29,11 @@ def test_lineage_of_a_run_stage_and_of_digests(tmp_path):
     assert src["from"] is None and src["source"]  # down to the source files
     text = cli("lineage", str(out), "summarize", check=True).stdout
     assert "transform (stage" in text and '"scale": 3.0' in text and "source: not produced by a stage" in text
+    # it names the input the source digests are of, and is shorter than --full (one line per record)
+    assert doc["input"] == str(inp) and f"input: {inp}" in text and f"the run's input {inp}" in text
+    full = cli("lineage", str(out), "summarize", "--full", check=True).stdout
+    assert "code files:" in full and "code files:" not in text
+    assert len(text.splitlines()) < len(full.splitlines())
 
     # an item's output digest and one of its objects: the item record, then its input item, then the file
     store = Store(cache)

@@ -39,7 +39,8 @@ def run(tmp_path_factory) -> dict[str, Path]:
 def report(run) -> Path:
     out = run["base"] / "page" / "report.html"
     doc = cli_json("report", str(run["run"]), "--gt", str(run["clip"]), "--to", str(out))
-    assert doc == {"report": str(out)}
+    assert doc["report"] == str(out) and doc["verdict"] in ("good", "suspect", "failed")
+    assert doc["health"] and all(set(h) == {"name", "value", "status"} for h in doc["health"])
     return out
 
 
@@ -83,6 +84,8 @@ def test_verdict_metrics_stages_and_settings(run, report):
     verdict = text[text.index('id="verdict"'):text.index("<h2>Trajectory")]
     assert f"{m['ate_rmse'] * 100:.2f} cm" in verdict and f"{m['abs_rel']:.4f}" in verdict
     assert f"{N_FRAMES} / " in verdict and "flow consistency" in verdict and "loop edges" in verdict
+    assert "Verdict: " in verdict and "depth AbsRel, confident pixels" in verdict
+    assert "Every 2nd frame" in text and "seconds (last run): wall time" in text
     stages = text[text.index("id='stages'"):]
     for name in ("ingest", "flow", "masks", "keyframes", "pose_graph", "depth_filter"):
         assert f"<td>{name}</td>" in stages
@@ -107,6 +110,7 @@ def test_report_without_gt_and_without_cache(run, tmp_path):
     assert p.returncode == 0, p.stderr
     text2 = (tmp_path / "r2.html").read_text()
     assert "not available" in text2 and 'class="depth"' in text2 and 'class="rgb"' not in text2
+    assert "Verdict: good" not in text2  # half the checks need the cache
     bad = cli("report", str(tmp_path / "nope"))
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "nope" in bad.stderr
 
@@ -248,3 +252,41 @@ def test_depth_agreement_health_signal(tmp_path):
     wrong = clip.poses.copy()
     wrong[:, :3, 3] *= 3.0
     assert depth_agreement(fake("wrong", wrong), [0, 3, 6, 9]) < 0.6
+
+
+def test_verdict_flags_a_deliberately_broken_run(tmp_path):
+    """Issue 29: the same 40-frame loop clip (128x96, --profile fast) run well (ATE 0.47 % of the
+    path: "good") and with keyframes.delta=0.6 (3 keyframes, a 20-frame gap in 40 frames; ATE
+    3.3 %, seven times worse): without ground truth the broken run is not "good", its keyframes
+    warn, and its pose-graph residual (no loop edge) is never a green "ok"."""
+    from gcvd_flow.evaluate.run_eval import evaluate
+
+    clip, cache = tmp_path / "clip", tmp_path / "cache"
+    cli("synth", str(clip), "--frames", "40", "--trajectory", "loop", "--size", "128x96", check=True)
+    docs, ate = {}, {}
+    for name, sets in (("good", []), ("broken", ["--set", "keyframes.delta=0.6"])):
+        run = tmp_path / name
+        cli("run", str(clip), "--out", str(run), "--cache", str(cache), "--profile", "fast", *sets, check=True)
+        docs[name] = cli_json("report", str(run))
+        ate[name] = evaluate(run, clip)["ate_percent_of_path"]
+    assert ate["good"] < 1.0 and ate["broken"] > 3 * ate["good"], ate
+    assert docs["good"]["verdict"] == "good", docs["good"]
+    bad = docs["broken"]
+    assert bad["verdict"] in ("suspect", "failed"), bad
+    status = {h["name"]: h["status"] for h in bad["health"]}
+    assert status["keyframes"] in ("warn", "fail")
+    assert status["pose-graph residual"] == "info"  # no loop edge: the residual says nothing
+    assert f"Verdict: {bad['verdict']}" in Path(bad["report"]).read_text()
+
+
+def test_overall_verdict_is_the_worst_judged_status():
+    from gcvd_flow.report.verdict import Signal, keyframe_status, overall
+
+    ok, warn, fail = (Signal("a", "", "ok"), Signal("b", "", "warn"), Signal("c", "", "fail"))
+    assert overall([ok]) == "good" and overall([ok, warn]) == "suspect" and overall([warn, fail]) == "failed"
+    assert overall([ok, Signal("intrinsics", "guessed", "warn", judged=False)]) == "good"
+    assert keyframe_status(24, 2, 20, 39) == "fail"  # two keyframes
+    assert keyframe_status(24, 3, 20, 39) == "warn"  # a 20-frame gap in 24 frames
+    assert keyframe_status(60, 4, 22, 39) == "ok"  # a slow orbit: 22 of 60
+    assert keyframe_status(120, 4, 39, 39) == "warn"  # a gap at keyframes.max_gap
+    assert keyframe_status(120, 12, 15, 39) == "ok"

@@ -124,6 +124,8 @@ def _add_scale_commands(sub: Any) -> None:
     p.add_argument("target", metavar="RUN_DIR|DIGEST", help="a run directory, or a record key / output / object digest")
     p.add_argument("stage", nargs="?", metavar="STAGE", help="with RUN_DIR: this stage only (default: all)")
     p.add_argument("--cache", metavar="DIR", help=f"default: the run's cache, else ${ENV_CACHE} / the user cache dir")
+    p.add_argument("--full", action="store_true", help="every record's code files, all parameters and environment "
+                   "(default: one line per record, the shared environment once)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.set_defaults(handler=_cmd_lineage)
 
@@ -422,7 +424,7 @@ def _cmd_lineage(a: argparse.Namespace) -> int:
     if a.json_mode:
         _print_json(doc)
     else:
-        print(lineage.format_text(doc))
+        print(lineage.format_text(doc, full=a.full))
     return 0
 
 
@@ -498,6 +500,10 @@ def main(product: Product, argv: Sequence[str] | None = None) -> int:
         full = exc.errno == errno.ENOSPC or "No space left" in what
         hint = "; the cache is consistent, free space and run again" if full else ""
         print(f"{product.prog}: error: {where}{': ' if where else ''}{what}{hint}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:  # the installation lacks a package: say which, in one line
+        print(f"{product.prog}: error: the Python module {exc.name!r} is not installed; install "
+              f"{product.prog} with its dependencies (pip install gcvd-flow / pip install .)", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback
         if getattr(exc, "user_error", False):  # bad input found inside a stage

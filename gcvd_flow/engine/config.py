@@ -109,5 +109,30 @@ def build_config(model: type[BaseModel], profiles: dict[str, dict[str, Any]],
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
         if err["type"] == "extra_forbidden":
-            raise UsageError(f"unknown config key {loc!r}") from None
+            raise UsageError(f"unknown config key {loc!r}{_did_you_mean(model, loc)}") from None
         raise UsageError(f"config key {loc!r}: {err['msg']} (got {err.get('input')!r})") from None
+
+
+def known_keys(model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every dotted key of ``model``: sections and their parameters ("keyframes", "keyframes.delta")."""
+    out: list[str] = []
+    for name, info in model.model_fields.items():
+        out.append(prefix + name)
+        ann = info.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            out.extend(known_keys(ann, prefix + name + "."))
+    return out
+
+
+def _did_you_mean(model: type[BaseModel], key: str) -> str:
+    """"; did you mean 'keyframes.delta'?" for the closest known key (difflib), else ""."""
+    import difflib
+
+    keys = known_keys(model)
+    last = key.rsplit(".", 1)[-1]
+    # a real parameter name in the wrong section ("association.delta" -> "keyframes.delta")
+    best = [k for k in keys if "." in k and k.rsplit(".", 1)[-1] == last and "." in key][:1]
+    if not best:  # a typo: the closest key of the same depth
+        same_depth = [k for k in keys if k.count(".") == key.count(".")]
+        best = difflib.get_close_matches(key, same_depth, n=1, cutoff=0.6)
+    return f"; did you mean {best[0]!r}?" if best else ""

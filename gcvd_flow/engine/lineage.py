@@ -111,14 +111,19 @@ def lineage(target: str, stage: str | None = None, cache: str | None = None) -> 
     output digest or an object digest in the cache."""
     p = Path(target)
     if (p / "run.json").is_file():
-        stages = read_run_dir(p)["stages"]  # one-line UsageError for any other shape
+        run_doc = read_run_dir(p)
+        stages = run_doc["stages"]  # one-line UsageError for any other shape
         if stage is not None and stage not in stages:
             raise UsageError(f"{p / 'run.json'}: no stage {stage!r} (stages: {', '.join(stages)})")
         store = _run_dir_cache(p, cache)
         names = [stage] if stage else list(reversed(list(stages)))  # the last stage first: it reaches the rest
         roots = [stages[n]["key"] for n in names if stages[n].get("key")]
         known = {s["output"]: s["key"] for s in stages.values() if s.get("output") and s.get("key")}
-        return {"target": str(p), "roots": roots, "nodes": trace(store, roots, known)}
+        doc = {"target": str(p), "roots": roots, "nodes": trace(store, roots, known)}
+        inp = (run_doc.get("invocation") or {}).get("input") if isinstance(run_doc, dict) else None
+        if isinstance(inp, str):
+            doc["input"] = inp  # the file / folder the run read: what the "source" digests are of
+        return doc
     if stage is not None:
         raise UsageError(f"{target}: not a run directory (STAGE goes with RUN_DIR)")
     if not is_digest(target):
@@ -140,14 +145,29 @@ def lineage(target: str, stage: str | None = None, cache: str | None = None) -> 
     return doc
 
 
-def _short(v: Any) -> str:
+def _short(v: Any, limit: int = 400) -> str:
     text = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
-    return text if len(text) <= 400 else text[:400] + " ..."  # --json has everything
+    return text if len(text) <= limit else text[:limit] + " ..."  # --json has everything
 
 
-def format_text(doc: dict[str, Any]) -> str:
+def _shared_env(nodes: dict[str, dict[str, Any]]) -> Any:
+    """The numeric environment when every record has the same one (the usual case), else None."""
+    envs = {json.dumps(n.get("env"), sort_keys=True) for n in nodes.values() if not n.get("missing")}
+    return json.loads(envs.pop()) if len(envs) == 1 else None
+
+
+def format_text(doc: dict[str, Any], full: bool = False) -> str:
+    """The tree as text: by default one line per record (stage, key, output, code, seed, params
+    cut at 160 characters) with the shared environment once at the top; ``full``: also the code
+    files, all parameters and each record's environment. Source inputs name the run's input."""
     nodes = doc["nodes"]
     lines = [doc["note"]] if doc.get("note") else []
+    if doc.get("input"):
+        lines.append(f"input: {doc['input']}")
+    env = None if full else _shared_env(nodes)
+    if env is not None:
+        lines.append(f"env (every record): {_short(env, 300)}")
+    source = "source: not produced by a stage" + (f"; the run's input {doc['input']}" if doc.get("input") else "")
     shown: set[str] = set()
 
     def show(key: str, depth: int) -> None:
@@ -163,18 +183,28 @@ def format_text(doc: dict[str, Any]) -> str:
             lines.append(f"{pad}{what}: see above")
             return
         shown.add(key)
-        lines.append(f"{pad}{what} -> output {n['output'][:12]}" + (f", {n['items']} items" if n.get("items") else ""))
-        lines.append(f"{pad}  code {str(n['code'])[:12]}  version {n['version']}  seed {n['seed']}")
-        if n.get("code_files"):
-            lines.append(f"{pad}  code files: " + ", ".join(sorted(n["code_files"])))
-        lines.append(f"{pad}  params: {_short(n['params'])}")
-        lines.append(f"{pad}  env: {_short(n['env'])}")
+        head = f"{pad}{what} -> output {n['output'][:12]}" + (f", {n['items']} items" if n.get("items") else "")
+        if not full:
+            seed = "" if n["seed"] is None else f", seed {n['seed']}"
+            lines.append(f"{head}; code {str(n['code'])[:12]}{seed}; params {_short(n['params'], 160)}")
+        else:
+            lines.append(head)
+            lines.append(f"{pad}  code {str(n['code'])[:12]}  version {n['version']}  seed {n['seed']}")
+            if n.get("code_files"):
+                lines.append(f"{pad}  code files: " + ", ".join(sorted(n["code_files"])))
+            lines.append(f"{pad}  params: {_short(n['params'])}")
+        if env is None:
+            lines.append(f"{pad}  env: {_short(n['env'])}")
         for name, i in n["inputs"].items():
-            if i.get("from"):
+            up = nodes.get(i["from"]) if i.get("from") else None
+            if up is not None and i["from"] in shown and not up.get("missing"):
+                lines.append(f"{pad}  input {name} = {i['digest'][:12]}, produced by {up['stage']} "
+                             f"({up['record_kind']} {i['from'][:12]}, above)")
+            elif i.get("from"):
                 lines.append(f"{pad}  input {name} = {i['digest'][:12]}, produced by:")
                 show(i["from"], depth + 2)
             else:
-                lines.append(f"{pad}  input {name} = {i['digest'][:12]} (source: not produced by a stage)")
+                lines.append(f"{pad}  input {name} = {i['digest'][:12]} ({source})")
 
     for r in doc["roots"]:
         show(r, 0)

@@ -12,7 +12,8 @@ Depth PNGs are uint16 in 1/``depth_scale`` metres (1000, TUM RGB-D 5000, or the 
 ``depth_scale`` file). Generic and Redwood ground truth is matched by *source frame index*
 (``frame_indices`` of the run's cameras.json); TUM RGB-D ground truth by *timestamp*, as evo
 does: each of the run's stamps (the ``t`` column of its poses.txt, the ``rgb.txt`` stamps) takes
-the nearest ground-truth stamp within 0.02 s; frames without one are left out.
+the nearest ground-truth stamp within 0.01 s (evo's default ``max_diff``); frames without one are
+left out.
 
 Metrics (``gcvd_flow.evaluate.metrics``): ATE RMSE after Sim(3) Umeyama alignment, RPE
 trans / rot over consecutive frames, depth AbsRel / SqRel / RMSE / delta < 1.25 with per-frame
@@ -35,7 +36,7 @@ from gcvd_flow.evaluate import metrics
 from gcvd_flow.io.formats import read_depth_png, read_redwood_log, read_tum_poses, read_tum_stamped_files
 from gcvd_flow.io.sources import natural_key
 
-MAX_STAMP_DIFF = 0.02  # s, evo's default for associating TUM trajectories
+MAX_STAMP_DIFF = 0.01  # s, evo's default (evo.core.sync.associate_trajectories max_diff=0.01)
 TUM_DEPTH_SCALE = 5000.0  # TUM RGB-D depth PNGs: 5000 units per metre
 
 

@@ -12,7 +12,7 @@ RUN_DIR/export):
     tum          DIR/poses.txt                    copy of the trajectory (TUM, camera-to-world)   tum.py
     depth-png    DIR/depth/NNNNNN.png             uint16 mm of depth * --depth-scale, 0 = invalid  depth_png.py
                  DIR/confidence/NNNNNN.png        uint16 confidence * 65535 (runs with confidence/)
-    colmap       DIR/colmap/sparse/0/{cameras,images,points3D}.txt|.bin, DIR/colmap/images/        colmap.py
+    colmap       DIR/colmap/sparse/0/{cameras,images,points3D}.txt|.bin, DIR/images/               colmap.py
     ply          DIR/points.ply                   coloured point cloud                             clouds.py
     tsdf         DIR/mesh.ply                     TSDF-fused triangle mesh (open3d VoxelBlockGrid) clouds.py
     nerfstudio   DIR/transforms.json (+ DIR/images/, DIR/depth/, DIR/confidence/, DIR/masks/ PNGs) nerfstudio.py

@@ -208,6 +208,10 @@ class ExportContext:
         return self.shared(("images", sub), make)
 
     def time_ns(self, k: int) -> int:
-        """Log time of frame k: source frame index / fps (--fps, else the input's, else 30)."""
+        """Log time of frame k (ns): the source timestamp when the run has one (TUM RGB-D rgb.txt,
+        video index / fps) and --fps is not given, else source frame index / fps (--fps, else the
+        input's, else 30)."""
+        if self.opt.fps is None and self.run.timestamps is not None:
+            return int(round(self.run.timestamps[k] * 1e9))
         fps = self.opt.fps or self.run.fps or DEFAULT_FPS
         return int(round(self.run.frame_indices[k] / fps * 1e9))

@@ -1,8 +1,12 @@
 """``colmap``: a COLMAP model where COLMAP-based tools look for it.
 
     DIR/colmap/sparse/0/cameras.txt, images.txt, points3D.txt   (``--colmap-binary``: *.bin)
-    DIR/colmap/images/NNNNNN.png                                 the frames (source resolution
+    DIR/images/NNNNNN.png                                        the frames (source resolution
                                                                  with --full-res, the default)
+
+The layout of nerfstudio's ``ns-process-data`` (images/ beside colmap/sparse/0): nerfstudio's
+COLMAP dataparser finds both with its defaults (``images_path`` "images", ``colmap_path``
+"colmap/sparse/0"), and a nerfstudio export into the same folder shares images/.
 
 One ``PINHOLE`` camera at the images' resolution; per image the world-to-camera pose as a
 Hamilton quaternion ``QW QX QY QZ`` (QW >= 0) and translation ``TX TY TZ`` (x_cam = R(q)
@@ -10,9 +14,11 @@ x_world + t), name ``NNNNNN.png``. 3D points with multi-view tracks: about ``--m
 pixels on a grid of every N-th frame's depth (``--every``) are backprojected at that frame's pose;
 a point is observed in every frame where it projects inside the image, in front of the camera,
 and agrees with that frame's depth (within ``DEPTH_AGREEMENT``), at most ``max_track``
-observations evenly spread over those frames (its own frame always). The observations are the
-projections of the point, so bundle adjusters and Gaussian-splatting loaders get consistent
-tracks. COLMAP puts the top-left pixel's *centre* at (0.5, 0.5), we (OpenCV) at (0, 0): cx, cy
+observations evenly spread over those frames (its own frame always); points fewer than two
+frames see are dropped (COLMAP's bundle adjuster aborts on a one-view track). The observations are
+the projections of the point (reprojection error ~1e-14 px), not independent measurements: the
+model is consistent for bundle adjusters and Gaussian-splatting loaders, but a refinement in
+COLMAP starts at its optimum and has nothing to correct. COLMAP puts the top-left pixel's *centre* at (0.5, 0.5), we (OpenCV) at (0, 0): cx, cy
 and the 2D points are ours + 0.5. Files that reference others are written after them.
 """
 
@@ -30,6 +36,7 @@ from gcvd_flow.io.formats import quat_to_rotmat, rotmat_to_quat
 
 DEPTH_AGREEMENT = 0.03  # relative: |depth of the frame - depth of the point| <= 3 % of it
 PINHOLE_MODEL_ID = 1
+MIN_VIEWS = 2  # COLMAP's bundle adjustment needs every track to have two observations at least
 
 # ------------------------------------------------------------------------------ conventions
 
@@ -90,11 +97,13 @@ def project(xyz: np.ndarray, c2w: np.ndarray, K: np.ndarray) -> tuple[np.ndarray
 
 
 def build_tracks(depths: Sequence[np.ndarray], poses: np.ndarray, K: np.ndarray, pts: dict[str, np.ndarray],
-                 max_track: int, agreement: float = DEPTH_AGREEMENT) -> list[tuple[np.ndarray, np.ndarray]]:
+                 max_track: int, agreement: float = DEPTH_AGREEMENT,
+                 min_views: int = MIN_VIEWS) -> list[tuple[np.ndarray, np.ndarray]]:
     """The observations of every frame k: (point ids int64 (Mk,) ascending, pixels float64 (Mk, 2)
     in our convention). Frame k observes a point that projects inside it (nearest pixel in the
     image), in front of the camera, where the frame's depth agrees within ``agreement``; its own
-    frame observes it at its sampled pixel. A point keeps at most ``max_track`` frames, evenly
+    frame observes it at its sampled pixel. A point seen by fewer than ``min_views`` frames is
+    observed by none (the caller drops it); a point keeps at most ``max_track`` frames, evenly
     spread over those that see it (its own frame always)."""
     n, m = len(poses), len(pts["xyz"])
     own = pts["frame"]
@@ -111,7 +120,10 @@ def build_tracks(depths: Sequence[np.ndarray], poses: np.ndarray, K: np.ndarray,
         seen[k] = (inside & (dk > 0) & (np.abs(dk - z) <= agreement * np.abs(z))) | (own == k)
         uv[own == k] = pts["uv"][own == k]
         pix.append(uv[seen[k]])
+    # a point only its own frame sees has a one-view track: COLMAP's bundle adjuster aborts on it
+    # (SIGABRT in `colmap bundle_adjuster`, an exception in pycolmap.bundle_adjustment)
     kept = seen.copy()
+    kept[:, seen.sum(0) < min_views] = False
     for j in np.nonzero(seen.sum(0) > max_track)[0]:
         ks = np.nonzero(seen[:, j])[0]
         keep = ks[np.linspace(0, len(ks) - 1, max_track - 1).round().astype(int)]
@@ -133,6 +145,14 @@ def _model(ctx: ExportContext) -> dict[str, Any]:
     run, view = ctx.run, ctx.view()
     pts = sample_points(run.depths, run.poses, run.K, range(0, len(run), ctx.opt.every), ctx.opt.max_points)
     obs = build_tracks(run.depths, run.poses, run.K, pts, ctx.opt.max_track)
+    # keep the points some frame observes (build_tracks leaves one-view points unobserved) and
+    # number them 0..m-1 in their original order
+    used = np.zeros(len(pts["xyz"]), bool)
+    for ids, _ in obs:
+        used[ids] = True
+    new_id = np.cumsum(used) - 1
+    pts = {k: v[used] for k, v in pts.items()}
+    obs = [(new_id[ids], uv) for ids, uv in obs]
     m = len(pts["xyz"])
     track: list[list[tuple[int, int]]] = [[] for _ in range(m)]
     images = []
@@ -207,7 +227,7 @@ def write(ctx: ExportContext) -> dict[str, Any]:
     sparse = d / "sparse" / "0"
     view = ctx.view()
     if view.images is not None:
-        ctx.images_dir("colmap/images")
+        ctx.images_dir("images")
     else:
         ctx.log(f"warning: colmap: {ctx.run.images_error}; writing the model without images/")
     model = _model(ctx)
@@ -222,4 +242,4 @@ def write(ctx: ExportContext) -> dict[str, Any]:
     return {"dir": str(sparse), "images": len(ctx.run), "points3D": len(model["tracks"]),
             "mean_track_length": round(n_obs / max(len(model["tracks"]), 1), 3),
             "binary": ctx.opt.colmap_binary, "width": view.width, "height": view.height,
-            "resolution": view.resolution, "image_dir": str(d / "images") if view.images is not None else None}
+            "resolution": view.resolution, "image_dir": str(ctx.out / "images") if view.images is not None else None}

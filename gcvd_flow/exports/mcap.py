@@ -1,6 +1,7 @@
 """``mcap``: DIR/run.mcap for Foxglove: JSON messages with foxglove JSON schemas (zstd chunks).
 
-Per frame, at log time source frame index / fps (``--fps``, else the input's, else 30):
+Per frame, at log time the frame's source timestamp (TUM RGB-D ``rgb.txt``), else source frame
+index / fps (``--fps``, which also overrides a timestamp, else the input's, else 30):
 ``/camera/image`` ``foxglove.CompressedImage`` (PNG; ``--mcap-images jpeg``, or ``raw`` for
 ``foxglove.RawImage`` rgb8), ``/camera/depth`` ``foxglove.RawImage`` 32FC1,
 ``/camera/calibration`` ``foxglove.CameraCalibration`` (K in the OpenCV pixel convention, no
@@ -24,6 +25,7 @@ import numpy as np
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.exports._common import DEFAULT_FPS, MCAP_IMAGES, ExportContext, _atomic, uses_images
 from gcvd_flow.exports.clouds import auto_voxel, fused_cloud
+from gcvd_flow.exports.foxglove_schemas import NAMES as SCHEMA_NAMES, schema_bytes
 from gcvd_flow.io.formats import png_bytes
 
 TOPICS = {  # topic -> schema (the image topic's schema depends on --mcap-images)
@@ -112,7 +114,7 @@ def write(ctx: ExportContext) -> dict[str, Any]:
         for topic, schema in topics.items():  # registration order fixes the ids in the file
             if schema not in schema_ids:
                 schema_ids[schema] = w.register_schema(name=schema, encoding="jsonschema",
-                                                       data=json.dumps(FOXGLOVE_SCHEMAS[schema]).encode())
+                                                       data=schema_bytes(schema))
             counts[topic] = 0
             channels[topic] = w.register_channel(topic=topic, message_encoding="json",
                                                  schema_id=schema_ids[schema])
@@ -172,55 +174,6 @@ def _version() -> str:
 
 
 # ------------------------------------------------------------------------------ foxglove JSON schemas
-# The field layout of https://github.com/foxglove/foxglove-sdk/tree/main/schemas/jsonschema
-# (schema names are what Foxglove keys its panels on; bytes are base64 strings in JSON).
-
-def _obj(title: str, props: dict[str, Any], description: str = "") -> dict[str, Any]:
-    d: dict[str, Any] = {"title": title, "type": "object", "properties": props}
-    if description:
-        d["description"] = description
-    return d
-
-
-_TIME = _obj("time", {"sec": {"type": "integer", "minimum": 0},
-                      "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}})
-_STR = {"type": "string"}
-_UINT = {"type": "integer", "minimum": 0}
-_NUM = {"type": "number"}
-_BYTES = {"type": "string", "contentEncoding": "base64"}
-_VEC3 = _obj("foxglove.Vector3", {"x": _NUM, "y": _NUM, "z": _NUM})
-_QUAT = _obj("foxglove.Quaternion", {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM})
-_POSE = _obj("foxglove.Pose", {"position": _VEC3, "orientation": _QUAT})
-
-
-def _nums(n: int | None = None) -> dict[str, Any]:
-    d: dict[str, Any] = {"type": "array", "items": _NUM}
-    if n is not None:
-        d.update(minItems=n, maxItems=n)
-    return d
-
-
-FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
-    "foxglove.RawImage": _obj("foxglove.RawImage", {
-        "timestamp": _TIME, "frame_id": _STR, "width": _UINT, "height": _UINT, "encoding": _STR,
-        "step": _UINT, "data": _BYTES}, "A raw image"),
-    "foxglove.CompressedImage": _obj("foxglove.CompressedImage", {
-        "timestamp": _TIME, "frame_id": _STR, "data": _BYTES, "format": _STR}, "A compressed image"),
-    "foxglove.CameraCalibration": _obj("foxglove.CameraCalibration", {
-        "timestamp": _TIME, "frame_id": _STR, "width": _UINT, "height": _UINT, "distortion_model": _STR,
-        "D": _nums(), "K": _nums(9), "R": _nums(9), "P": _nums(12)}, "Camera calibration parameters"),
-    "foxglove.FrameTransform": _obj("foxglove.FrameTransform", {
-        "timestamp": _TIME, "parent_frame_id": _STR, "child_frame_id": _STR, "translation": _VEC3,
-        "rotation": _QUAT}, "A transform between two reference frames in 3D space"),
-    "foxglove.PosesInFrame": _obj("foxglove.PosesInFrame", {
-        "timestamp": _TIME, "frame_id": _STR, "poses": {"type": "array", "items": _POSE}},
-        "An array of timestamped poses for an object or reference frame in 3D space"),
-    "foxglove.PointCloud": _obj("foxglove.PointCloud", {
-        "timestamp": _TIME, "frame_id": _STR, "pose": _POSE, "point_stride": _UINT,
-        "fields": {"type": "array", "items": _obj("foxglove.PackedElementField", {
-            "name": _STR, "offset": _UINT,
-            "type": {"title": "foxglove.NumericType", "oneOf": [
-                {"title": t, "const": i} for i, t in enumerate(
-                    ("UNKNOWN", "UINT8", "INT8", "UINT16", "INT16", "UINT32", "INT32", "FLOAT32", "FLOAT64"))]}})},
-        "data": _BYTES}, "A collection of N-dimensional points"),
-}
+# The upstream files, vendored verbatim in gcvd_flow/exports/foxglove_schemas/ (source and commit
+# named there); schema names are what Foxglove keys its panels on; bytes are base64 strings in JSON.
+FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {n: json.loads(schema_bytes(n)) for n in SCHEMA_NAMES}

@@ -7,7 +7,9 @@ nerfstudio samples pixel centres at i + 0.5); the images are at the source resol
 ``transform_matrix``: camera-to-world in the OpenGL convention (camera x right, y up, z
 backward: our OpenCV pose with its y and z columns negated). ``depth_unit_scale_factor`` =
 0.001 / --depth-scale maps the depth PNGs back to pose units; ``ply_file_path`` when ``ply``
-was exported before. Written after the images and depth PNGs it references.
+was exported before; ``applied_transform`` the identity (the poses are in our world: without the
+key nerfstudio reads a folder that also holds colmap/sparse/0 as an old COLMAP conversion and
+swaps x and y, flips z). Written after the images and depth PNGs it references.
 
 Confidence (runs with RUN_DIR/confidence/): per frame ``mask_path`` ``masks/NNNNNN.png``, what
 nerfstudio's dataparser reads (``nerfstudio/data/dataparsers/nerfstudio_dataparser.py``: a
@@ -92,6 +94,10 @@ def write(ctx: ExportContext) -> dict[str, Any]:
         "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         # depth PNG value * factor = depth in the units of the poses
         "depth_unit_scale_factor": 1e-3 / ctx.opt.depth_scale,
+        # the poses are in our world as they are: without this key nerfstudio (1.1.x,
+        # nerfstudio_dataparser.py) takes a folder holding colmap/sparse/0 for an old COLMAP
+        # conversion and maps its outputs back with x and y swapped and z flipped
+        "applied_transform": np.eye(4)[:3].tolist(),
         "frames": [{"file_path": f"images/{run.name(k)}.png", "depth_file_path": f"depth/{run.name(k)}.png",
                     "transform_matrix": gl[k].tolist(), "frame_index": run.frame_indices[k]}
                    for k in range(len(run))],

@@ -1,12 +1,12 @@
 """File formats: one reader and one writer per format, used by sources, exports, eval and synth.
 
 TUM trajectories, Redwood/Open3D ``.log``, ``intrinsics.txt``, RGB / mask / 16-bit depth PNGs
-(``png_bytes`` is the one PNG encoder for files; the engine's artifact codec is separate, see
-below), and the generic dataset layout.
+(``png_bytes`` is the one PNG encoder for files: the artifact store's codec, see below), and
+the generic dataset layout.
 
 Generic dataset layout (what ``write_generic_layout`` writes and ``read_generic_layout`` reads)::
 
-    OUT/frames/000000.png ...      RGB frames (PNG, written with OpenCV: deterministic bytes)
+    OUT/frames/000000.png ...      RGB frames (PNG, deterministic bytes)
     OUT/intrinsics.txt             one line "fx fy cx cy" (pixels)
     OUT/gt/poses.txt               TUM "t tx ty tz qx qy qz qw", camera-to-world, t = frame index
     OUT/gt/depth/000000.png ...    uint16 depth in millimetres (0 = invalid)
@@ -15,10 +15,11 @@ Generic dataset layout (what ``write_generic_layout`` writes and ``read_generic_
 Pose convention everywhere: float64 (N, 4, 4) camera-to-world, OpenCV camera axes.
 Malformed input raises ``DatasetError`` (a ``ValueError``) whose message names the file.
 
-PNG files are encoded with OpenCV at a fixed zlib level (deterministic bytes; 16-bit depth
-too). The cache's image artifacts are encoded by ``gcvd_flow.engine.artifacts.png_bytes``
-(Pillow, uint8 only) instead: the engine imports no project package, and its bytes are part
-of every output digest, so the two encoders stay apart on purpose.
+PNG files are encoded with the artifact store's codec (``gcvd_flow.engine.artifacts.png_bytes``:
+Pillow at zlib level 3, deterministic bytes), 16-bit depth with Pillow at the same level: one PNG
+writer for the cache and every file (issue 29). The engine imports no project package, so this
+module calls the engine's codec, not the other way round. Reading stays with OpenCV (inputs may
+be JPEG, BMP, ...).
 """
 
 from __future__ import annotations
@@ -36,8 +37,6 @@ from gcvd_flow.engine.errors import UsageError
 
 PathLike = str | os.PathLike
 
-# cv2 PNG parameters: fixed compression level so bytes do not depend on OpenCV defaults.
-_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 _DEPTH_MAX_MM = np.iinfo(np.uint16).max
 
 
@@ -228,16 +227,25 @@ def write_intrinsics_txt(path: PathLike, K: np.ndarray) -> None:
 def png_bytes(img: np.ndarray) -> bytes:
     """The PNG encoder for files: uint8 (H, W) grey / (H, W, 3) RGB or uint16 (H, W) -> bytes.
 
-    OpenCV at zlib level 3 (fixed, so bytes do not depend on OpenCV defaults); RGB is swapped to
-    OpenCV's BGR here, so callers always pass RGB.
+    The codec of the stored artifacts (``gcvd_flow.engine.artifacts.png_bytes``: Pillow at zlib
+    level 3) for uint8, Pillow at the same level for uint16 (16-bit grey PNG): one PNG writer for
+    the cache and every export. Reading stays with OpenCV (inputs may be any image format).
     """
+    import io
+
+    from PIL import Image
+
+    from gcvd_flow.engine.artifacts import ArtifactError, png_bytes as artifact_png
+
     img = np.asarray(img)
-    if img.ndim == 3:
-        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", img, _PNG_PARAMS)
-    if not ok:
-        raise OSError("PNG encoding failed")
-    return buf.tobytes()
+    if img.dtype == np.uint16 and img.ndim == 2:
+        buf = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(img)).save(buf, format="PNG", compress_level=3)
+        return buf.getvalue()
+    try:
+        return artifact_png(img)
+    except ArtifactError as exc:
+        raise OSError(f"PNG encoding failed: {exc}") from None
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:

@@ -113,6 +113,9 @@ class RunData:
     poses: np.ndarray  # (N, 4, 4) camera-to-world, OpenCV axes
     depth_paths: list[Path]
     fps: float | None = None
+    # source timestamp of each frame in seconds (cameras.json "timestamps" when its
+    # "timestamp_kind" is "seconds": TUM RGB-D rgb.txt, video index / fps), else None
+    timestamps: list[float] | None = None
     images: Sequence[np.ndarray] | None = None  # uint8 (H, W, 3) RGB per frame
     images_error: str | None = None
     # confidence/NNNNNN.npy of every frame, or None: a run dir from before confidence existed, or
@@ -223,8 +226,13 @@ def load_run(run_dir: str | Path) -> RunData:
         paths.append(p)
     conf_paths, conf_note = _confidence_paths(run, idx)
     fps = cams.get("fps")
+    stamps = cams.get("timestamps")
+    if not (cams.get("timestamp_kind") == "seconds" and isinstance(stamps, list) and len(stamps) == len(idx)
+            and all(isinstance(t, (int, float)) and not isinstance(t, bool) for t in stamps)):
+        stamps = None
     return RunData(run, K, width, height, idx, poses, paths,
                    fps=float(fps) if isinstance(fps, (int, float)) and fps > 0 else None,
+                   timestamps=[float(t) for t in stamps] if stamps else None,
                    confidence_paths=conf_paths, confidence_note=conf_note)
 
 

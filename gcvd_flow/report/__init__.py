@@ -1,7 +1,8 @@
 """`gcvd-flow report RUN_DIR [--gt GT_DIR] [--to report.html]`: one self-contained HTML page
 that says in ten seconds whether a run worked.
 
-* the verdict first: with ground truth the metrics (ATE, RPE, AbsRel, δ<1.25, frames /
+* the verdict first: good / suspect / failed from the run's own health signals (no ground
+  truth needed; ``report/verdict.py``), then with ground truth the metrics (ATE, RPE, AbsRel, δ<1.25, frames /
   keyframes; ``gcvd_flow.evaluate.run_eval``), else the run's health signals (share of pixels
   passing flow consistency, static pixels, valid depth, keyframes and gaps, loop edges found /
   verified / used, pose-graph residual before / after);
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 from gcvd_flow.report.collect import ReportData, collect
 
@@ -37,13 +39,25 @@ def build_report(run_dir: str | Path, gt: str | Path | None = None, cache: str |
 def write_report(run_dir: str | Path, to: str | Path | None = None, gt: str | Path | None = None,
                  cache: str | None = None, every: int | None = None) -> Path:
     """Write the page (default RUN_DIR/report.html) under a temporary name, then rename."""
+    return Path(write_report_doc(run_dir, to=to, gt=gt, cache=cache, every=every)["report"])
+
+
+def write_report_doc(run_dir: str | Path, to: str | Path | None = None, gt: str | Path | None = None,
+                     cache: str | None = None, every: int | None = None) -> dict[str, Any]:
+    """Write the page like :func:`write_report`; returns what `report --json` prints:
+    {"report": path, "verdict": "good" | "suspect" | "failed", "health": [{"name", "value", "status"}]}
+    (the verdict from the health signals only, with or without ``gt``: ``report/verdict.py``)."""
+    from gcvd_flow.report.page import render
+    from gcvd_flow.report.verdict import health_json
+
     out = Path(to) if to else Path(run_dir) / "report.html"
-    text = build_report(run_dir, gt=gt, cache=cache, every=every)
+    data = collect(run_dir, gt=gt, cache=cache, every=every)
+    text = render(data)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, out)
-    return out
+    return {"report": str(out), "verdict": data.verdict, "health": health_json(data.signals)}
 
 
-__all__ = ["ReportData", "build_report", "collect", "write_report"]
+__all__ = ["ReportData", "build_report", "collect", "write_report", "write_report_doc"]

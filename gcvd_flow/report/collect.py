@@ -15,16 +15,8 @@ import numpy as np
 
 from gcvd_flow.engine.errors import StoreError, UsageError
 from gcvd_flow.io.run_dir import RunData, load_run, read_cameras
-
-
-@dataclass
-class Signal:
-    """One health signal: label, value as text, status ("ok" | "warn" | "info"), explanation."""
-
-    label: str
-    value: str
-    status: str
-    detail: str = ""
+from gcvd_flow.report import verdict as V
+from gcvd_flow.report.verdict import Signal
 
 
 @dataclass
@@ -44,6 +36,7 @@ class ReportData:
     versions: dict[str, str] = field(default_factory=dict)
     strip: list[dict[str, Any]] = field(default_factory=list)  # {frame, rgb, depth, static}
     notes: list[str] = field(default_factory=list)
+    verdict: str = "good"  # good | suspect | failed, from the judged signals (report/verdict.py)
 
 
 # ------------------------------------------------------------------------------ the cache
@@ -108,6 +101,9 @@ def collect(run_dir: str | Path, gt: str | Path | None = None, cache: str | None
     if store is None:
         data.notes.append(f"the cache {data.cache} is not available: frames, masks and health signals "
                           "from stage outputs are left out (pass --cache DIR)")
+        # the verdict cannot be "good" on half its checks (flow, bundle adjustment, loop edges)
+        data.signals.append(Signal("cache", "not available", "warn",
+                                   "flow, loop-edge and bundle-adjustment checks need the run's cache (--cache DIR)"))
     pos = {f: k for k, f in enumerate(run.frame_indices)}
     kf = cams.get("keyframes")
     data.keyframes = [pos[f] for f in kf if isinstance(f, int) and f in pos] if isinstance(kf, list) else []
@@ -117,6 +113,7 @@ def collect(run_dir: str | Path, gt: str | Path | None = None, cache: str | None
     _strip(data, store, every, max_frames)
     _stage_table(data, store)
     _settings(data)
+    data.verdict = V.overall(data.signals)
     return data
 
 
@@ -145,11 +142,15 @@ def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
     if kf:
         gaps = np.diff([data.run.frame_indices[k] for k in kf]) if len(kf) > 1 else np.array([0])
         max_gap = int((data.doc.get("config") or {}).get("keyframes", {}).get("max_gap", G.KeyframesParams().max_gap))
+        status = V.keyframe_status(n, len(kf), int(gaps.max()), max_gap)
+        why = ("fewer than 3 keyframes: nothing to check the poses against" if len(kf) < V.MIN_KEYFRAMES else
+               "some gaps hit keyframes.max_gap: the camera barely moved there, or flow failed"
+               if gaps.max() >= max_gap else
+               f"a gap of {int(gaps.max())} frames is half the clip or more: keyframes.delta too large?"
+               if gaps.max() >= V.MAX_GAP_SHARE * n else "every gap from accumulated motion")
         data.signals.append(Signal(
-            "keyframes", f"{len(kf)} of {n} frames", "ok" if len(kf) >= 3 else "warn",
-            f"gaps {int(gaps.min())}-{int(gaps.max())} frames (mean {gaps.mean():.1f}); "
-            + ("some gaps hit keyframes.max_gap: the camera barely moved there, or flow failed"
-               if gaps.max() >= max_gap else "every gap from accumulated motion")))
+            "keyframes", f"{len(kf)} of {n} frames, largest gap {int(gaps.max())}", status,
+            f"gaps {int(gaps.min())}-{int(gaps.max())} frames (mean {gaps.mean():.1f}); {why}"))
     if store is None:
         return
     try:
@@ -173,13 +174,49 @@ def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
         "warn" if edges and not used else "ok" if used else "info",
         "candidates by descriptor similarity; verified by geometry and flow; used = kept by the pose graph"
         if found else "no revisited place detected (fine for a clip without loops)"))
-    if pg["enabled"]:
+    if pg["enabled"] and not used:  # without loop edges the windows' own edges are all it has
+        data.signals.append(Signal("pose-graph residual", f"{float(pg['final_error']):.3g}", "info",
+                                   "no loop edge used: the residual only says the windows agree with "
+                                   "themselves, not that the trajectory is right"))
+    elif pg["enabled"]:
         ini, fin = float(pg["initial_error"]), float(pg["final_error"])
         data.signals.append(Signal("pose-graph residual", f"{ini:.3g} → {fin:.3g}",
                                    "ok" if fin <= ini + 1e-12 else "warn",
-                                   "error of all edges before / after optimisation"))
+                                   "error of all edges (loop edges included) before / after optimisation"))
     else:
         data.signals.append(Signal("pose-graph residual", "pose graph off", "info", "pose_graph.enabled=false"))
+    _ba_signals(data, store)
+
+
+def _ba_signals(data: ReportData, store: Any) -> None:
+    """Bundle adjustment: tracks and median reprojection error; the depth-scale spread."""
+    try:
+        ba = {k: recorded_part(data.doc, store, "bundle_adjustment", (k,)) for k in ("enabled",)}
+        if ba["enabled"]:
+            ba.update({k: recorded_part(data.doc, store, "bundle_adjustment", (k,))
+                       for k in ("landmarks", "initial_median_px", "final_median_px", "depth_scale")})
+    except CACHE_ERRORS + (IndexError,) as exc:
+        data.notes.append(f"bundle adjustment: not readable from the cache ({exc})")
+        return
+    if not ba["enabled"]:
+        data.signals.append(Signal("bundle adjustment", "off", "info",
+                                   "bundle_adjustment.enabled=false: no reprojection check of the poses"))
+        return
+    n, ini, fin = int(ba["landmarks"]), float(ba["initial_median_px"]), float(ba["final_median_px"])
+    fx = float(data.run.K[0, 0])
+    b, a = 1000 * ini / fx, 1000 * fin / fx  # px -> mrad: the same at every resolution
+    data.signals.append(Signal(
+        "bundle adjustment", f"{n} tracks, median reprojection {ini:.2f} → {fin:.2f} px ({b:.1f} → {a:.1f} mrad)",
+        V.ba_status(n, b, a), f"flow tracks over 3+ keyframes (fewer than {V.BA_MIN_TRACKS}: the poses are not "
+        f"checked); before: how far the optimised poses and depth are from the measured tracks (over "
+        f"{V.BA_BEFORE_MRAD[0]:g} mrad: suspect), after: what adjustment could not explain"))
+    scale = np.asarray(ba["depth_scale"], np.float64)
+    scale = scale[np.isfinite(scale) & (scale > 0)]
+    if len(scale):
+        spread = float(scale.max() / scale.min())
+        data.signals.append(Signal("scale spread", f"{spread:.3f}", V.high_is_bad(spread, V.SCALE_SPREAD),
+                                   "largest / smallest depth scale bundle adjustment gave a keyframe: "
+                                   "depth maps that disagree in scale"))
 
 
 def _sample(n: int, k: int) -> list[int]:
@@ -229,12 +266,13 @@ def _frame_signals(data: ReportData, store: Any) -> None:
     agree = depth_agreement(run, data.keyframes)
     if agree is not None:
         data.signals.insert(1, Signal(
-            "multi-view depth agreement", f"{100 * agree:.1f} % of pixels", "ok" if agree >= 0.6 else "warn",
+            "multi-view depth agreement", f"{100 * agree:.1f} % of pixels", V.low_is_bad(agree, V.AGREEMENT),
             f"depth of each keyframe, moved by the poses into the next keyframe, within {100 * AGREE_TOL:g} % "
             "of that frame's depth (where it lands inside): poses and depth that fit each other"))
     if data.cams.get("intrinsics_guessed"):
         data.signals.append(Signal("intrinsics", "guessed", "warn",
-                                   "no intrinsics given: f = 300/384 x long side; pass --intrinsics"))
+                                   "no intrinsics given: f = 300/384 x long side; pass --intrinsics "
+                                   "(not part of the verdict: the run cannot check them)", judged=False))
     if store is None:
         return
     try:
@@ -247,7 +285,7 @@ def _frame_signals(data: ReportData, store: Any) -> None:
         data.notes.append(f"flow and masks: not readable from the cache ({exc})")
         return
     data.signals.insert(0, Signal("flow consistency", f"{100 * share:.1f} % of pixels",
-                                  "ok" if share >= 0.6 else "warn",
+                                  V.low_is_bad(share, V.FLOW_CONSISTENCY),
                                   "forward-backward consistent flow between adjacent frames; low values "
                                   "mean fast motion, blur or little texture"))
     data.signals.insert(1, Signal("static pixels", f"{100 * static:.1f} %", "ok" if static >= 0.5 else "warn",

@@ -43,9 +43,10 @@ def _axes_of(ref: np.ndarray) -> np.ndarray:
 
 
 def trajectory_png(est: np.ndarray, gt: np.ndarray | None, keyframes: list[int],
-                   loops: list[dict[str, Any]], dpi: int = 90) -> bytes:
+                   loops: list[dict[str, Any]], dpi: int = 90, unit: str = "run units") -> bytes:
     """Top and side view of the camera centres: estimate (line), ground truth (grey), keyframes
-    (dots), loop edges (red: used by the pose graph, dashed grey: rejected). PNG bytes."""
+    (dots), loop edges (red: used by the pose graph, dashed grey: rejected); axes labelled in
+    ``unit`` (the poses' units). PNG bytes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -75,8 +76,8 @@ def trajectory_png(est: np.ndarray, gt: np.ndarray | None, keyframes: list[int],
         ax.set_title(title)
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, lw=0.3)
-        ax.set_xlabel("principal axis 1")
-        ax.set_ylabel("principal axis 2" if n == 0 else "principal axis 3")
+        ax.set_xlabel(f"principal axis 1 [{unit}]")
+        ax.set_ylabel(f"principal axis {2 if n == 0 else 3} [{unit}]")
         if n == 0:
             ax.legend(fontsize=8, loc="best")
     fig.tight_layout()

@@ -21,7 +21,7 @@ vertical-align:top}th{background:#f5f5f7}td.num{text-align:right;font-variant-nu
 .verdict{border:2px solid #ccc;border-radius:8px;padding:10px 16px;background:#fafafa}
 .big td{font-size:16px}.badge{display:inline-block;min-width:40px;text-align:center;border-radius:4px;
 padding:0 6px;font-size:12px;font-weight:600;color:#fff}.ok{background:#2e7d32}.warn{background:#e65100}
-.info{background:#607d8b}tr.diff td{background:#fff3cd;font-weight:600}.note{color:#8a4b00}
+.info{background:#607d8b}.fail{background:#b71c1c}tr.diff td{background:#fff3cd;font-weight:600}.note{color:#8a4b00}
 .strip{display:flex;flex-wrap:wrap;gap:10px}.strip figure{margin:0;text-align:center;font-size:12px}
 .strip img{display:block;width:150px;height:auto;margin-bottom:2px;image-rendering:auto}
 code{background:#f2f2f2;padding:0 3px;border-radius:3px}details summary{cursor:pointer;color:#0b57d0}
@@ -43,24 +43,41 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+VERDICT_TEXT = {
+    "good": "every judged health signal is ok: poses, depth and flow agree with each other",
+    "suspect": "some health signals warn (below): the run may be off; check them before using it",
+    "failed": "a health signal failed (below): the run is not usable as it is",
+}
+
+
+def _banner(d: ReportData) -> str:
+    """good / suspect / failed from the self-consistency signals (report/verdict.py)."""
+    cls = {"good": "ok", "suspect": "warn", "failed": "fail"}[d.verdict]
+    return (f"<p class='overall' id='overall'><span class='badge {cls}'>{_e(d.verdict)}</span> "
+            f"<b>Verdict: {_e(d.verdict)}</b> — {_e(VERDICT_TEXT[d.verdict])} (no ground truth used).</p>")
+
+
 def _verdict(d: ReportData) -> str:
     m, kf = d.metrics, len(d.keyframes)
     if m is None:
-        worst = "warn" if any(s.status == "warn" for s in d.signals) else "ok"
         head = ("<p><b>No ground truth given</b> (<code>--gt GT_DIR</code> adds ATE / RPE / depth errors): "
-                "the run's own health signals. " + ("Some need a look." if worst == "warn" else "All look healthy.")
-                + "</p>")
-        return f'<div class="verdict" id="verdict">{head}{_signals(d)}</div>'
+                "the run's own health signals.</p>")
+        return f'<div class="verdict" id="verdict">{_banner(d)}{head}{_signals(d)}</div>'
     rows = [("ATE RMSE (Sim(3)-aligned)", f"{m['ate_rmse'] * 100:.2f} cm",
              f"{m['ate_percent_of_path']:.2f} % of the {m['path_length']:.2f} m path"),
             ("RPE", f"{m['rpe_trans'] * 100:.2f} cm", f"{m['rpe_rot']:.3f}° per frame")]
     if "abs_rel" in m:
         rows.append(("depth AbsRel", f"{m['abs_rel']:.4f}", f"over {m.get('depth_frames', 0)} frames, per-frame median scaling"))
+        if "abs_rel_confident" in m:
+            conf = m["abs_rel_confident"]
+            rows.append(("depth AbsRel, confident pixels",
+                         f"{conf:.4f}" if isinstance(conf, float) and conf == conf else "no confident pixel",
+                         "pixels with confidence >= 0.5 only (what the exports' masks keep)"))
         rows.append(("depth δ<1.25", f"{100 * m['delta1']:.1f} %", "share of pixels within 25 %"))
     rows.append(("frames / keyframes", f"{m['frames']} / {kf}",
                  f"matched to ground truth by {m.get('association', 'frame index')}"))
     body = "".join(f"<tr><th>{_e(a)}</th><td class='num'>{_e(b)}</td><td>{_e(c)}</td></tr>" for a, b, c in rows)
-    return (f'<div class="verdict" id="verdict"><table class="big" id="metrics">{body}</table>'
+    return (f'<div class="verdict" id="verdict">{_banner(d)}<table class="big" id="metrics">{body}</table>'
             f"<h3>health signals</h3>{_signals(d)}</div>")
 
 
@@ -81,8 +98,16 @@ def _strip(d: ReportData) -> str:
             imgs.append(f'<img class="mask" alt="mask {it["frame"]}" '
                         f'src="{figures.data_uri(figures.mask_tile(it["static"], it["rgb"]))}">')
         figs.append(f"<figure>{''.join(imgs)}<figcaption>frame {it['frame']}</figcaption></figure>")
-    return (f'<p>Every {max(1, _step(d))}-th frame: RGB, depth (turbo, inverse depth: near = red, invalid = black), '
+    return (f'<p>{_every(max(1, _step(d)))}: RGB, depth (turbo, inverse depth: near = red, invalid = black), '
             f'motion mask (magenta = treated as moving).</p><div class="strip" id="strip">{"".join(figs)}</div>')
+
+
+def _every(n: int) -> str:
+    """1 -> "Every frame", 2 -> "Every 2nd frame", 3 -> "Every 3rd frame", 11 -> "Every 11th frame"."""
+    if n == 1:
+        return "Every frame"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"Every {n}{suffix} frame"
 
 
 def _step(d: ReportData) -> int:
@@ -101,7 +126,10 @@ def _stages(d: ReportData) -> str:
         f"<td class='num'>{num(s.get('cached'), '{}')}</td><td class='num'>{num(s.get('compute_seconds'))}</td>"
         f"<td><code>{_e(s['digest'])}</code></td></tr>" for s in d.stages)
     return ("<table id='stages'><tr><th>stage</th><th>seconds (last run)</th><th>items</th><th>executed</th>"
-            "<th>cached</th><th>compute s (cache record)</th><th>output digest</th></tr>" + rows + "</table>")
+            "<th>cached</th><th>compute s (cache record)</th><th>output digest</th></tr>" + rows + "</table>"
+            "<p>seconds (last run): wall time of the stage in the last <code>gcvd-flow run</code> of this "
+            "directory (near 0 when its outputs came from the cache); compute s: the time the cache record "
+            "says computing the outputs took, whenever and wherever that was.</p>")
 
 
 def _settings(d: ReportData) -> str:
@@ -128,7 +156,8 @@ def render(d: ReportData) -> str:
     """The whole page (a str of HTML)."""
     cams = d.cams
     title = f"gcvd-flow report: {d.run.run_dir.name}"
-    traj = figures.trajectory_png(d.est_positions, d.gt_positions, d.keyframes, d.loops)
+    unit = "m, ground truth's" if d.gt_positions is not None else "run units: one unknown global scale"
+    traj = figures.trajectory_png(d.est_positions, d.gt_positions, d.keyframes, d.loops, unit=unit)
     sub = (f"{_e(d.run.run_dir)} · {len(d.run)} frames at {cams.get('width')}x{cams.get('height')} · "
            f"fx {cams.get('fx', float(d.run.K[0, 0])):.1f}{' (guessed)' if cams.get('intrinsics_guessed') else ''}"
            f" · written {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}")
