@@ -99,9 +99,6 @@ def resolve(name_or_url: str | None, explicit_file: str | None = None) -> Remote
         for k, v in opts.items():
             if _TEXT_OPTION.search(k) and not isinstance(v, str):
                 raise UsageError(f"{path}: [remotes.{name_or_url}] {k} must be a string, not {v!r}")
-            if not isinstance(v, (str, int, float, bool)) and k != "client_kwargs" and k != "config_kwargs":
-                raise UsageError(f"{path}: [remotes.{name_or_url}] {k} must be a string, number or "
-                                 f"true/false")
         url = entry.get("url")
         if not isinstance(url, str) or not url:
             raise UsageError(f"{path}: [remotes.{name_or_url}] has no url")
