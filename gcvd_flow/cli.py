@@ -298,10 +298,23 @@ def _version() -> str:
         return "0+unknown"
 
 
+def evaluate_run(run_dir: Path, gt: str) -> dict:
+    """`sweep --gt`: one run's metrics against ground truth, written to RUN_DIR/metrics.json."""
+    from gcvd_flow.evaluate.run_eval import evaluate, write_metrics
+
+    res = evaluate(run_dir, gt)
+    write_metrics(run_dir, res)
+    return res
+
+
+# the columns `runs` and `sweep` print (--json / --csv: every metric of metrics.json)
+METRIC_COLUMNS = ("ate_rmse", "ate_percent_of_path", "rpe_trans", "rpe_rot", "abs_rel", "delta1", "keyframes")
+
 PRODUCT = engine_cli.Product(
     prog="gcvd-flow", pipeline="gcvd", version=_version(),
     description="Globally consistent video depth and camera poses (GCVD), as a stage-cached pipeline.",
-    add_run_args=add_run_args, run_sets=run_sets, add_commands=add_commands)
+    add_run_args=add_run_args, run_sets=run_sets, add_commands=add_commands,
+    evaluate=evaluate_run, metric_columns=METRIC_COLUMNS)
 
 
 def main(argv: list[str] | None = None) -> int:
