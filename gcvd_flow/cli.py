@@ -74,10 +74,12 @@ def _add_eval(sub) -> None:
 def _add_report(sub) -> None:
     p = sub.add_parser("report", help="one self-contained HTML page: verdict, trajectory, depth strip, "
                        "stages, settings")
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory, or a sweep / folder "
+                   "of runs: an index page (DIR/index.html) linking each run's report")
     p.add_argument("--gt", metavar="GT_DIR", help="ground truth (as for eval): adds the metrics and aligns "
                    "the trajectory to it")
-    p.add_argument("--to", metavar="FILE", help="where to write the page (default RUN_DIR/report.html)")
+    p.add_argument("--to", metavar="FILE", help="where to write the page (default RUN_DIR/report.html, "
+                   "DIR/index.html)")
     p.add_argument("--every", type=int, default=None, metavar="N",
                    help="frame strip: every N-th frame (default: about 8 frames)")
     p.add_argument("--cache", metavar="DIR",
@@ -224,7 +226,13 @@ def cmd_report(a: argparse.Namespace) -> int:
 
     if a.every is not None and a.every < 1:
         raise UsageError("--every must be at least 1")
-    out = write_report(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every)
+    from gcvd_flow.report.index import is_folder_of_runs, write_index
+
+    if is_folder_of_runs(a.run_dir):  # a sweep: an index page + each run's report
+        out = write_index(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every,
+                          log=lambda m: print(m, file=sys.stderr))
+    else:
+        out = write_report(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every)
     print(json.dumps({"report": str(out)}) if a.json_mode else f"wrote {out}")
     return 0
 
