@@ -182,6 +182,12 @@ def _wave_groups(pipeline: Any, stage: Any, combos: list[Combo]) -> list[Combo]:
     return list(reps.values())
 
 
+def _waves_help(spec: Any, combos: list[Combo]) -> bool:
+    """Whether some prefix stage has two distinct settings to interleave; else the first run
+    computes the shared prefix by itself (the waves would only add a pass)."""
+    return any(len(_wave_groups(spec.pipeline, s, combos)) > 1 for s in prefix_stages(spec.pipeline))
+
+
 def _prefix_waves(combos: list[Combo], invs: dict[str, Any], spec: Any, executor: Any,
                   log: Callable[[str], None]) -> dict[tuple[str, str], tuple[int, float]]:
     """Run the map prefix in waves (see the module docstring). Returns (run name, stage) ->
@@ -309,7 +315,8 @@ def run_sweep(plan: SweepPlan, log: Callable[[str], None],
     t_all = time.perf_counter()
     rows: list[dict[str, Any]] = []
     try:
-        early = _prefix_waves(plan.combos, invs, spec, executor, log) if executor and len(plan.combos) > 1 else {}
+        early = _prefix_waves(plan.combos, invs, spec, executor, log) if executor and _waves_help(spec, plan.combos) \
+            else {}
         for c in plan.combos:
             rows.append(_run_one(c, invs[c.name], early, executor, plan.gt, evaluate, log))
             _write_json(plan.root / SWEEP_FILE, _sweep_doc(plan, rows + pending[len(rows):], "running"))
