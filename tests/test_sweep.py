@@ -108,6 +108,7 @@ def test_interrupted_sweep_resumes(tmp_path):
     (["threshold.cut"], "SECTION.KEY=V1,V2"),
     (["threshold.cut=1,1"], "listed twice"),
     (["threshold.cut=1,1.0"], "same settings"),
+    (["report.x=a/b,a_b"], "share the run directory"),
     (["threshold.cut=1", "threshold.cut=2"], "given twice"),
     (["threshold.cut=1,2,3,4,5", "transform.scale=1,2,3,4,5,6,7,8,9,10,11,12,13"], "more than --max-runs 64"),
 ])

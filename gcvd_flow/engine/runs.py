@@ -39,9 +39,9 @@ def find_run_dirs(paths: list[str]) -> list[Path]:
         if not root.exists():
             raise UsageError(f"{raw}: no such file or directory")
         if root.is_file():
-            root = root.parent if root.name == RUN_FILE else root
-            if not root.is_dir():
+            if root.name != RUN_FILE:
                 raise UsageError(f"{raw}: not a run directory nor a folder of runs")
+            root = root.parent
         base_depth = len(root.resolve().parts)
         for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
             here = Path(dirpath)

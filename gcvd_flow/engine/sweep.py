@@ -117,6 +117,10 @@ def combinations(grids: list[Grid], max_runs: int = MAX_RUNS_DEFAULT) -> list[Co
         parts = [(g.key, g.texts[i], g.values[i]) for g, i in zip(grids, pick)]
         out.append(Combo(",".join(f"{k}={_safe(t)}" for k, t, _ in parts),
                          tuple(f"{k}={t}" for k, t, _ in parts), {k: v for k, _, v in parts}))
+    names = [c.name for c in out]
+    clash = next((n for n in names if names.count(n) > 1), None)
+    if clash is not None:  # two values that differ only in characters a folder name cannot hold
+        raise UsageError(f"--grid: two combinations would share the run directory {clash!r}")
     return out
 
 
