@@ -206,7 +206,9 @@ def _prefix_waves(combos: list[Combo], invs: dict[str, Any], spec: Any, executor
 
     def one(c: Combo, target: str) -> None:
         try:
-            res = api.run(invs[c.name], target=target, log=lambda m: log(f"[{c.name}] {m}"), executor=executor)
+            # no run directory yet: a run.json of the prefix alone would look like a finished run
+            res = api.run(replace(invs[c.name], out=None), target=target, log=lambda m: log(f"[{c.name}] {m}"),
+                          executor=executor)
         except Exception as exc:  # noqa: BLE001 - reported (again) by the full pass
             failed.add(c.name)
             log(f"[{c.name}] {target}: {_error_line(exc)}")
