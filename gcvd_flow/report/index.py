@@ -28,6 +28,8 @@ INDEX_FILE = "index.html"
 PLOT_METRICS = (("ate_rmse", "ATE RMSE (m)"), ("rpe_trans", "RPE trans (m)"), ("abs_rel", "depth AbsRel"),
                 ("delta1", "depth δ<1.25"))
 TABLE_METRICS = ("ate_rmse", "ate_percent_of_path", "rpe_trans", "rpe_rot", "abs_rel", "delta1", "keyframes")
+# the best run of these is highlighted (keyframes is a count, not a quality)
+LOWER_IS_BETTER = ("ate_rmse", "ate_percent_of_path", "rpe_trans", "rpe_rot", "abs_rel")
 HIGHER_IS_BETTER = ("delta1",)
 
 
@@ -91,26 +93,27 @@ def plot_png(doc: dict[str, Any], param: str, metrics: list[tuple[str, str]], dp
 
 def _best(doc: dict[str, Any], key: str) -> str | None:
     vals = [(v, r["name"]) for r in doc["runs"] if (v := _num(r["metrics"].get(key))) is not None]
-    if not vals:
+    if not vals or key not in LOWER_IS_BETTER + HIGHER_IS_BETTER:
         return None
     return (max(vals) if key in HIGHER_IS_BETTER else min(vals))[1]
 
 
 def _table(doc: dict[str, Any], links: dict[str, str], metrics: list[str]) -> str:
     best = {m: _best(doc, m) for m in metrics}
-    head = ("<tr><th>run</th><th>finished</th>" + "".join(f"<th>{_e(k)}</th>" for k in doc["params"])
-            + "".join(f"<th>{_e(m)}</th>" for m in metrics) + "<th>stages reused / computed</th><th>report</th></tr>")
+    head = ("<tr><th>run (its report)</th>" + "".join(f"<th>{_e(k)}</th>" for k in doc["params"])
+            + "".join(f"<th>{_e(m)}</th>" for m in metrics) + "<th>stages reused / computed</th><th>finished</th></tr>")
     rows = []
     for r in doc["runs"]:
         st = r["stages"]
-        cells = [f"<td>{_e(r['name'])}</td>", f"<td>{_e(r['when'])}</td>"]
+        link = links.get(r["out"])
+        name = f"<a href='{_e(link)}'>{_e(r['name'])}</a>" if link else f"{_e(r['name'])} (no report)"
+        cells = [f"<td>{name}</td>"]
         cells += [f"<td class='num'>{_e(_fmt(r['params'].get(k)))}</td>" for k in doc["params"]]
         cells += [f"<td class='num{' best' if best[m] == r['name'] else ''}'>{_e(_fmt(r['metrics'].get(m)))}</td>"
                   for m in metrics]
         counts = f"{st['reused']} / {st['computed']}" if st else ""
         cells.append(f"<td class='num'>{_e(counts)}</td>")
-        link = links.get(r["out"])
-        cells.append(f"<td><a href='{_e(link)}'>report</a></td>" if link else "<td>(failed)</td>")
+        cells.append(f"<td class='when'>{_e(r['when'].removesuffix(' UTC'))}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table id='runs'>{head}{''.join(rows)}</table>"
 
@@ -162,13 +165,14 @@ def render_index(folder: Path, doc: dict[str, Any], links: dict[str, str], to: P
         "<meta name='viewport' content='width=device-width, initial-scale=1'>",
         f'<meta http-equiv="Content-Security-Policy" content="{CSP}">',
         f"<title>{_e(title)}</title><style>{CSS}td.best{{background:#e3f4e4;font-weight:600}}"
-        f"img.plot{{max-width:100%;height:auto}}</style></head><body>",
+        f"img.plot{{max-width:100%;height:auto}}#runs td,#runs th{{font-size:13px;padding:3px 6px}}"
+        f"#runs td{{white-space:nowrap}}td.when{{color:#666}}</style></head><body>",
         f"<h1>{_e(title)}</h1><div class='sub'>{_e(folder)} · {len(doc['runs'])} runs · written "
         f"{datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}</div>",
         _sweep_line(folder),
         "<h2>Runs</h2>",
-        f"<p>Parameters that differ between the runs; metrics from each run's metrics.json (best in green). "
-        f"Each run's own report is linked.</p>{_table(doc, links, metrics)}",
+        f"<p>Parameters that differ between the runs; metrics from each run's metrics.json (best in green); "
+        f"finished in UTC. A run's name links to its own report.</p>{_table(doc, links, metrics)}",
         "<h2>Metrics against the swept parameters</h2>", "".join(plots),
         "</body></html>"]
     return "\n".join(parts)
