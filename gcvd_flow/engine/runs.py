@@ -90,7 +90,11 @@ def _metrics(run: Path) -> dict[str, Any]:
         doc = doc["metrics"]  # `eval --baseline --json`'s shape
     if not isinstance(doc, dict):
         raise UsageError(f"{run / METRICS_FILE}: expected a JSON object of metrics")
-    return {k: v for k, v in flatten(doc).items() if isinstance(v, (int, float, str, bool)) or v is None}
+    try:
+        flat = flatten(doc)
+    except RecursionError:
+        raise UsageError(f"{run / METRICS_FILE}: nested too deeply") from None
+    return {k: v for k, v in flat.items() if isinstance(v, (int, float, str, bool)) or v is None}
 
 
 def _stage_counts(stages: Any) -> dict[str, int] | None:
@@ -127,10 +131,13 @@ def read_run(run: Path, sweeps: dict[Path, dict[str, Any]]) -> dict[str, Any]:
     if stages is None and isinstance(doc.get("counts"), dict):
         stages = [{"name": k, **v} for k, v in doc["counts"].items() if isinstance(v, dict)]
     when = datetime.datetime.fromtimestamp(p.stat().st_mtime, datetime.timezone.utc)
+    try:
+        params = flatten(doc.get("config") or {})
+    except RecursionError:
+        raise UsageError(f"{p}: config nested too deeply") from None
     return {"name": run.name, "out": str(run), "when": when.strftime("%Y-%m-%d %H:%M:%S UTC"),
             "input": inv.get("input") if isinstance(inv.get("input"), str) else None,
-            "all_params": flatten(doc.get("config") or {}), "metrics": _metrics(run),
-            "stages": _stage_counts(stages)}
+            "all_params": params, "metrics": _metrics(run), "stages": _stage_counts(stages)}
 
 
 def _canon(v: Any) -> str:
