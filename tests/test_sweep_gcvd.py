@@ -16,6 +16,8 @@ import pytest
 from conftest import cli, cli_json
 from test_report import _chromium, _page_loads, _read_png, _shot
 
+pytestmark = pytest.mark.slow  # a GCVD sweep (three runs of a 40-frame clip)
+
 N_FRAMES = 40
 DELTAS = ("0.05", "0.1", "0.15")
 
