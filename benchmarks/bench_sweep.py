@@ -5,8 +5,8 @@ depth_filter is shared) and ``keyframes.delta=0.05,0.1,0.15`` (ingest, flow, flo
 priors are shared; keyframes and every later stage run three times). Three separate runs would
 cost 3x; the goals are <= 1.4x and <= 2.3x.
 
-The measurements alternate (one run, late sweep, keyframe sweep; repeated) so that a machine
-whose load drifts affects both sides alike; the figure is the median over the repeats of each
+The measurements alternate (one run, late sweep, keyframe sweep, then the same in reverse order;
+repeated) so that a machine whose load drifts affects both sides alike; the figure is the median over the repeats of each
 repeat's ratio (sweep seconds / one-run seconds of the same repeat). Every command is the whole
 CLI (`python -m gcvd_flow ...`) with its own fresh cache. Wall and CPU seconds are both measured
 (CPU: user + system of the command and of the item workers it waited for); the load average is
@@ -77,9 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         rows = []
         for rep in range(a.repeats):
             row = {}
-            for what, args in (("one", ["run", str(clip), "--out", str(tmp / "one")]),
-                               ("late", ["sweep", str(clip), "--out", str(tmp / "late"), "--grid", a.late]),
-                               ("keyframes", ["sweep", str(clip), "--out", str(tmp / "kf"), "--grid", a.keyframes])):
+            order = [("one", ["run", str(clip), "--out", str(tmp / "one")]),
+                     ("late", ["sweep", str(clip), "--out", str(tmp / "late"), "--grid", a.late]),
+                     ("keyframes", ["sweep", str(clip), "--out", str(tmp / "kf"), "--grid", a.keyframes])]
+            # every other repeat in reverse (ABBA): a load that rises or falls steadily biases
+            # the ratios one way in one repeat and the other way in the next
+            for what, args in (order if rep % 2 == 0 else order[::-1]):
                 cache = tmp / "cache"
                 shutil.rmtree(cache, ignore_errors=True)
                 for d in ("one", "late", "kf"):
