@@ -195,3 +195,17 @@ def test_runs_bad_metrics_and_paths_exit_2(tmp_path):
     (run / "metrics.json").write_text(json.dumps({"x": 1.5}))
     p = cli("runs", str(tmp_path), "--sort", "y")
     assert p.returncode == 2 and "--sort y" in p.stderr
+
+
+def test_python_api_sweep_and_runs(tmp_path, toy_input):
+    from gcvd_flow import api
+    from gcvd_flow.engine.api import Invocation
+    from gcvd_flow.engine.errors import UsageError
+
+    inv = Invocation(input=str(toy_input), out=str(tmp_path / "sw"), pipeline="toy", cache=str(tmp_path / "c"),
+                     jobs=1)
+    doc = api.sweep(inv, ["threshold.cut=10,20"])
+    assert [r["name"] for r in doc["runs"]] == ["threshold.cut=10", "threshold.cut=20"] and doc["failed"] == 0
+    assert api.runs(tmp_path / "sw", sort="-threshold.cut")["runs"][0]["name"] == "threshold.cut=20"
+    with pytest.raises(UsageError, match="empty list"):
+        api.sweep(inv, ["threshold.cut="])
