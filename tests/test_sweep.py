@@ -99,6 +99,36 @@ def test_interrupted_sweep_resumes(tmp_path):
         assert {k: v["output"] for k, v in sa.items()} == {k: v["output"] for k, v in sb.items()}
 
 
+def test_interrupted_waves_exit_at_once_and_resume(tmp_path):
+    """Ctrl-C while the map prefix runs in waves on worker processes (--jobs 2): exit 130 at
+    once (a wave thread waiting on the closed pool once kept the process alive), no process
+    left, and the same command computes exactly the missing items."""
+    inp = make_toy_input(tmp_path / "in", n=N)
+    cache = tmp_path / "c"
+    args = ["sweep", str(inp), "--out", str(tmp_path / "sw"), "--cache", str(cache), *TOY,
+            "--set", "transform.sleep=0.1", "--grid", "transform.scale=1,2,3", "--jobs", "2"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.Popen([sys.executable, "-m", "gcvd_flow", *args], cwd=ROOT, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while (not (cache / "records").is_dir() or _item_records(cache, "transform") < 10) and time.time() - t0 < 120:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    t1 = time.time()
+    try:
+        _, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:  # hung: do not leave it behind
+            p.kill()
+            p.communicate()
+    assert p.returncode == 130 and time.time() - t1 < 20, err
+    assert "cannot schedule" not in err and len(err.strip().splitlines()) == 1, err
+    done = _item_records(cache, "transform")
+    assert 10 <= done < 3 * N
+    doc = cli_json(*args)
+    assert _executed(doc, "transform") == 3 * N - done and _executed(doc, "decode") == 0
+
+
 @pytest.mark.parametrize("grid,needle", [
     (["threshold.nope=1,2"], "threshold.nope"),
     (["nosection.cut=1,2"], "nosection"),

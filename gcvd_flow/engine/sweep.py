@@ -23,6 +23,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -33,6 +34,7 @@ from gcvd_flow.engine.errors import StoreError, UsageError
 SWEEP_FILE = "sweep.json"
 MAX_RUNS_DEFAULT = 64
 MAX_EXIT = 100
+WAVE_THREADS = 8  # runs of one wave side by side (they only plan and wait: the workers compute)
 
 
 @dataclass(frozen=True)
@@ -197,8 +199,6 @@ def _prefix_waves(combos: list[Combo], invs: dict[str, Any], spec: Any, executor
     """Run the map prefix in waves (see the module docstring). Returns (run name, stage) ->
     (items executed, seconds) for what the waves computed. Failures are left for the full pass
     to report."""
-    from concurrent.futures import ThreadPoolExecutor
-
     from gcvd_flow.engine import api
 
     early: dict[tuple[str, str], tuple[int, float]] = {}
@@ -211,26 +211,32 @@ def _prefix_waves(combos: list[Combo], invs: dict[str, Any], spec: Any, executor
                           executor=executor)
         except Exception as exc:  # noqa: BLE001 - reported (again) by the full pass
             failed.add(c.name)
-            log(f"[{c.name}] {target}: {_error_line(exc)}")
+            if not stopping.is_set():  # after Ctrl-C: the closed executor's errors are no news
+                log(f"[{c.name}] {target}: {_error_line(exc)}")
             return
         for s in res.get("stages") or []:
             if s["executed"]:
                 n, sec = early.get((c.name, s["name"]), (0, 0.0))
                 early[(c.name, s["name"])] = (n + s["executed"], sec + s["seconds"])
 
-    pool = ThreadPoolExecutor(max_workers=8)
+    # Daemon threads, not a thread pool: on Ctrl-C the main thread leaves at once and closes the
+    # shared executor; a wave thread still waiting for an item of the closed pool must not keep
+    # the process alive (a pool's threads are joined at interpreter exit: that hung).
+    stopping = threading.Event()
     try:
         for stage in prefix_stages(spec.pipeline):
             reps = [c for c in _wave_groups(spec.pipeline, stage, combos) if c.name not in failed]
-            futures = [pool.submit(one, c, stage.name) for c in reps]
-            for f in futures:
-                f.result()
+            for i in range(0, len(reps), WAVE_THREADS):
+                threads = [threading.Thread(target=one, args=(c, stage.name), daemon=True,
+                                            name=f"sweep-wave-{c.name}") for c in reps[i:i + WAVE_THREADS]]
+                for t in threads:
+                    t.start()
+                for t in threads:
+                    while t.is_alive():
+                        t.join(0.2)
     except BaseException:
-        # Ctrl-C: do not wait for the wave here; closing the shared executor (the caller's
-        # `finally`) cancels the items the threads wait for, and they end
-        pool.shutdown(wait=False, cancel_futures=True)
+        stopping.set()
         raise
-    pool.shutdown(wait=True)
     return early
 
 
