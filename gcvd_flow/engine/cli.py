@@ -1,4 +1,5 @@
-"""The engine's command line: run, plan, why, status, dag, fsck, gc, pin, push, pull.
+"""The engine's command line: run, plan, why, status, dag, fsck, gc, pin, push, pull, run-many,
+sweep, runs, lineage.
 
 A product builds its CLI on this one (:class:`Product`): it names its pipeline and program,
 adds its own verbs and options through hooks, and calls :func:`main`. The engine knows nothing
@@ -441,12 +442,17 @@ def _cmd_sweep(a: argparse.Namespace) -> int:
     if a.sort:
         sweep_sort_known(a.sort, plan, a.gt is not None)
     doc = sweep.run_sweep(plan, log=api._stderr, evaluate=product.evaluate)
-    doc["runs"] = runs.sort_rows(doc["runs"], a.sort)
+    sort = a.sort
+    try:
+        doc["runs"] = runs.sort_rows(doc["runs"], sort)
+    except UsageError as exc:  # e.g. a metric the evaluation did not give: the runs are done, show them
+        api._stderr(f"warning: {exc}; the table is not sorted")
+        sort = None
     if a.json_mode:
         _print_json(doc)
     else:
         done = [r["out"] for r in doc["runs"] if r["ok"]]
-        table = runs.collect(done, sort=a.sort) if done else {"runs": []}
+        table = runs.collect(done, sort=sort) if done else {"runs": []}
         print(runs.format_text(table, product.metric_columns))
         n = len(doc["runs"])
         print(f"{n - doc['failed']} of {n} runs ok, {doc['failed']} failed, {doc['seconds']:.1f} s")
