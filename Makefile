@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test lint check-install test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale clean sysdeps peerdeps testdeps regress regress-baseline
+.PHONY: setup demo test lint check-install test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale bench-sweep clean sysdeps peerdeps testdeps regress regress-baseline
 
 setup: $(STAMP)
 
@@ -75,6 +75,10 @@ bench-runtime: $(STAMP)
 # map stages' throughput on 1 vs 2 Dask workers, and a cluster projection (docs/teams.md)
 bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_scale.py $(SCALE_ARGS)
+
+# a 3-value sweep against one run alone, alternating (docs/benchmarks.md, "Parameter sweeps")
+bench-sweep: $(STAMP)
+	$(BIN)/python benchmarks/bench_sweep.py $(SWEEP_ARGS)
 
 # The peer of bench-peer: Debian's colmap (3.8, CPU), only when it is not on PATH.
 # Not a dependency of setup/test/demo.

@@ -110,5 +110,25 @@ def compare(run_a: str | Path, run_b: str | Path, cache: str | None = None) -> d
     return compare_runs(run_a, run_b, cache=cache)
 
 
+def sweep(inv: Invocation, grid: list[str], gt: str | Path | None = None, max_runs: int = 64) -> dict[str, Any]:
+    """`gcvd-flow sweep`: every combination of ``grid`` (``["keyframes.delta=0.05,0.1"]``) run
+    into ``inv.out/<key>=<value>`` with ``inv``'s settings, through one cache; with ``gt`` each run
+    is evaluated (its metrics.json). Returns the --json document ({"runs": [...], "failed": n})."""
+    from gcvd_flow.cli import evaluate_run
+    from gcvd_flow.engine import sweep as _sweep
+
+    plan_ = _sweep.prepare(str(inv.input), str(inv.out), inv, list(grid), gt=str(gt) if gt else None,
+                           max_runs=max_runs, can_evaluate=True)
+    return _sweep.run_sweep(plan_, log=_engine._stderr, evaluate=evaluate_run)
+
+
+def runs(*paths: str | Path, all_params: bool = False, sort: str | None = None) -> dict[str, Any]:
+    """`gcvd-flow runs --json`: one row per run directory under ``paths`` (name, params that
+    differ, metrics, stages reused / computed)."""
+    from gcvd_flow.engine import runs as _runs
+
+    return _runs.collect([str(p) for p in paths], all_params=all_params, sort=sort)
+
+
 __all__ = ["Invocation", "Result", "run", "plan", "why", "status", "recorded_output", "fsck", "gc", "open_store",
-           "read_run_dir", "load", "eval", "report", "compare"]
+           "read_run_dir", "load", "eval", "report", "compare", "sweep", "runs"]

@@ -75,10 +75,12 @@ def _add_eval(sub) -> None:
 def _add_report(sub) -> None:
     p = sub.add_parser("report", help="one self-contained HTML page: verdict, trajectory, depth strip, "
                        "stages, settings")
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished `gcvd-flow run` directory, or a sweep / folder "
+                   "of runs: an index page (DIR/index.html) linking each run's report")
     p.add_argument("--gt", metavar="GT_DIR", help="ground truth (as for eval): adds the metrics and aligns "
                    "the trajectory to it")
-    p.add_argument("--to", metavar="FILE", help="where to write the page (default RUN_DIR/report.html)")
+    p.add_argument("--to", metavar="FILE", help="where to write the page (default RUN_DIR/report.html, "
+                   "DIR/index.html)")
     p.add_argument("--every", type=int, default=None, metavar="N",
                    help="frame strip: every N-th frame (default: about 8 frames)")
     p.add_argument("--cache", metavar="DIR",
@@ -226,6 +228,13 @@ def cmd_report(a: argparse.Namespace) -> int:
 
     if a.every is not None and a.every < 1:
         raise UsageError("--every must be at least 1")
+    from gcvd_flow.report.index import is_folder_of_runs, write_index
+
+    if is_folder_of_runs(a.run_dir):  # a sweep: an index page + each run's report
+        out = write_index(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every,
+                          log=lambda m: print(m, file=sys.stderr))
+        print(json.dumps({"report": str(out)}) if a.json_mode else f"wrote {out}")
+        return 0
     doc = write_report_doc(a.run_dir, to=a.to, gt=a.gt, cache=a.cache, every=a.every)
     print(json.dumps(doc) if a.json_mode else f"wrote {doc['report']} (verdict: {doc['verdict']})")
     return 0
@@ -300,10 +309,23 @@ def _version() -> str:
         return "0+unknown"
 
 
+def evaluate_run(run_dir: Path, gt: str) -> dict:
+    """`sweep --gt`: one run's metrics against ground truth, written to RUN_DIR/metrics.json."""
+    from gcvd_flow.evaluate.run_eval import evaluate, write_metrics
+
+    res = evaluate(run_dir, gt)
+    write_metrics(run_dir, res)
+    return res
+
+
+# the columns `runs` and `sweep` print (--json / --csv: every metric of metrics.json)
+METRIC_COLUMNS = ("ate_rmse", "ate_percent_of_path", "rpe_trans", "rpe_rot", "abs_rel", "delta1", "keyframes")
+
 PRODUCT = engine_cli.Product(
     prog="gcvd-flow", pipeline="gcvd", version=_version(),
     description="Globally consistent video depth and camera poses (GCVD), as a stage-cached pipeline.",
-    add_run_args=add_run_args, run_sets=run_sets, add_commands=add_commands)
+    add_run_args=add_run_args, run_sets=run_sets, add_commands=add_commands,
+    evaluate=evaluate_run, metric_columns=METRIC_COLUMNS)
 
 
 def main(argv: list[str] | None = None) -> int:

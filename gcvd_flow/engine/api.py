@@ -273,6 +273,9 @@ def _finish_run(inv: Invocation, spec: PipelineSpec, config: Any, runner: Runner
         files = digest_outputs(out, outputs_of(result))  # what compare --check and the fast path verify
         doc = {"invocation": inv.recorded(), "config": json.loads(config.model_dump_json()),
                "stages": stage_records, "stage_order": list(stage_records),
+               # what this run computed vs found cached (read by `runs`)
+               "counts": {n: {"executed": r.executed, "cached": r.cached, "seconds": round(r.seconds, 3)}
+                          for n, r in runner.reports.items()},
                "env": spec.pipeline.numeric_env(), "gcvd_flow": _version(),
                "cache": str(runner.store.root.resolve()), "files": files}
         tmp = out / (RUN_FILE + ".tmp")

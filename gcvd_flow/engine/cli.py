@@ -1,4 +1,5 @@
-"""The engine's command line: run, plan, why, status, dag, fsck, gc, pin, push, pull.
+"""The engine's command line: run, plan, why, status, dag, fsck, gc, pin, push, pull, run-many,
+sweep, runs, lineage.
 
 A product builds its CLI on this one (:class:`Product`): it names its pipeline and program,
 adds its own verbs and options through hooks, and calls :func:`main`. The engine knows nothing
@@ -46,6 +47,10 @@ class Product:
     add_commands: Callable[[Any], None] = lambda sub: None
     epilog: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    # `sweep --gt`: evaluate one finished run dir against ground truth, write its metrics.json,
+    # return the metrics; `runs` / `sweep` tables show these metrics (others: --json / --csv)
+    evaluate: Callable[[Any, str], dict[str, Any]] | None = None
+    metric_columns: tuple[str, ...] = ()
 
 
 _PRODUCT: Product | None = None
@@ -120,6 +125,8 @@ def _add_scale_commands(sub: Any) -> None:
     _add_scale_args(p)
     p.set_defaults(handler=_cmd_run_many)
 
+    _add_sweep_commands(sub)
+
     p = sub.add_parser("lineage", help="what produced an artifact: stage, parameters, code, libraries, inputs")
     p.add_argument("target", metavar="RUN_DIR|DIGEST", help="a run directory, or a record key / output / object digest")
     p.add_argument("stage", nargs="?", metavar="STAGE", help="with RUN_DIR: this stage only (default: all)")
@@ -128,6 +135,37 @@ def _add_scale_commands(sub: Any) -> None:
                    "(default: one line per record, the shared environment once)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
     p.set_defaults(handler=_cmd_lineage)
+
+
+def _add_sweep_commands(sub: Any) -> None:
+    from gcvd_flow.engine.sweep import MAX_RUNS_DEFAULT
+
+    p = sub.add_parser("sweep", help="run every combination of parameter grids through one DAG and one cache; "
+                       "a table of the runs")
+    p.add_argument("input", metavar="INPUT", help="video file, image folder or dataset folder")
+    p.add_argument("--out", required=True, metavar="DIR", help="one run directory per combination: DIR/KEY=VALUE")
+    p.add_argument("--grid", dest="grids", action="append", default=[], metavar="SECTION.KEY=V1,V2",
+                   help="values of one parameter (repeatable: the cartesian product of all grids runs)")
+    p.add_argument("--gt", metavar="GT_DIR", help="evaluate every run against this ground truth (metrics.json)")
+    p.add_argument("--sort", metavar="METRIC", help="sort the table by this metric or parameter (--sort=-METRIC: descending)")
+    p.add_argument("--max-runs", type=int, default=MAX_RUNS_DEFAULT, metavar="N",
+                   help=f"refuse grids of more than N combinations (default {MAX_RUNS_DEFAULT})")
+    _add_config_args(p)
+    p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",
+                   help="map items in N worker processes / Dask workers (default auto: one per usable core)")
+    _add_scale_args(p)
+    p.set_defaults(handler=_cmd_sweep)
+
+    p = sub.add_parser("runs", help="a table of run directories: the parameters that differ, metrics, "
+                       "stages reused / computed")
+    p.add_argument("paths", nargs="+", metavar="PATH", help="run directories or folders holding them (searched)")
+    p.add_argument("--all-params", action="store_true", help="every parameter, not only those that differ")
+    p.add_argument("--sort", metavar="METRIC", help="sort by this metric or parameter (--sort=-METRIC: descending)")
+    fmt = p.add_mutually_exclusive_group()
+    fmt.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")
+    fmt.add_argument("--csv", action="store_true", help="CSV on stdout (every metric)")
+    fmt.add_argument("--md", action="store_true", help="a Markdown table on stdout")
+    p.set_defaults(handler=_cmd_runs)
 
 
 def build_parser(product: Product) -> argparse.ArgumentParser:
@@ -415,6 +453,57 @@ def _cmd_run_many(a: argparse.Namespace) -> int:
     else:
         print(many.format_table(doc))
     return many.exit_code(doc)
+
+
+def _cmd_sweep(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import api, runs, sweep
+
+    product = _product()
+    plan = sweep.prepare(a.input, a.out, _invocation(a, input_=a.input, out=a.out), a.grids, gt=a.gt,
+                         max_runs=a.max_runs, can_evaluate=product.evaluate is not None)
+    if a.sort:
+        sweep_sort_known(a.sort, plan, a.gt is not None)
+    doc = sweep.run_sweep(plan, log=api._stderr, evaluate=product.evaluate)
+    sort = a.sort
+    try:
+        doc["runs"] = runs.sort_rows(doc["runs"], sort)
+    except UsageError as exc:  # e.g. a metric the evaluation did not give: the runs are done, show them
+        api._stderr(f"warning: {exc}; the table is not sorted")
+        sort = None
+    if a.json_mode:
+        _print_json(doc)
+    else:
+        done = [r["out"] for r in doc["runs"] if r["ok"]]
+        table = runs.collect(done, sort=sort) if done else {"runs": []}
+        print(runs.format_text(table, product.metric_columns))
+        n = len(doc["runs"])
+        print(f"{n - doc['failed']} of {n} runs ok, {doc['failed']} failed, {doc['seconds']:.1f} s")
+        for r in doc["runs"]:
+            if not r["ok"]:
+                print(f"{r['name']}: FAILED: {r['error']}")
+    return sweep.exit_code(doc)
+
+
+def sweep_sort_known(sort: str, plan: Any, evaluated: bool) -> None:
+    """--sort must name a swept parameter, or a metric when the runs are evaluated."""
+    key = sort[1:] if sort.startswith("-") else sort
+    if not evaluated and key not in {g.key for g in plan.grids}:
+        raise UsageError(f"--sort {key}: not a swept parameter (metrics need --gt)")
+
+
+def _cmd_runs(a: argparse.Namespace) -> int:
+    from gcvd_flow.engine import runs
+
+    doc = runs.collect(a.paths, all_params=a.all_params, sort=a.sort)
+    if a.json_mode:
+        _print_json(runs.json_doc(doc))
+    elif a.csv:
+        print(runs.format_csv(doc))
+    elif a.md:
+        print(runs.format_md(doc, _product().metric_columns))
+    else:
+        print(runs.format_text(doc, _product().metric_columns))
+    return 0
 
 
 def _cmd_lineage(a: argparse.Namespace) -> int:
