@@ -334,9 +334,12 @@ def run_sweep(plan: SweepPlan, log: Callable[[str], None],
         for c in plan.combos:
             rows.append(_run_one(c, invs[c.name], early, executor, plan.gt, evaluate, log))
             _write_json(plan.root / SWEEP_FILE, _sweep_doc(plan, rows + pending[len(rows):], "running"))
-    finally:
-        if executor is not None:
-            executor.close()
+    except BaseException as exc:
+        if executor is not None:  # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the workers at once
+            executor.close(abort=not isinstance(exc, Exception))
+        raise
+    if executor is not None:
+        executor.close()
     _write_json(plan.root / SWEEP_FILE, _sweep_doc(plan, rows, "done"))
     failed = sum(1 for r in rows if not r["ok"])
     return {"runs": rows, "failed": failed, "seconds": round(time.perf_counter() - t_all, 3)}
