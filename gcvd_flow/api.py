@@ -114,8 +114,8 @@ def sweep(inv: Invocation, grid: list[str], gt: str | Path | None = None, max_ru
     """`gcvd-flow sweep`: every combination of ``grid`` (``["keyframes.delta=0.05,0.1"]``) run
     into ``inv.out/<key>=<value>`` with ``inv``'s settings, through one cache; with ``gt`` each run
     is evaluated (its metrics.json). Returns the --json document ({"runs": [...], "failed": n})."""
-    from gcvd_flow.cli import evaluate_run
     from gcvd_flow.engine import sweep as _sweep
+    from gcvd_flow.evaluate.run_eval import evaluate_run
 
     plan_ = _sweep.prepare(str(inv.input), str(inv.out), inv, list(grid), gt=str(gt) if gt else None,
                            max_runs=max_runs, can_evaluate=True)

@@ -310,12 +310,10 @@ def _version() -> str:
 
 
 def evaluate_run(run_dir: Path, gt: str) -> dict:
-    """`sweep --gt`: one run's metrics against ground truth, written to RUN_DIR/metrics.json."""
-    from gcvd_flow.evaluate.run_eval import evaluate, write_metrics
+    """`sweep --gt`: one run's metrics, written to RUN_DIR/metrics.json (imported when used)."""
+    from gcvd_flow.evaluate.run_eval import evaluate_run as evaluate_and_write
 
-    res = evaluate(run_dir, gt)
-    write_metrics(run_dir, res)
-    return res
+    return evaluate_and_write(run_dir, gt)
 
 
 # the columns `runs` and `sweep` print (--json / --csv: every metric of metrics.json)

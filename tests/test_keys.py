@@ -64,6 +64,7 @@ NOT_NUMERIC = {
     "blake3": "computes the digests themselves (a fixed algorithm)",
     "platformdirs": "finds the default cache directory", "fsspec": "remote caches move bytes verbatim",
     "distributed": "the Dask executor (results do not depend on where an item ran)",
+    "dask": "the Dask executor's configuration (results do not depend on where an item ran)",
     "threadpoolctl": "pins BLAS to one thread around bundle adjustment (results then do not depend on it)",
 }
 

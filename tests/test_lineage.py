@@ -22,7 +22,7 @@ def test_lineage_of_a_run_stage_and_of_digests(tmp_path):
     assert doc["roots"] == [run["summarize"]["key"]]
     assert {n["stage"] for n in nodes.values()} == {"summarize", "transform", "decode"}
     t = nodes[run["transform"]["key"]]
-    assert t["params"] == {"scale": 3.0, "sleep": 0.0} and t["output"] == run["transform"]["output"]
+    assert t["params"] == {"kill_worker": -1, "scale": 3.0, "sleep": 0.0} and t["output"] == run["transform"]["output"]
     assert t["env"]["numpy"] and t["code"] == run["transform"]["fields"]["code"] and t["items"] == 6
     assert t["inputs"]["decode"] == {"digest": run["decode"]["output"], "from": run["decode"]["key"]}
     src = nodes[run["decode"]["key"]]["inputs"]["source"]

@@ -592,7 +592,7 @@ def main(product: Product, argv: Sequence[str] | None = None) -> int:
         return 2
     except ModuleNotFoundError as exc:  # the installation lacks a package: say which, in one line
         print(f"{product.prog}: error: the Python module {exc.name!r} is not installed; install "
-              f"{product.prog} with its dependencies (pip install gcvd-flow / pip install .)", file=sys.stderr)
+              f"{product.prog} with its dependencies (pip install {product.prog} / pip install .)", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - last resort: an internal error, with its traceback
         if getattr(exc, "user_error", False):  # bad input found inside a stage

@@ -341,3 +341,10 @@ def compare_to_baseline(res: dict[str, Any], base: dict[str, Any], tolerance: fl
     if not compared:
         raise UsageError(f"{where}: no metric of the baseline could be compared (none is a finite number)")
     return lines
+
+
+def evaluate_run(run_dir: Path, gt: str) -> dict:
+    """`sweep --gt`: one run's metrics against ground truth, written to RUN_DIR/metrics.json."""
+    res = evaluate(run_dir, gt)
+    write_metrics(run_dir, res)
+    return res
