@@ -46,6 +46,8 @@ def _add_synth(sub) -> None:
                    help="exposure swings between frames, relative gain (default 0; e.g. 0.2)")
     p.add_argument("--texture", type=float, default=1.0, metavar="F",
                    help="surface detail contrast (default 1; e.g. 0.2 for low texture)")
+    p.add_argument("--focal", type=float, default=None, metavar="PX",
+                   help="focal length fx = fy in px (default 300/384 x long side, the guess used without intrinsics)")
     p.set_defaults(handler=cmd_synth)
 
 
@@ -180,9 +182,11 @@ def cmd_synth(a: argparse.Namespace) -> int:
     for name in ("noise", "blur", "exposure", "texture"):
         if not 0.0 <= getattr(a, name) < 1e3:
             raise UsageError(f"--{name} {getattr(a, name)}: must be a non-negative number")
+    if a.focal is not None and not 0 < a.focal < 1e6:
+        raise UsageError(f"--focal {a.focal}: must be a positive number of pixels")
     clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
                        moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
-                       exposure=a.exposure, texture=a.texture)
+                       exposure=a.exposure, texture=a.texture, focal=a.focal)
     write_generic_layout(a.out, clip)
     print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
           f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")

@@ -132,6 +132,72 @@ INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", 
                   description="frames at working resolution + camera"))
 
 
+# ============================================================================== calibrate
+@config_section("calibrate")
+class CalibrateParams(Section):
+    mode: Literal["auto", "off"] = Field("auto", description="auto: estimate one focal length (fx = fy) "
+                                         "from the video when no intrinsics are given (flag, intrinsics.txt "
+                                         "or a dataset default); off: keep the guess f = 300/384 x long side")
+    max_frames: int = Field(48, ge=3, description="frames sampled evenly over the clip for the estimate")
+    features: int = Field(2000, ge=100, description="SIFT features per sampled frame")
+    max_rel_sigma: float = Field(0.03, gt=0, description="an estimate less certain than this (std / f) is "
+                                 "not used: the motion does not determine the focal length; the guess is kept")
+
+
+class _SampledImages:
+    """images[i] -> ingest item i's image, decoded only when asked (the estimate samples frames)."""
+
+    def __init__(self, frames: Any):
+        self._frames = frames
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return np.asarray(self._frames[i]["image"])
+
+
+def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[str, Any]:
+    """ingest's camera -> {K (3, 3) at working resolution: the given intrinsics, or one focal length
+    estimated from the frames, or the guess; estimated, guessed (bool), origin, focal_source (fx, fy at
+    source resolution), rel_sigma (std / f of the estimate, None when not estimated), warning (str,
+    '' when none), pairs, rotation_pairs, median_px}. Given intrinsics: nothing is computed."""
+    frames = inputs["ingest"]
+    cam = frames.summary
+    K = np.asarray(cam["K"], np.float64)
+    sx, sy = cam["width"] / cam["source_width"], cam["height"] / cam["source_height"]
+    out = {"K": K, "estimated": False, "guessed": bool(cam["guessed"]), "origin": cam["origin"],
+           "focal_source": [float(K[0, 0] / sx), float(K[1, 1] / sy)], "rel_sigma": None, "warning": "",
+           "pairs": 0, "rotation_pairs": 0, "median_px": None}
+    if not cam["guessed"] or p.mode == "off":
+        return out
+    from stages.frontend import calibrate as calibrate_mod
+
+    res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
+                                       n_features=p.features, max_rel_sigma=p.max_rel_sigma)
+    out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]),
+               median_px=float(res["median_px"]), initial_focal=float(res["initial_focal"]))
+    rel = float(res["rel_sigma"])
+    out["rel_sigma"] = rel if np.isfinite(rel) else None
+    if not res["determined"]:
+        out["warning"] = f"focal length not estimated, the guess f = {K[0, 0]:.1f} px is kept: {res['reason']}"
+        ctx.log("warning: " + out["warning"])
+        return out
+    f = float(res["focal"])
+    K = K.copy()
+    K[0, 0] = K[1, 1] = f
+    out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
+               origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.1f} % at {cam['width']}x"
+                      f"{cam['height']} ({len(frames)} frames, {res['pairs']} pairs)")
+    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; "
+            f"{res['pairs']} pairs, {res['rotation_pairs']} rotation-only, median residual {res['median_px']:.2f} px)")
+    return out
+
+
+CALIBRATE = declare(Stage("calibrate", run_calibrate, deps=("ingest",), params="calibrate", kind="calibration",
+                          description="one focal length estimated from the video when no intrinsics are given"))
+
+
 # ============================================================================== flow
 @config_section("flow")
 class FlowParams(Section):
@@ -284,7 +350,7 @@ def _mask_items(view, p: MasksParams):
     for i in range(n):
         it: dict[str, Any] = {}
         if p.backend != "maskrcnn":
-            it = {"K": PartRef("ingest", ("K",), summary=True), **_chain_refs(i, n, p.span)}
+            it = {"K": PartRef("calibrate", ("K",)), **_chain_refs(i, n, p.span)}
         if "maskrcnn" in p.backend:
             it["image"] = ItemRef("ingest", i)
         out.append(it)
@@ -319,7 +385,7 @@ def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any
     return {"static": motion if semantic is None else np.minimum(motion, semantic)}
 
 
-MASKS = declare(MapStage("masks", run_masks, deps=("ingest", "flow"), params="masks", kind="mask",
+MASKS = declare(MapStage("masks", run_masks, deps=("ingest", "calibrate", "flow"), params="masks", kind="mask",
                  items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static"))
 
 
@@ -351,7 +417,7 @@ def _prior_items(view, p: PriorsParams):
     index = _far_index(view) if p.backend == "geometric" else {}
     out = []
     for i in range(n):
-        it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("ingest", ("K",), summary=True)}
+        it: dict[str, Any] = {"image": ItemRef("ingest", i), "K": PartRef("calibrate", ("K",))}
         js = _prior_refs(i, n, p)
         if js:
             it.update(_far_refs(index, i, js, p.preset, p.fb_thresh))
@@ -387,7 +453,7 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = declare(MapStage("priors", run_priors, deps=("ingest", "flow_far"), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=("ingest", "calibrate", "flow_far"), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
                   description="MiDaS-shaped relative inverse depth"))
 
@@ -451,7 +517,7 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
     kf = inputs["keyframes"]["indices"]
     frames = inputs["ingest"]
-    K = np.asarray(frames.summary["K"])
+    K = np.asarray(inputs["calibrate"]["K"])
     images = [frames[i]["image"] for i in kf]
     kw: dict[str, Any] = dict(nms=p.nms, min_separation=p.min_separation,
                               min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent)
@@ -472,7 +538,7 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     return {"graph": graph, "edge_flows": flows_out}
 
 
-ASSOCIATION = declare(Stage("association", run_association, deps=("ingest", "keyframes"), params="association",
+ASSOCIATION = declare(Stage("association", run_association, deps=("ingest", "calibrate", "keyframes"), params="association",
                     kind="graph", resources={"model": _open_resnet}))
 
 
@@ -531,7 +597,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
         raise RuntimeError(f"association has no flow for consecutive keyframe pairs {missing[:5]}")
     res = opt_keyframes.optimize_keyframes(
         _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
-        _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
+        _stack(inputs["masks"], kf, "static"), np.asarray(inputs["calibrate"]["K"]), pair_flows,
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seed=ctx.seed, checkpointer=ctx.checkpointer,
         window_map=ctx.map)  # schedule=independent: the windows side by side on the run's workers
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
@@ -542,7 +608,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
 
 
 OPTIMIZE_KEYFRAMES = declare(Stage("optimize_keyframes", run_optimize_keyframes,
-                           deps=("ingest", "priors", "masks", "keyframes", "association"), params=OPT,
+                           deps=("ingest", "calibrate", "priors", "masks", "keyframes", "association"), params=OPT,
                            kind="keyframe_solution", uses_seed=True))
 
 
@@ -558,7 +624,7 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     pos = {f: k for k, f in enumerate(kf)}
     T_w_k = np.asarray(okf["poses"])
     frames, priors_, masks_ = inputs["ingest"], inputs["priors"], inputs["masks"]
-    K = np.asarray(frames.summary["K"])
+    K = np.asarray(inputs["calibrate"]["K"])
     flows = {(e["i"], e["j"]): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
     graph_edges = [(int(e["i"]), int(e["j"])) for e in inputs["association"]["graph"].get("nonsequential_edges", [])]
 
@@ -578,7 +644,7 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
 
 
 OPTIMIZE_EDGES = declare(Stage("optimize_edges", run_optimize_edges,
-                       deps=("ingest", "priors", "masks", "association", "optimize_keyframes"),
+                       deps=("ingest", "calibrate", "priors", "masks", "association", "optimize_keyframes"),
                        params=OPT + ("optimize_edges",), kind="edges", uses_seed=True))
 
 
@@ -669,7 +735,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     # the machine's core count (OpenBLAS's default thread count changed the poses' bits)
     with native_stdout_silenced(), threadpool_limits(limits=1, user_api="blas"):
         res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], edges, list(okf["keyframes"]),
-                                   np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
+                                   np.asarray(inputs["calibrate"]["K"]), stride=p.stride,
                                    track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
                                    prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
                                    max_iterations=p.max_iterations, consistent_px=p.consistent_px,
@@ -684,7 +750,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
 
 
 BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,
-                                  deps=("ingest", "association", "optimize_keyframes", "pose_graph"),
+                                  deps=("ingest", "calibrate", "association", "optimize_keyframes", "pose_graph"),
                                   params="bundle_adjustment", kind="poses"))
 
 
@@ -731,7 +797,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     okf, ba = inputs["optimize_keyframes"], inputs["bundle_adjustment"]
     res = opt_segments.optimize_segments(
         frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
-        np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
+        np.asarray(inputs["calibrate"]["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
         np.asarray(ba["poses"]), _ScaledDepths(okf["depths"], np.asarray(ba["depth_scale"], np.float32)),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
         seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"], depth_sink=lambda i, d: ctx.put(d),
@@ -741,7 +807,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
 
 
 OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
-                          deps=("ingest", "flow", "priors", "masks", "optimize_keyframes", "bundle_adjustment"),
+                          deps=("ingest", "calibrate", "flow", "priors", "masks", "optimize_keyframes", "bundle_adjustment"),
                           params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True))
 
 
@@ -768,7 +834,7 @@ def _fusion_items(view, p: DepthFusionParams):
     out = []
     for i in range(n):
         refs = _fusion_refs(i, n, p)
-        out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
+        out.append({"index": Const(i), "K": PartRef("calibrate", ("K",)),
                     "poses": PartRef("optimize_segments", ("poses",)),
                     "depth": PartRef("optimize_segments", ("depths", i)),
                     **_far_refs(index, i, refs, p.preset, p.fb_thresh), "ref_indices": Const(refs)})
@@ -791,7 +857,7 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "flow_far", "optimize_segments"),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "calibrate", "flow_far", "optimize_segments"),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 
@@ -868,7 +934,7 @@ def _consensus_items(view, p: DepthConsensusParams):
     out = []
     for i in range(n):
         refs = [j for k in (p.offsets if p.enabled else ()) for j in (i - k, i + k) if 0 <= j < n]
-        out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
+        out.append({"index": Const(i), "K": PartRef("calibrate", ("K",)),
                     "poses": PartRef("optimize_segments", ("poses",)), "depth": ItemRef("depth_filter", i),
                     "refs": [ItemRef("depth_filter", j) for j in refs], "ref_indices": Const(refs),
                     "static": [ItemRef("masks", j) for j in [i, *refs]] if refs else []})
@@ -895,7 +961,7 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
 
 
 DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
-                                   deps=("ingest", "masks", "optimize_segments", "depth_filter"),
+                                   deps=("ingest", "calibrate", "masks", "optimize_segments", "depth_filter"),
                                    params="depth_consensus",
                                    kind="depth", items=_consensus_items,
                                    description="filtered depth averaged with what confident views of the "
@@ -972,7 +1038,9 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
     K = cam["K"]
-    note = "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin
+    note = ("not given: the focal length will be estimated from the video (calibrate stage; or pass "
+            "--intrinsics fx,fy,cx,cy)" if cam["guessed"] and config.calibrate.mode == "auto" else
+            "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin)
     print(f"camera: {src.layout} input {src.size[0]}x{src.size[1]} -> working {w}x{h}, fx={K[0, 0]:.1f} "
           f"fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} ({note})", file=sys.stderr)
     return src

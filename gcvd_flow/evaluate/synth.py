@@ -366,17 +366,21 @@ def render_clip(
     blur: float = 0.0,
     exposure: float = 0.0,
     texture: float = 1.0,
+    focal: float | None = None,
 ) -> SynthClip:
     """Render a synthetic clip of the textured room.
 
     n_frames: number of frames N (>= 2); trajectory: one of ``TRAJECTORIES``;
     size: (W, H) in pixels; moving_object: add one independently moving textured cube and
     return its per-pixel mask in ``dynamic``; seed: texture/colour seed; noise, blur, exposure,
-    texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera).
+    texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera); focal: fx = fy
+    in px (None: ``default_intrinsics``' 300/384 x long side), principal point at the centre.
     Returns a ``SynthClip`` (see its docstring for shapes and units).
     """
     w, h = int(size[0]), int(size[1])
     K = default_intrinsics((w, h))
+    if focal is not None:
+        K[0, 0] = K[1, 1] = float(focal)
     poses = make_trajectory(trajectory, n_frames)
     static = _static_scene()
     n_static = 1 + len(_FURNITURE)
