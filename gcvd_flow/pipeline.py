@@ -173,10 +173,13 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
         return out
     from stages.frontend import calibrate as calibrate_mod
 
-    res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
-                                       n_features=p.features, max_rel_sigma=p.max_rel_sigma)
-    out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]),
-               median_px=float(res["median_px"]), initial_focal=float(res["initial_focal"]))
+    from gcvd_flow.io.native_output import native_stdout_silenced
+
+    with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
+        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
+                                           n_features=p.features, max_rel_sigma=p.max_rel_sigma)
+    out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]), method=res["method"],
+               median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]))
     rel = float(res["rel_sigma"])
     out["rel_sigma"] = rel if np.isfinite(rel) else None
     if not res["determined"]:
@@ -189,8 +192,9 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
     out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
                origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.1f} % at {cam['width']}x"
                       f"{cam['height']} ({len(frames)} frames, {res['pairs']} pairs)")
-    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; "
-            f"{res['pairs']} pairs, {res['rotation_pairs']} rotation-only, median residual {res['median_px']:.2f} px)")
+    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; {res['method']}: "
+            f"{res['frames']} frames, {res['points']} points, {res['pairs']} pairs of which {res['rotation_pairs']} "
+            f"rotation-only, median residual {res['median_px']:.2f} px)")
     return out
 
 

@@ -307,35 +307,331 @@ def _reclassify(pairs: list[PairGeometry], fit: dict[str, Any], max_px: float) -
     return changed
 
 
+# ------------------------------------------------------------------------------ multi-view
+
+
+class _UnionFind:
+    def __init__(self):
+        self.parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def find(self, x):
+        self.parent.setdefault(x, x)
+        while self.parent[x] != x:
+            self.parent[x] = self.parent[self.parent[x]]
+            x = self.parent[x]
+        return x
+
+    def union(self, a, b):
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            self.parent[max(ra, rb)] = min(ra, rb)
+
+
+def _inlier_matches(fa, fb, ransac_px: float, min_inliers: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Keypoint indices (ia, ib) of a pair's ratio-test matches that a RANSAC F keeps."""
+    (pa, da), (pb, db) = fa, fb
+    if da is None or db is None or len(pa) < 8 or len(pb) < 8:
+        return None
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
+    best: dict[int, int] = {}
+    for m in knn:
+        if len(m) == 2 and m[0].distance < SIFT_RATIO * m[1].distance and m[0].trainIdx not in best:
+            best[m[0].trainIdx] = m[0].queryIdx
+    if len(best) < min_inliers:
+        return None
+    ib = np.asarray(list(best.keys()), np.int64)
+    ia = np.asarray(list(best.values()), np.int64)
+    cv2.setRNGSeed(RANSAC_SEED)
+    F, inl = cv2.findFundamentalMat(pa[ia], pb[ib], cv2.FM_RANSAC, ransac_px, 0.999, 5000)
+    if F is None or inl is None:
+        return None
+    keep = inl.ravel().astype(bool)
+    return (ia[keep], ib[keep]) if keep.sum() >= min_inliers else None
+
+
+def build_tracks(feats: list, ransac_px: float = 1.0, min_inliers: int = 20,
+                 offsets: Sequence[int] = (1, 2, 3)) -> list[dict[int, np.ndarray]]:
+    """Features of the sampled frames (positions (K, 2) px, descriptors) -> tracks: {frame position:
+    pixel (2,)} seen in >= 3 frames, from RANSAC-verified matches chained over frame pairs; a track
+    claiming two keypoints in one frame is dropped."""
+    uf = _UnionFind()
+    for a in range(len(feats)):
+        for off in offsets:
+            b = a + off
+            if b >= len(feats):
+                break
+            m = _inlier_matches(feats[a], feats[b], ransac_px, min_inliers)
+            if m is None:
+                continue
+            for i, j in zip(*m):
+                uf.union((a, int(i)), (b, int(j)))
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for node in sorted(uf.parent):
+        groups.setdefault(uf.find(node), []).append(node)
+    tracks = []
+    for nodes in groups.values():
+        frames = [f for f, _ in nodes]
+        if len(nodes) < 3 or len(set(frames)) != len(frames):
+            continue
+        tracks.append({f: feats[f][0][k] for f, k in nodes})
+    return tracks
+
+
+def _triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    X = cv2.triangulatePoints(P1, P2, x1.T.astype(np.float64), x2.T.astype(np.float64))
+    return (X[:3] / X[3:]).T
+
+
+def _project(K: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) -> (pixels (N, 2), depth (N,)) in the camera T_c_w (world-to-camera)."""
+    Xc = X @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+    p = Xc @ K.T
+    return p[:, :2] / p[:, 2:3], Xc[:, 2]
+
+
+def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: int, K: np.ndarray,
+                               min_parallax_px: float, max_px: float = 3.0,
+                               min_points: int = 12) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """A small incremental structure from motion at intrinsics K: two-view start (the first frame and
+    the first later one whose median track motion exceeds ``min_parallax_px``), then every frame by
+    PnP (RANSAC) on the points already triangulated, new points triangulated after each. Returns
+    (T_c_w world-to-camera (4, 4) per registered frame position, point (3,) per track index)."""
+    T: dict[int, np.ndarray] = {}
+    pts: dict[int, np.ndarray] = {}
+    start = None
+    for b in range(1, n_frames):
+        shared = [t for t in tracks if 0 in t and b in t]
+        if len(shared) < 2 * min_points:
+            break
+        x1 = np.array([t[0] for t in shared]); x2 = np.array([t[b] for t in shared])
+        start = (b, x1, x2)
+        if np.median(np.linalg.norm(x2 - x1, axis=1)) >= min_parallax_px:
+            break
+    if start is None:
+        return T, pts
+    b, x1, x2 = start
+    cv2.setRNGSeed(RANSAC_SEED)
+    E, inl = cv2.findEssentialMat(x1, x2, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or E.shape != (3, 3):
+        return T, pts
+    _, R, t, _ = cv2.recoverPose(E, x1, x2, K, mask=inl)
+    T[0] = np.eye(4)
+    T[b] = np.eye(4)
+    T[b][:3, :3], T[b][:3, 3] = R, t.ravel()
+    _add_points(tracks, T, pts, K, max_px)
+    while True:
+        best, best_n = None, 0
+        for f in range(n_frames):
+            if f in T:
+                continue
+            n = sum(1 for i, t in enumerate(tracks) if f in t and i in pts)
+            if n > best_n:
+                best, best_n = f, n
+        if best is None or best_n < min_points:
+            break
+        ids = [i for i, t in enumerate(tracks) if best in t and i in pts]
+        obj = np.array([pts[i] for i in ids]); img = np.array([tracks[i][best] for i in ids])
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=200, reprojectionError=max_px,
+                                                 confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or inl is None or len(inl) < min_points:
+            T[best] = None  # type: ignore[assignment]  # tried: never again
+            continue
+        Tb = np.eye(4)
+        Tb[:3, :3], Tb[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        T[best] = Tb
+        _add_points(tracks, T, pts, K, max_px)
+    return {f: v for f, v in T.items() if v is not None}, pts
+
+
+def _add_points(tracks, T, pts, K, max_px: float) -> None:
+    """Triangulate tracks not yet triangulated that two registered frames see (the pair furthest
+    apart in the track), if the point lies in front of both and reprojects within ``max_px``."""
+    for i, t in enumerate(tracks):
+        if i in pts:
+            continue
+        fs = [f for f in t if T.get(f) is not None]
+        if len(fs) < 2:
+            continue
+        a, b = min(fs), max(fs)
+        X = _triangulate(K @ T[a][:3], K @ T[b][:3], t[a][None], t[b][None])[0]
+        ok = True
+        for f in (a, b):
+            p, z = _project(K, T[f], X[None])
+            if z[0] <= 0 or np.linalg.norm(p[0] - t[f]) > max_px:
+                ok = False
+        if ok:
+            pts[i] = X
+
+
+def _visible(K: np.ndarray, T_c_w: np.ndarray, X: np.ndarray, uv: np.ndarray, max_px: float) -> bool:
+    """Point X (3,) in front of camera T_c_w and reprojecting within ``max_px`` of uv."""
+    p, z = _project(K, T_c_w, np.asarray(X)[None])
+    return bool(z[0] > 1e-9 and np.linalg.norm(p[0] - uv) <= max_px)
+
+
+def bundle_adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
+                        robust_px: float = 1.0, iterations: int = 50, max_px: tuple[float, ...] = (10.0, 2.0)
+                        ) -> dict[str, Any]:
+    """Rounds of :func:`_adjust`: each keeps the observations that the previous solution (first: the
+    initial reconstruction) explains within ``max_px[r]`` px, in front of the camera."""
+    out: dict[str, Any] = {}
+    for r, px in enumerate(max_px):
+        out = _adjust(tracks, T, pts, K, robust_px=robust_px, iterations=iterations, max_px=px)
+        if not out["T"]:
+            break
+        T = out["T"]  # world-to-camera
+        pts = out["pts"]
+        K = _K(out["focal"], np.asarray(K)[:2, 2])
+    return out
+
+
+def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
+            robust_px: float, iterations: int, max_px: float) -> dict[str, Any]:
+    """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
+    poses, points and f. Gauge: the first pose and the first point are held by tight priors (the
+    point fixes the scale). Returns {focal, log_sigma (marginal std of log f, scaled by the robust
+    residual spread), median_px, observations, points, frames}."""
+    import gtsam
+
+    C = lambda k: gtsam.symbol("c", k)  # noqa: E731
+    P = lambda k: gtsam.symbol("p", k)  # noqa: E731
+    KEY = gtsam.symbol("k", 0)
+    graph = gtsam.NonlinearFactorGraph()
+    vals = gtsam.Values()
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_px),
+                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
+    obs: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for i in sorted(pts):
+        o = [(f, uv) for f, uv in tracks[i].items() if f in T and _visible(K, T[f], pts[i], uv, max_px)]
+        if len(o) >= 2:
+            obs[i] = o
+    while True:  # frames seeing too few points are left out (their pose would be undetermined)
+        count: dict[int, int] = {}
+        for o in obs.values():
+            for f, _ in o:
+                count[f] = count.get(f, 0) + 1
+        weak = {f for f, n in count.items() if n < 8}
+        if not weak:
+            break
+        obs = {i: [(f, uv) for f, uv in o if f not in weak] for i, o in obs.items()}
+        obs = {i: o for i, o in obs.items() if len(o) >= 2}
+    frames = sorted(count)
+    if len(frames) < 3 or not obs:
+        return {"focal": float(K[0, 0]), "log_sigma": float("inf"), "median_px": 0.0, "observations": 0,
+                "points": 0, "frames": len(frames), "T": {}, "pts": {}, "errors": np.zeros(0)}
+    for f in frames:
+        vals.insert(C(f), gtsam.Pose3(np.linalg.inv(T[f])))
+    cal = gtsam.Cal3f(float(K[0, 0]), float(K[0, 2]), float(K[1, 2]))
+    vals.insert(KEY, cal)
+    n_obs = 0
+    ids = sorted(obs)
+    for i in ids:
+        vals.insert(P(i), gtsam.Point3(*pts[i]))
+        for f, uv in obs[i]:
+            graph.add(gtsam.GeneralSFMFactor2Cal3f(gtsam.Point2(*uv), noise, C(f), P(i), KEY))
+            n_obs += 1
+    graph.add(gtsam.PriorFactorPose3(C(frames[0]), gtsam.Pose3(np.linalg.inv(T[frames[0]])),
+                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    graph.add(gtsam.PriorFactorPoint3(P(ids[0]), gtsam.Point3(*pts[ids[0]]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    res = gtsam.LevenbergMarquardtOptimizer(graph, vals, params).optimize()
+    f = float(res.atCal3f(KEY).fx())
+    calk = res.atCal3f(KEY)
+    err = []
+    for i in ids:
+        X = res.atPoint3(P(i))
+        for fr, uv in obs[i]:
+            if True:
+                cam = gtsam.PinholeCameraCal3f(res.atPose3(C(fr)), calk)
+                try:
+                    err.append(np.linalg.norm(cam.project(X) - uv))
+                except RuntimeError:
+                    err.append(1e3)
+    err = np.asarray(err)
+    s = max(1.4826 * float(np.median(err)) / 1.1774, 1e-3)  # |r| of 2-D Gaussian: median = 1.1774 sigma
+    # weak priors on the points (10 x the scene's size) for the marginals only: a point seen from
+    # nearly one place has an unbounded depth, which makes the exact system indeterminate
+    size = float(np.median([np.linalg.norm(res.atPoint3(P(i)) - res.atPose3(C(frames[0])).translation()) for i in ids]))
+    for i in ids:
+        graph.add(gtsam.PriorFactorPoint3(P(i), res.atPoint3(P(i)), gtsam.noiseModel.Isotropic.Sigma(3, 10.0 * size)))
+    try:
+        var = float(gtsam.Marginals(graph, res).marginalCovariance(KEY)[0, 0])
+        log_sigma = np.sqrt(max(var, 0.0)) * s / f
+    except RuntimeError as exc:
+        log.warning("marginals: %s", exc)
+        log_sigma = float("inf")
+    poses = {fr: np.linalg.inv(res.atPose3(C(fr)).matrix()) for fr in frames}
+    points = {i: np.asarray(res.atPoint3(P(i))) for i in ids}
+    return {"focal": f, "log_sigma": float(log_sigma), "median_px": float(np.median(err)), "observations": n_obs,
+            "points": len(ids), "frames": len(frames), "T": poses, "pts": points, "errors": err}
+
+
+def _sample(n: int, max_frames: int) -> list[int]:
+    return np.unique(np.round(np.linspace(0, n - 1, min(n, max_frames))).astype(int)).tolist()
+
+
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
                    n_features: int = 2000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
-                   robust_px: float = 0.5, ransac_px: float = 1.0) -> dict[str, Any]:
+                   robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
-    rel_sigma (std of f / f), initial_focal, pairs, rotation_pairs, median_px, reason (str:
-    why not determined, '' when determined)}. The principal point is K_guess's."""
+    rel_sigma (std of f / f), method ("bundle adjustment" | "rotation"), pairs, rotation_pairs,
+    frames (registered), points, median_px, reason (why not determined, '' when determined)}.
+    The principal point is K_guess's.
+
+    Mostly-rotating clips (a share >= ``rotation_share`` of the frame pairs explained by a
+    homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
+    structure from motion at the guess followed by a bundle adjustment with the focal length free
+    (repeated from its result when that moved by more than 5 %)."""
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
-    pairs = collect_pairs(images, max_frames=max_frames, n_features=n_features, ransac_px=ransac_px)
-    out: dict[str, Any] = {"focal": f_guess, "determined": False, "rel_sigma": float("inf"),
-                           "initial_focal": f_guess, "pairs": len(pairs),
-                           "rotation_pairs": sum(g.kind == "rotation" for g in pairs), "median_px": 0.0}
+    sel = _sample(len(images), max_frames)
+    feats = [_features(np.asarray(images[i]), n_features) for i in sel]
+    pairs = []
+    for p in range(len(sel)):
+        for off in (1, 2):
+            if p + off < len(sel):
+                g = pair_geometry(p, p + off, *_match(feats[p], feats[p + off]), ransac_px=ransac_px)
+                if g is not None:
+                    pairs.append(g)
+    n_rot = sum(g.kind == "rotation" for g in pairs)
+    out: dict[str, Any] = {"focal": f_guess, "determined": False, "rel_sigma": float("inf"), "pairs": len(pairs),
+                           "rotation_pairs": n_rot, "frames": 0, "points": 0, "median_px": 0.0, "method": ""}
     if len(pairs) < min_pairs:
         out["reason"] = (f"only {len(pairs)} frame pair(s) with enough matched motion (need {min_pairs}): "
                          "the camera hardly moves")
         return out
-    f0, _, _ = initial_focal(pairs, c, f_guess)
-    fit = refine_focal(pairs, c, f0, robust_px=robust_px)
-    if _reclassify(pairs, fit, max_px=2.0 * ransac_px):
-        fit = refine_focal(pairs, c, fit["focal"], robust_px=robust_px)
-    rel = float(np.expm1(fit["log_sigma"])) if np.isfinite(fit["log_sigma"]) else float("inf")
-    out.update(initial_focal=f0, rel_sigma=rel, pairs=fit["pairs"], rotation_pairs=fit["rotation_pairs"],
-               median_px=fit["median_px"])
-    in_range = 0.3 * f_guess < fit["focal"] < 3.0 * f_guess
-    if rel <= max_rel_sigma and in_range:
-        out.update(focal=fit["focal"], determined=True, reason="")
+    if n_rot >= rotation_share * len(pairs):
+        rot = [g for g in pairs if g.kind == "rotation"]
+        f0, _, _ = initial_focal(rot, c, f_guess)
+        fit = refine_focal(rot, c, f0, robust_px=0.5)
+        rel = float(np.expm1(fit["log_sigma"])) if np.isfinite(fit["log_sigma"]) else float("inf")
+        out.update(method="rotation", median_px=fit["median_px"], frames=len(sel))
+        f = fit["focal"]
     else:
-        out["estimate"] = fit["focal"]
-        out["reason"] = (f"the motion does not determine the focal length (estimate {fit['focal']:.1f} px "
-                         f"+- {100 * rel:.0f} %: forward-only or near-static motion?)")
+        tracks = build_tracks(feats, ransac_px=ransac_px)
+        f, rel = f_guess, float("inf")
+        for _ in range(2):
+            K = _K(f, c)
+            T, pts = incremental_reconstruction(tracks, len(sel), K, min_parallax_px=0.04 * max(images[0].shape[:2]))
+            if len(T) < 3 or len(pts) < 20:
+                break
+            ba = bundle_adjust_focal(tracks, T, pts, K, robust_px=robust_px)
+            if not ba["T"]:
+                break
+            moved = abs(np.log(ba["focal"] / f))
+            f = ba["focal"]
+            rel = float(np.expm1(ba["log_sigma"])) if np.isfinite(ba["log_sigma"]) else float("inf")
+            out.update(method="bundle adjustment", median_px=ba["median_px"], frames=ba["frames"], points=ba["points"])
+            if moved < 0.05:
+                break
+    out["rel_sigma"] = rel
+    in_range = 0.3 * f_guess < f < 3.0 * f_guess
+    if rel <= max_rel_sigma and in_range:
+        out.update(focal=float(f), determined=True, reason="")
+    else:
+        out["estimate"] = float(f)
+        out["reason"] = (f"the motion does not determine the focal length (estimate {f:.1f} px +- "
+                         f"{100 * rel:.0f} %: forward-only or near-static motion?)")
     return out
