@@ -390,12 +390,14 @@ def _project(K: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> tuple[np.ndarra
 
 
 def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: int, K: np.ndarray,
-                               min_parallax_px: float, max_px: float = 3.0,
-                               min_points: int = 12) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+                               min_parallax_px: float, max_px: float = 3.0, min_points: int = 12,
+                               refine: Any = None) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray]:
     """A small incremental structure from motion at intrinsics K: two-view start (the first frame and
     the first later one whose median track motion exceeds ``min_parallax_px``), then every frame by
-    PnP (RANSAC) on the points already triangulated, new points triangulated after each. Returns
-    (T_c_w world-to-camera (4, 4) per registered frame position, point (3,) per track index)."""
+    PnP (RANSAC) on the points already triangulated, new points triangulated after each; every time
+    the registered frames grew by half, ``refine(T, pts, K) -> (T, pts, K)`` (a bundle adjustment
+    with the focal length free: later frames are registered with a better one). Returns (T_c_w
+    world-to-camera (4, 4) per registered frame position, point (3,) per track index, K)."""
     T: dict[int, np.ndarray] = {}
     pts: dict[int, np.ndarray] = {}
     start = None
@@ -408,17 +410,18 @@ def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: in
         if np.median(np.linalg.norm(x2 - x1, axis=1)) >= min_parallax_px:
             break
     if start is None:
-        return T, pts
+        return T, pts, K
     b, x1, x2 = start
     cv2.setRNGSeed(RANSAC_SEED)
     E, inl = cv2.findEssentialMat(x1, x2, K, cv2.RANSAC, 0.999, 1.0)
     if E is None or E.shape != (3, 3):
-        return T, pts
+        return T, pts, K
     _, R, t, _ = cv2.recoverPose(E, x1, x2, K, mask=inl)
     T[0] = np.eye(4)
     T[b] = np.eye(4)
     T[b][:3, :3], T[b][:3, 3] = R, t.ravel()
     _add_points(tracks, T, pts, K, max_px)
+    next_refine = 6
     while True:
         best, best_n = None, 0
         for f in range(n_frames):
@@ -440,7 +443,13 @@ def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: in
         Tb[:3, :3], Tb[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
         T[best] = Tb
         _add_points(tracks, T, pts, K, max_px)
-    return {f: v for f, v in T.items() if v is not None}, pts
+        n_reg = sum(v is not None for v in T.values())
+        if refine is not None and n_reg >= next_refine:
+            next_refine = int(np.ceil(n_reg * 1.5))
+            good = {f: v for f, v in T.items() if v is not None}
+            good, pts, K = refine(good, pts, K)
+            T = {f: good.get(f) for f in T}
+    return {f: v for f, v in T.items() if v is not None}, pts, K
 
 
 def _add_points(tracks, T, pts, K, max_px: float) -> None:
@@ -573,7 +582,8 @@ def _sample(n: int, max_frames: int) -> list[int]:
 
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
                    n_features: int = 2000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
-                   robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7) -> dict[str, Any]:
+                   robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
+                   passes: int = 4) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f), method ("bundle adjustment" | "rotation"), pairs, rotation_pairs,
@@ -583,7 +593,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
     Mostly-rotating clips (a share >= ``rotation_share`` of the frame pairs explained by a
     homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
     structure from motion at the guess followed by a bundle adjustment with the focal length free
-    (repeated from its result when that moved by more than 5 %)."""
+    (repeated from its result, at most ``passes`` times, while that moves by more than 1 %)."""
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
     sel = _sample(len(images), max_frames)
@@ -612,20 +622,30 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
     else:
         tracks = build_tracks(feats, ransac_px=ransac_px)
         f, rel = f_guess, float("inf")
-        for _ in range(2):
+
+        def refine(T, pts, K):
+            ba = bundle_adjust_focal(tracks, T, pts, K, robust_px=robust_px, max_px=(10.0,))
+            if not ba["T"] or not 0.3 * f_guess < ba["focal"] < 3.0 * f_guess:
+                return T, pts, K
+            return ba["T"], {**pts, **ba["pts"]}, _K(ba["focal"], c)
+
+        for _ in range(passes):
             K = _K(f, c)
-            T, pts = incremental_reconstruction(tracks, len(sel), K, min_parallax_px=0.04 * max(images[0].shape[:2]))
+            T, pts, K = incremental_reconstruction(tracks, len(sel), K, refine=refine,
+                                                   min_parallax_px=0.04 * max(np.asarray(images[sel[0]]).shape[:2]))
             if len(T) < 3 or len(pts) < 20:
                 break
             ba = bundle_adjust_focal(tracks, T, pts, K, robust_px=robust_px)
-            if not ba["T"]:
+            if not ba["T"] or ba["frames"] < out["frames"]:  # a pass that registered fewer frames: stop
                 break
             moved = abs(np.log(ba["focal"] / f))
             f = ba["focal"]
             rel = float(np.expm1(ba["log_sigma"])) if np.isfinite(ba["log_sigma"]) else float("inf")
             out.update(method="bundle adjustment", median_px=ba["median_px"], frames=ba["frames"], points=ba["points"])
-            if moved < 0.05:
+            if moved < 0.01:
                 break
+        if out["frames"] < max(3, 0.25 * len(sel)):
+            rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
     out["rel_sigma"] = rel
     in_range = 0.3 * f_guess < f < 3.0 * f_guess
     if rel <= max_rel_sigma and in_range:
