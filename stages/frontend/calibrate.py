@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 RANSAC_SEED = 1234
 SIFT_RATIO = 0.8
 PAIR_OFFSETS = (1, 2, 4, 8)  # partners of a sampled frame, in sampled-frame steps
+TRACK_KEY = 1_000_000  # point key = model * TRACK_KEY + track index (several reconstructions)
 
 
 @dataclass
@@ -391,9 +392,11 @@ def _project(K: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> tuple[np.ndarra
 
 def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: int, K: np.ndarray,
                                min_parallax_px: float, max_px: float = 3.0, min_points: int = 12,
-                               refine: Any = None) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray]:
-    """A small incremental structure from motion at intrinsics K: two-view start (the first frame and
-    the first later one whose median track motion exceeds ``min_parallax_px``), then every frame by
+                               refine: Any = None, exclude: frozenset = frozenset()
+                               ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray]:
+    """A small incremental structure from motion at intrinsics K over the frames not in ``exclude``:
+    two-view start (the first such frame and the first later one whose median track motion exceeds
+    ``min_parallax_px``), then every frame by
     PnP (RANSAC) on the points already triangulated, new points triangulated after each; every time
     the registered frames grew by half, ``refine(T, pts, K) -> (T, pts, K)`` (a bundle adjustment
     with the focal length free: later frames are registered with a better one). Returns (T_c_w
@@ -401,11 +404,16 @@ def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: in
     T: dict[int, np.ndarray] = {}
     pts: dict[int, np.ndarray] = {}
     start = None
-    for b in range(1, n_frames):
-        shared = [t for t in tracks if 0 in t and b in t]
+    free = [f for f in range(n_frames) if f not in exclude]
+    if len(free) < 2:
+        return T, pts, K
+    a = free[0]
+    for b in free[1:]:
+        shared = [t for t in tracks if a in t and b in t]
         if len(shared) < 2 * min_points:
             break
-        x1 = np.array([t[0] for t in shared]); x2 = np.array([t[b] for t in shared])
+        x1 = np.array([t[a] for t in shared])
+        x2 = np.array([t[b] for t in shared])
         start = (b, x1, x2)
         if np.median(np.linalg.norm(x2 - x1, axis=1)) >= min_parallax_px:
             break
@@ -417,14 +425,14 @@ def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: in
     if E is None or E.shape != (3, 3):
         return T, pts, K
     _, R, t, _ = cv2.recoverPose(E, x1, x2, K, mask=inl)
-    T[0] = np.eye(4)
+    T[a] = np.eye(4)
     T[b] = np.eye(4)
     T[b][:3, :3], T[b][:3, 3] = R, t.ravel()
     _add_points(tracks, T, pts, K, max_px)
     next_refine = 6
     while True:
         best, best_n = None, 0
-        for f in range(n_frames):
+        for f in free:
             if f in T:
                 continue
             n = sum(1 for i, t in enumerate(tracks) if f in t and i in pts)
@@ -497,9 +505,11 @@ def bundle_adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndar
 def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
             robust_px: float, iterations: int, max_px: float) -> dict[str, Any]:
     """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
-    poses, points and f. Gauge: the first pose and the first point are held by tight priors (the
-    point fixes the scale). Returns {focal, log_sigma (marginal std of log f, scaled by the robust
-    residual spread), median_px, observations, points, frames}."""
+    poses, points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected
+    reconstructions (models) of one camera share the focal length. Gauge of each model: its first
+    pose and its first point are held by tight priors (the point fixes the scale). Returns {focal,
+    log_sigma (a function: marginal std of log f, scaled by the robust residual spread), median_px,
+    observations, points, frames, T, pts}."""
     import gtsam
 
     C = lambda k: gtsam.symbol("c", k)  # noqa: E731
@@ -511,7 +521,7 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     obs: dict[int, list[tuple[int, np.ndarray]]] = {}
     for i in sorted(pts):
-        o = [(f, uv) for f, uv in tracks[i].items() if f in T and _visible(K, T[f], pts[i], uv, max_px)]
+        o = [(f, uv) for f, uv in tracks[i % TRACK_KEY].items() if f in T and _visible(K, T[f], pts[i], uv, max_px)]
         if len(o) >= 2:
             obs[i] = o
     while True:  # frames seeing too few points are left out (their pose would be undetermined)
@@ -526,7 +536,7 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
         obs = {i: o for i, o in obs.items() if len(o) >= 2}
     frames = sorted(count)
     if len(frames) < 3 or not obs:
-        return {"focal": float(K[0, 0]), "log_sigma": float("inf"), "median_px": 0.0, "observations": 0,
+        return {"focal": float(K[0, 0]), "log_sigma": lambda: float("inf"), "median_px": 0.0, "observations": 0,
                 "points": 0, "frames": len(frames), "T": {}, "pts": {}, "errors": np.zeros(0)}
     for f in frames:
         vals.insert(C(f), gtsam.Pose3(np.linalg.inv(T[f])))
@@ -539,9 +549,14 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
         for f, uv in obs[i]:
             graph.add(gtsam.GeneralSFMFactor2Cal3f(gtsam.Point2(*uv), noise, C(f), P(i), KEY))
             n_obs += 1
-    graph.add(gtsam.PriorFactorPose3(C(frames[0]), gtsam.Pose3(np.linalg.inv(T[frames[0]])),
-                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    graph.add(gtsam.PriorFactorPoint3(P(ids[0]), gtsam.Point3(*pts[ids[0]]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    model_frames: dict[int, set[int]] = {}
+    for i in ids:
+        model_frames.setdefault(i // TRACK_KEY, set()).update(f for f, _ in obs[i])
+    for m, fs in model_frames.items():
+        f0 = min(fs)
+        graph.add(gtsam.PriorFactorPose3(C(f0), gtsam.Pose3(np.linalg.inv(T[f0])), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        i0 = next(i for i in ids if i // TRACK_KEY == m)
+        graph.add(gtsam.PriorFactorPoint3(P(i0), gtsam.Point3(*pts[i0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
     res = gtsam.LevenbergMarquardtOptimizer(graph, vals, params).optimize()
@@ -564,16 +579,60 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     size = float(np.median([np.linalg.norm(res.atPoint3(P(i)) - res.atPose3(C(frames[0])).translation()) for i in ids]))
     for i in ids:
         graph.add(gtsam.PriorFactorPoint3(P(i), res.atPoint3(P(i)), gtsam.noiseModel.Isotropic.Sigma(3, 10.0 * size)))
-    try:
-        var = float(gtsam.Marginals(graph, res).marginalCovariance(KEY)[0, 0])
-        log_sigma = np.sqrt(max(var, 0.0)) * s / f
-    except RuntimeError as exc:
-        log.warning("marginals: %s", exc)
-        log_sigma = float("inf")
+    scale = s / f
+
+    def log_sigma() -> float:  # computed on demand: the dense information matrix is the costly part
+        var = _marginal_variance(graph, res, [C(fr) for fr in frames] + [P(i) for i in ids], KEY)
+        return float(np.sqrt(var) * scale) if np.isfinite(var) else float("inf")
+
     poses = {fr: np.linalg.inv(res.atPose3(C(fr)).matrix()) for fr in frames}
     points = {i: np.asarray(res.atPoint3(P(i))) for i in ids}
-    return {"focal": f, "log_sigma": float(log_sigma), "median_px": float(np.median(err)), "observations": n_obs,
+    return {"focal": f, "log_sigma": log_sigma, "median_px": float(np.median(err)), "observations": n_obs,
             "points": len(ids), "frames": len(frames), "T": poses, "pts": points, "errors": err}
+
+
+def _reconstructions(tracks, n: int, K: np.ndarray, parallax: float, refine: Any
+                     ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray]:
+    """Incremental reconstructions until every frame is in one or cannot start one: where the
+    track chain breaks (a fast turn, a blurred stretch) a new reconstruction starts after it. Returns
+    (T_c_w per frame, points keyed model * TRACK_KEY + track, K as refined so far)."""
+    T_all: dict[int, np.ndarray] = {}
+    pts_all: dict[int, np.ndarray] = {}
+    used: set[int] = set()
+    m = 0
+    while n - len(used) >= 3:
+        T, pts, K = incremental_reconstruction(tracks, n, K, parallax, refine=refine, exclude=frozenset(used))
+        if len(T) < 3:
+            used.add(min(f for f in range(n) if f not in used))  # no start here: try after this frame
+            continue
+        used |= set(T)
+        T_all.update(T)
+        pts_all.update({m * TRACK_KEY + i: X for i, X in pts.items()})
+        m += 1
+    return T_all, pts_all, K
+
+
+def _marginal_variance(graph, values, keys: list[int], key: int) -> float:
+    """Marginal variance of the 1-D variable ``key`` from the dense Gauss-Newton information matrix
+    (``key`` ordered last), solved with a tiny ridge (1e-10 x the largest diagonal) so that a
+    nearly indeterminate point does not make the focal length's variance undefined. inf when the
+    system cannot be solved."""
+    import gtsam
+
+    ordering = gtsam.Ordering()
+    for k in keys:
+        ordering.push_back(k)
+    ordering.push_back(key)
+    H, _ = graph.linearize(values).hessian(ordering)
+    H = np.asarray(H, np.float64)
+    H = H + np.eye(len(H)) * 1e-10 * float(np.max(np.diag(H)))
+    e = np.zeros(len(H))
+    e[-1] = 1.0
+    try:
+        x = np.linalg.solve(H, e)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(x[-1]) if np.isfinite(x[-1]) and x[-1] > 0 else float("inf")
 
 
 def _sample(n: int, max_frames: int) -> list[int]:
@@ -629,10 +688,10 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
                 return T, pts, K
             return ba["T"], {**pts, **ba["pts"]}, _K(ba["focal"], c)
 
+        parallax = 0.04 * max(np.asarray(images[sel[0]]).shape[:2])
+        sigma_of = None
         for _ in range(passes):
-            K = _K(f, c)
-            T, pts, K = incremental_reconstruction(tracks, len(sel), K, refine=refine,
-                                                   min_parallax_px=0.04 * max(np.asarray(images[sel[0]]).shape[:2]))
+            T, pts, K = _reconstructions(tracks, len(sel), _K(f, c), parallax, refine)
             if len(T) < 3 or len(pts) < 20:
                 break
             ba = bundle_adjust_focal(tracks, T, pts, K, robust_px=robust_px)
@@ -640,10 +699,13 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
                 break
             moved = abs(np.log(ba["focal"] / f))
             f = ba["focal"]
-            rel = float(np.expm1(ba["log_sigma"])) if np.isfinite(ba["log_sigma"]) else float("inf")
+            sigma_of = ba["log_sigma"]
             out.update(method="bundle adjustment", median_px=ba["median_px"], frames=ba["frames"], points=ba["points"])
             if moved < 0.01:
                 break
+        if sigma_of is not None:
+            ls = sigma_of()
+            rel = float(np.expm1(ls)) if np.isfinite(ls) else float("inf")
         if out["frames"] < max(3, 0.25 * len(sel)):
             rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
     out["rel_sigma"] = rel
