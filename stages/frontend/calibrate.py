@@ -639,10 +639,53 @@ def _sample(n: int, max_frames: int) -> list[int]:
     return np.unique(np.round(np.linspace(0, n - 1, min(n, max_frames))).astype(int)).tolist()
 
 
+def _select_by_motion(images: Sequence[np.ndarray], max_frames: int, n_features: int, target_frac: float,
+                      min_frames: int = 20) -> tuple[list[int], list]:
+    """Frames spaced by image motion rather than by index: from each chosen frame, the next is the
+    last one whose matches moved less than ``target_frac`` x the long side (median) while still
+    sharing enough matches. A slow clip is thinned, a fast one (wide baseline) keeps every frame.
+    Candidates: at most 4 x ``max_frames`` frames, evenly; at most ``max_frames`` are kept
+    (evenly among the chosen); fewer than ``min_frames``: the spacing is halved (up to 3 times).
+    Returns (indices into ``images``, their features)."""
+    cand = _sample(len(images), 4 * max_frames)
+    feats: dict[int, Any] = {}
+
+    def feat(i: int):
+        if i not in feats:
+            feats[i] = _features(np.asarray(images[cand[i]]), n_features)
+        return feats[i]
+
+    target = target_frac * max(np.asarray(images[cand[0]]).shape[:2])
+    for _ in range(4):  # too few frames for a reconstruction: halve the spacing
+        chosen = _chosen(feat, len(cand), target)
+        if len(chosen) >= min(min_frames, len(cand)):
+            break
+        target /= 2
+    if len(chosen) > max_frames:
+        chosen = [chosen[k] for k in _sample(len(chosen), max_frames)]
+    return [cand[k] for k in chosen], [feat(k) for k in chosen]
+
+
+def _chosen(feat: Any, n: int, target: float) -> list[int]:
+    """Greedy spacing of :func:`_select_by_motion` over candidate positions 0..n-1."""
+    chosen, a = [0], 0
+    while a < n - 1:
+        nxt = a + 1
+        for b in range(a + 1, n):
+            x1, x2 = _match(feat(a), feat(b))
+            if len(x1) < 60 or np.median(np.linalg.norm(x2 - x1, axis=1)) >= target:
+                nxt = max(a + 1, b if len(x1) >= 60 else b - 1)
+                break
+            nxt = b
+        chosen.append(nxt)
+        a = nxt
+    return chosen
+
+
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
                    n_features: int = 2000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
                    robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
-                   passes: int = 4) -> dict[str, Any]:
+                   passes: int = 4, motion_frac: float = 0.05) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f), method ("bundle adjustment" | "rotation"), pairs, rotation_pairs,
@@ -655,8 +698,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
     (repeated from its result, at most ``passes`` times, while that moves by more than 1 %)."""
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
-    sel = _sample(len(images), max_frames)
-    feats = [_features(np.asarray(images[i]), n_features) for i in sel]
+    sel, feats = _select_by_motion(images, max_frames, n_features, motion_frac)
     pairs = []
     for p in range(len(sel)):
         for off in (1, 2):
