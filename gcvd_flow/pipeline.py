@@ -76,7 +76,9 @@ class IngestParams(Section):
     end: int | None = Field(None, description="one past the last source frame (None: all)")
     stride: int = Field(1, ge=1, description="take every stride-th frame")
     long_side: int = Field(256, ge=16, description="working resolution, px of the long side (paper: 384)")
-    intrinsics: str | None = Field(None, description="fx,fy,cx,cy at the source resolution")
+    intrinsics: str | None = Field(None, description="fx,fy,cx,cy at the source resolution, optionally "
+                                   "followed by the lens distortion k1,k2,p1,p2 (OpenCV order): frames are "
+                                   "undistorted at ingest")
 
     @field_validator("intrinsics")
     @classmethod
@@ -94,14 +96,25 @@ def _camera_intrinsics(src: Source, p: IngestParams) -> tuple[tuple[float, float
     return None, "guess"
 
 
+def _camera_distortion(src: Source, p: IngestParams) -> tuple[float, float, float, float] | None:
+    """k1, k2, p1, p2 of --intrinsics (8 numbers), else of the layout's intrinsics.txt, else None."""
+    if p.intrinsics:
+        return ingest_mod.parse_distortion(p.intrinsics)
+    return src.distortion
+
+
 def _ingest_items(view, p: IngestParams):
     src: Source = view.source
     sel = list(range(len(src.items)))[p.start:p.end:p.stride]
     if len(sel) < 2:
         raise UsageError(f"ingest selects {len(sel)} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
+    dist = _camera_distortion(src, p)
+    # with a lens distortion each item undistorts its frame: the coefficients and the intrinsics
+    # they refer to are part of the item's key (without one the items are keyed as before)
+    extra = {} if dist is None else {"undistort": Const([list(_camera_intrinsics(src, p)[0]), list(dist)])}
     return [{"frame": src.items[i], "source_size": Const(list(src.size)),
-             "name": Const(src.names[i] if src.names else str(i))} for i in sel]
+             "name": Const(src.names[i] if src.names else str(i)), **extra} for i in sel]
 
 
 def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
@@ -109,6 +122,11 @@ def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
     intr, origin = _camera_intrinsics(src, p)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
+    dist = _camera_distortion(src, p)
+    if dist is not None:
+        if intr is None:
+            raise UsageError(f"{src.path}: lens distortion needs the intrinsics it refers to")
+        cam["distortion"] = [float(v) for v in dist]  # frames undistorted at ingest (pinhole K)
     cam["frame_indices"] = list(range(len(src.items)))[p.start:p.end:p.stride]
     cam["fps"] = src.fps
     cam["layout"] = src.layout
@@ -123,6 +141,9 @@ def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
         raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
                          f"the first frame's {src_w}x{src_h}")
     size = ingest_mod.working_size(src_w, src_h, p.long_side)
+    if "undistort" in inputs:  # [intrinsics (fx, fy, cx, cy), distortion (k1, k2, p1, p2)], source px
+        intr, dist = inputs["undistort"]
+        rgb = ingest_mod.undistort_frame(ingest_mod.prepare_frame(rgb, (src_w, src_h)), tuple(intr), tuple(dist))
     return {"image": ingest_mod.prepare_frame(rgb, size)}
 
 
@@ -1045,6 +1066,10 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     note = ("not given: the focal length will be estimated from the video (calibrate stage; or pass "
             "--intrinsics fx,fy,cx,cy)" if cam["guessed"] and config.calibrate.mode == "auto" else
             "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin)
+    dist = _camera_distortion(src, p)
+    if dist is not None and intr is None:
+        raise UsageError(f"{path}: lens distortion needs the intrinsics it refers to")
+    note += "" if dist is None else f"; lens distortion k1,k2,p1,p2 = {','.join(f'{v:g}' for v in dist)}: undistorted at ingest"
     print(f"camera: {src.layout} input {src.size[0]}x{src.size[1]} -> working {w}x{h}, fx={K[0, 0]:.1f} "
           f"fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} ({note})", file=sys.stderr)
     return src
