@@ -127,6 +127,7 @@ def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
         if intr is None:
             raise UsageError(f"{src.path}: lens distortion needs the intrinsics it refers to")
         cam["distortion"] = [float(v) for v in dist]  # frames undistorted at ingest (pinhole K)
+        cam["distortion_intrinsics"] = [float(v) for v in intr]  # what the coefficients refer to (source px)
     cam["frame_indices"] = list(range(len(src.items)))[p.start:p.end:p.stride]
     cam["fps"] = src.fps
     cam["layout"] = src.layout

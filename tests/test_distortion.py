@@ -70,3 +70,37 @@ def test_synth_writes_and_ingest_applies_the_distortion(tmp_path):
 def test_bad_distortion_is_one_line_exit_2(tmp_path):
     r = cli("synth", str(tmp_path / "x"), "--frames", "2", "--distortion", "0.1,0.2")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+QUICK = ["--set", "optimize_keyframes.steps=2", "--set", "optimize_edges.steps=2",
+         "--set", "optimize_segments.steps=2", "--set", "depth_fusion.enabled=false"]
+
+
+@pytest.mark.slow
+def test_export_ships_undistorted_frames_with_a_pinhole_camera(tmp_path):
+    """A run of a distorted clip (coefficients in intrinsics.txt) exported to COLMAP at the source
+    resolution: the images are the undistorted source frames, the camera PINHOLE with the source
+    intrinsics, and pycolmap loads the model with the points reprojecting onto the images."""
+    pycolmap = pytest.importorskip("pycolmap")
+    import cv2
+
+    from conftest import cli_json
+
+    clip, run_dir, out = tmp_path / "clip", tmp_path / "run", tmp_path / "exp"
+    cli("synth", str(clip), "--frames", "8", "--size", "96x72", "--trajectory", "loop",
+        "--distortion=" + ",".join(str(v) for v in DIST), check=True)
+    cli_json("run", str(clip), "--out", str(run_dir), "--cache", str(tmp_path / "cache"), *QUICK,
+             "--set", "ingest.long_side=64")
+    cams = __import__("json").loads((run_dir / "cameras.json").read_text())
+    assert cams["frames_undistorted"] and cams["distortion"] == pytest.approx(list(DIST))
+    cli_json("export", str(run_dir), "--format", "colmap", "--to", str(out))
+    K = read_intrinsics_txt(clip / "intrinsics.txt")
+    rec = pycolmap.Reconstruction(str(out / "colmap/sparse/0"))
+    cam = rec.cameras[1]
+    assert cam.model.name == "PINHOLE" and (cam.width, cam.height) == (96, 72)
+    np.testing.assert_allclose(cam.params, [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5], rtol=1e-9)
+    rec.update_point_3d_errors()
+    assert rec.compute_mean_reprojection_error() < 1.0
+    src = cv2.imread(str(clip / "frames" / "000003.png"))[..., ::-1]
+    got = cv2.imread(str(out / "colmap/images/000003.png"))[..., ::-1]
+    np.testing.assert_array_equal(got, undistort_frame(src, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), DIST))

@@ -71,7 +71,7 @@ def write_run_dir(out: Path, runner: Any, config: Any) -> dict[str, Any]:
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
            "source_height": cam["source_height"], "intrinsics_guessed": calib["guessed"],
            "intrinsics_origin": "estimated" if calib["estimated"] else calib["origin"],
-           **_calibration_doc(calib, K, cam), "frame_indices": idx, "fps": cam.get("fps"),
+           **_calibration_doc(calib, K, cam), **_distortion_doc(cam), "frame_indices": idx, "fps": cam.get("fps"),
            "timestamps": stamps, "timestamp_kind": stamp_kind, "layout": cam.get("layout"),
            "keyframes": [idx[k] for k in runner.value("keyframes")["indices"]]}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
@@ -87,6 +87,16 @@ def _calibration(runner: Any, cam: dict[str, Any]) -> dict[str, Any]:
     except (KeyError, LookupError):
         return {"K": cam["K"], "estimated": False, "guessed": cam["guessed"], "origin": cam["origin"],
                 "warning": "", "rel_sigma": None}
+
+
+def _distortion_doc(cam: dict[str, Any]) -> dict[str, Any]:
+    """cameras.json's account of a lens distortion the frames were undistorted with at ingest: the
+    coefficients (k1, k2, p1, p2, OpenCV) and the source intrinsics they refer to. K above is the
+    pinhole camera of the undistorted frames (what every stage and export uses)."""
+    if not cam.get("distortion"):
+        return {}
+    return {"distortion": [float(v) for v in cam["distortion"]],
+            "distortion_intrinsics": [float(v) for v in cam["distortion_intrinsics"]], "frames_undistorted": True}
 
 
 def _calibration_doc(calib: dict[str, Any], K: Any, cam: dict[str, Any]) -> dict[str, Any]:
