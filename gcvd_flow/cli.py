@@ -18,10 +18,18 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
                    help="camera intrinsics at the source resolution, optionally with the lens distortion "
                    "(OpenCV order; frames are undistorted at ingest) (same as --set ingest.intrinsics=...)")
+    p.add_argument("--masks", metavar="DIR",
+                   help="your own masks: one PNG per frame (the frame's name, or frame order), non-zero = leave "
+                   "the pixel out of every loss and of the depth consensus (same as --set masks.user_dir=DIR)")
 
 
 def run_sets(a: argparse.Namespace) -> list[str]:
-    return [f"ingest.intrinsics={json.dumps(a.intrinsics)}"] if getattr(a, "intrinsics", None) else []
+    sets = [f"ingest.intrinsics={json.dumps(a.intrinsics)}"] if getattr(a, "intrinsics", None) else []
+    if getattr(a, "masks", None):
+        if not os.path.isdir(a.masks):
+            raise UsageError(f"--masks {a.masks}: not a folder")
+        sets.append(f"masks.user_dir={json.dumps(os.path.abspath(a.masks))}")
+    return sets
 
 
 def add_commands(sub) -> None:

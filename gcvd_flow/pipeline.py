@@ -32,7 +32,7 @@ from pydantic import ConfigDict, Field, create_model, field_validator, model_val
 import artifacts_schema
 from gcvd_flow.engine.api import PipelineSpec
 from gcvd_flow.engine.config import Section
-from gcvd_flow.engine.dag import Const, ItemRef, MapStage, PartRef, Pipeline, Stage
+from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io import run_dir
 from gcvd_flow.io.weights import open_model
@@ -346,6 +346,10 @@ class MasksParams(Section):
     weights: str | None = Field(None, json_schema_extra=WEIGHTS, description="Mask R-CNN weights file")
     score_thresh: float = Field(0.5, ge=0, le=1, description="Mask R-CNN detections scoring less are ignored")
     min_size: int = Field(800, ge=32, description="Mask R-CNN input short side, px (torchvision: 800)")
+    user_dir: str | None = Field(None, json_schema_extra={"dir": True},
+                                 description="your own masks (--masks DIR): one PNG per frame, named as the "
+                                 "frame (or in frame order), non-zero = leave this pixel out; combined with "
+                                 "the backend's masks")
 
     @model_validator(mode="after")
     def _needs_weights(self) -> "MasksParams":
@@ -369,9 +373,37 @@ def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
     return refs
 
 
+def _user_mask_files(src: Source, p: MasksParams, sel: list[int]) -> list[str]:
+    """The --masks PNG of each selected source frame: DIR/<frame stem>.png, else the k-th PNG of DIR
+    (natural order) when DIR holds one per source frame. A missing one: one line, exit 2."""
+    from pathlib import Path
+
+    from gcvd_flow.io.sources import natural_key
+
+    d = Path(p.user_dir).expanduser()
+    pngs = sorted((f for f in d.iterdir() if f.suffix.lower() == ".png" and f.is_file()), key=lambda f: natural_key(f.name))
+    by_stem = {f.stem: f for f in pngs}
+    names = [Path(src.names[i]).stem if src.names else str(i) for i in sel]
+    if all(nm in by_stem for nm in names):
+        return [str(by_stem[nm]) for nm in names]
+    if len(pngs) == len(src.items):
+        return [str(pngs[i]) for i in sel]
+    missing = next(nm for nm in names if nm not in by_stem)
+    raise UsageError(f"{d}: no mask for frame {missing} (expected {missing}.png, or one PNG per frame in frame "
+                     f"order: found {len(pngs)} PNGs for {len(src.items)} frames)")
+
+
 def _mask_items(view, p: MasksParams):
-    # The semantic backend reads the frame itself; the motion backend its flows (only).
+    # The semantic backend reads the frame itself; the motion backend its flows (only); the user's
+    # mask of the frame enters by its content (an ExternalRef: file digest + loader).
     n = view.len("ingest")
+    user = []
+    if p.user_dir:
+        from gcvd_flow.engine.keys import digest_file
+        from gcvd_flow.io.sources import ImageFile
+
+        sel = list(view.summary("ingest")["frame_indices"])  # the source frames ingest selected
+        user = [ExternalRef(digest_file(f), _MaskFile(f)) for f in _user_mask_files(view.source, p, sel)]
     out = []
     for i in range(n):
         it: dict[str, Any] = {}
@@ -379,6 +411,9 @@ def _mask_items(view, p: MasksParams):
             it = {"K": PartRef("calibrate", ("K",)), **_chain_refs(i, n, p.span)}
         if "maskrcnn" in p.backend:
             it["image"] = ItemRef("ingest", i)
+        if user:
+            it["user_mask"] = user[i]
+            it["source_size"] = Const(list(view.source.size))
         out.append(it)
     return out
 
@@ -387,7 +422,41 @@ def _open_maskrcnn(p: MasksParams) -> Any:
     return open_model("maskrcnn", p.weights, min_size=p.min_size)
 
 
+@dataclasses.dataclass(frozen=True)
+class _MaskFile:
+    """Picklable loader: a --masks PNG -> bool (H, W), True = leave out (any non-zero channel)."""
+
+    path: str
+
+    def __call__(self) -> np.ndarray:
+        from gcvd_flow.io.formats import read_rgb
+
+        return np.asarray(read_rgb(self.path)).max(axis=2) > 0
+
+
+def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
+    """static uint8 (h, w) with the user's mask (source resolution, True = out) set to 0."""
+    if "user_mask" not in inputs:
+        return static
+    import cv2
+
+    user = np.asarray(inputs["user_mask"], bool)
+    sw, sh = inputs["source_size"]
+    if user.shape != (sh, sw):
+        raise ingest_mod.FrameError(f"--masks: a mask is {user.shape[1]}x{user.shape[0]}, the frames are {sw}x{sh}")
+    h, w = static.shape
+    # a working pixel is left out when any source pixel it covers is
+    out = cv2.resize(user.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0
+    return np.where(out, 0, static).astype(np.uint8)
+
+
 def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {static: uint8 (H, W), 1 = static}: the backend's mask with the user's (--masks)
+    pixels set to 0."""
+    return {"static": _with_user_mask(_backend_mask(inputs, p, ctx)["static"], inputs)}
+
+
+def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
     """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows
     (backend motion), its image's Mask R-CNN instances of moving classes (maskrcnn), or both
     (motion+maskrcnn: static where both say static)."""
