@@ -683,7 +683,7 @@ def _chosen(feat: Any, n: int, target: float) -> list[int]:
 
 
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
-                   n_features: int = 2000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
+                   n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
                    robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    passes: int = 4, motion_frac: float = 0.05) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
