@@ -212,9 +212,9 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
     K = K.copy()
     K[0, 0] = K[1, 1] = f
     out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
-               origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.1f} % at {cam['width']}x"
+               origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.2f} % at {cam['width']}x"
                       f"{cam['height']} ({len(frames)} frames, {res['pairs']} pairs)")
-    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; {res['method']}: "
+    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.2f} % (formal; guess {cam['K'][0][0]:.1f}; {res['method']}: "
             f"{res['frames']} frames, {res['points']} points, {res['pairs']} pairs of which {res['rotation_pairs']} "
             f"rotation-only, median residual {res['median_px']:.2f} px)")
     return out
