@@ -1,30 +1,33 @@
 """Focal self-calibration: one focal length (fx = fy) from the video itself.
 
 When no intrinsics are given the ingest guess f = 300/384 x long side is typically 5-35 % off
-on real cameras, and poses and depth fall apart with it. This module estimates the focal
-length from the frames (principal point fixed, usually at the image centre):
+on real cameras, and poses and depth fall apart with it. :func:`estimate_focal` estimates the
+focal length from the frames (principal point fixed, at the image centre unless given):
 
-1. Frames are sampled evenly over the clip (at most ``max_frames``); SIFT features once per
-   frame; ratio-test matches between each frame and the next 1, 2, 4, 8 sampled frames.
-2. Per pair a RANSAC fundamental matrix F (inliers) and a homography H on those inliers. A pair
-   whose F inliers a homography explains almost all of (tiny parallax: the camera mainly
-   rotated) is a *rotation* pair — for it H = K R K^-1 (pure rotation determines f, the
-   epipolar constraint does not: any rotation-only flow fits some essential matrix of any f);
-   the other pairs are *general* pairs: F = K^-T [t]x R K^-1.
-3. Initial value: a 1-D search over f on a log grid, each pair scoring how far its matrix is
-   from a valid one at that f (general: the two non-zero singular values of K^T F K must be
-   equal; rotation: K^-1 H K must be a scaled rotation); the median over pairs is minimised.
-4. Refinement: a small bundle adjustment over all pairs' inlier matches with one shared focal
-   length and each pair's relative pose (general: rotation + translation direction, residual
-   the Sampson distance in px; rotation: rotation only, residual the transfer error in px),
-   robust (Cauchy) loss; scipy's sparse trust-region least squares.
-5. Uncertainty: the focal length's marginal standard deviation from the Gauss-Newton normal
-   equations (pair poses eliminated by the Schur complement), scaled by the robust residual
-   spread. When it exceeds ``max_rel_sigma`` (forward-only or near-static motion, too few
-   pairs), the motion does not determine the focal length: the result says so and the caller
-   keeps the guess.
+1. Frames chosen by image motion (:func:`_select_by_motion`: the next frame is the last whose SIFT
+   matches moved less than 5 % of the long side; a slow clip is thinned, a wide-baseline one keeps
+   every frame); SIFT features once per chosen frame.
+2. Frame pairs (each frame with the next two): RANSAC fundamental matrix F, and a homography on
+   its inliers. A clip where most pairs are explained by a homography (the camera mainly
+   rotates) is solved from the homographies (H = K R K^-1: a 1-D search over f on how far
+   K^-1 H K is from a scaled rotation, then a joint robust refinement of f and each pair's
+   rotation on the transfer error, :func:`refine_focal`); pure rotation determines f, the
+   epipolar constraint does not.
+3. Otherwise: tracks (RANSAC-verified matches chained over frames 1-3 apart), a small incremental
+   structure from motion at the current f (two-view start, PnP, triangulation; bundle
+   adjustments with f free whenever the registered frames grew by half, and a new reconstruction
+   where the track chain breaks), then a gtsam bundle adjustment of all reconstructions with one
+   shared focal length (``Cal3f``; two rounds, the second on the observations within 2 px);
+   repeated from its f while that moves > 1 %. Two-view geometry alone was 8-10 % off on
+   handheld footage (near the two-view degenerate configuration); the multi-view adjustment is
+   what determines f (docs/benchmarks.md).
+4. Uncertainty: the marginal std of f from the dense Gauss-Newton information matrix, scaled by
+   the robust residual spread (a lower bound: correlated errors and the principal point are not
+   in it). Not determined (the caller keeps the guess and warns): fewer than 6 usable pairs (a
+   camera that hardly moves), a reconstruction of < 25 % of the chosen frames, an uncertainty
+   above ``max_rel_sigma``, or an estimate outside 0.3-3 x the guess.
 
-Pure: arrays in, a dict out; deterministic (OpenCV's RANSAC seeded, SIFT and scipy are).
+Pure: arrays in, a dict out; deterministic (OpenCV's RANSAC seeded; SIFT, gtsam, scipy are).
 Units: pixels at the frames' (working) resolution.
 """
 
@@ -41,7 +44,6 @@ log = logging.getLogger(__name__)
 
 RANSAC_SEED = 1234
 SIFT_RATIO = 0.8
-PAIR_OFFSETS = (1, 2, 4, 8)  # partners of a sampled frame, in sampled-frame steps
 TRACK_KEY = 1_000_000  # point key = model * TRACK_KEY + track index (several reconstructions)
 
 
@@ -120,26 +122,6 @@ def pair_geometry(a: int, b: int, x1: np.ndarray, x2: np.ndarray, *, ransac_px: 
 def _transfer_error(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     p = np.c_[x1, np.ones(len(x1))] @ H.T
     return np.linalg.norm(p[:, :2] / p[:, 2:3] - x2, axis=1)
-
-
-def collect_pairs(images: Sequence[np.ndarray], *, max_frames: int = 48, n_features: int = 2000,
-                  offsets: Sequence[int] = PAIR_OFFSETS, **pair_kw: Any) -> list[PairGeometry]:
-    """Frames (N x uint8 (H, W, 3) RGB) -> the usable pairs of evenly sampled frames (indices
-    into ``images``)."""
-    n = len(images)
-    sel = np.unique(np.round(np.linspace(0, n - 1, min(n, max_frames))).astype(int)).tolist()
-    feats = {i: _features(np.asarray(images[i]), n_features) for i in sel}
-    pairs = []
-    for p, a in enumerate(sel):
-        for off in offsets:
-            if p + off >= len(sel):
-                break
-            b = sel[p + off]
-            x1, x2 = _match(feats[a], feats[b])
-            g = pair_geometry(a, b, x1, x2, **pair_kw)
-            if g is not None:
-                pairs.append(g)
-    return pairs
 
 
 # ------------------------------------------------------------------------------ the cost
@@ -292,20 +274,6 @@ def refine_focal(pairs: list[PairGeometry], c: np.ndarray, f0: float, *, robust_
     return {"focal": float(np.exp(res.x[0])), "log_sigma": _focal_sigma(res.jac, r, len(res.x), robust_px),
             "median_px": float(np.median(np.abs(r))), "pairs": len(pairs),
             "rotation_pairs": sum(g.kind == "rotation" for g in pairs), "x": res.x, "problem": prob}
-
-
-def _reclassify(pairs: list[PairGeometry], fit: dict[str, Any], max_px: float) -> bool:
-    """Rotation pairs that the fitted rotation does not explain (a plane seen while moving)
-    become general pairs. True when any changed."""
-    prob, r = fit["problem"], fit["problem"].residuals(fit["x"])
-    changed = False
-    for g, rows in zip(pairs, prob.rows):
-        if g.kind == "rotation":
-            e = np.linalg.norm(r[rows].reshape(-1, 2), axis=1)
-            if np.median(e) > max_px:
-                g.kind = "general"
-                changed = True
-    return changed
 
 
 # ------------------------------------------------------------------------------ multi-view
@@ -502,6 +470,29 @@ def bundle_adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndar
     return out
 
 
+def _observations(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray, max_px: float
+                  ) -> tuple[dict[int, list[tuple[int, np.ndarray]]], dict[int, int]]:
+    """The observations a bundle adjustment uses: of each point, the registered frames where it lies
+    in front and reprojects within ``max_px`` (at least two); frames seeing fewer than 8 points are
+    left out (their pose would be undetermined). Returns ({point key: [(frame, uv (2,))]},
+    {frame: observation count})."""
+    obs: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for i in sorted(pts):
+        o = [(f, uv) for f, uv in tracks[i % TRACK_KEY].items() if f in T and _visible(K, T[f], pts[i], uv, max_px)]
+        if len(o) >= 2:
+            obs[i] = o
+    while True:
+        count: dict[int, int] = {}
+        for o in obs.values():
+            for f, _ in o:
+                count[f] = count.get(f, 0) + 1
+        weak = {f for f, n in count.items() if n < 8}
+        if not weak:
+            return obs, count
+        obs = {i: [(f, uv) for f, uv in o if f not in weak] for i, o in obs.items()}
+        obs = {i: o for i, o in obs.items() if len(o) >= 2}
+
+
 def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
             robust_px: float, iterations: int, max_px: float) -> dict[str, Any]:
     """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
@@ -519,21 +510,7 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     vals = gtsam.Values()
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_px),
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
-    obs: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for i in sorted(pts):
-        o = [(f, uv) for f, uv in tracks[i % TRACK_KEY].items() if f in T and _visible(K, T[f], pts[i], uv, max_px)]
-        if len(o) >= 2:
-            obs[i] = o
-    while True:  # frames seeing too few points are left out (their pose would be undetermined)
-        count: dict[int, int] = {}
-        for o in obs.values():
-            for f, _ in o:
-                count[f] = count.get(f, 0) + 1
-        weak = {f for f, n in count.items() if n < 8}
-        if not weak:
-            break
-        obs = {i: [(f, uv) for f, uv in o if f not in weak] for i, o in obs.items()}
-        obs = {i: o for i, o in obs.items() if len(o) >= 2}
+    obs, count = _observations(tracks, T, pts, K, max_px)
     frames = sorted(count)
     if len(frames) < 3 or not obs:
         return {"focal": float(K[0, 0]), "log_sigma": lambda: float("inf"), "median_px": 0.0, "observations": 0,
