@@ -16,12 +16,21 @@ from gcvd_flow.runtime import quiet_openmp
 
 
 def add_run_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
-                   help="camera intrinsics at the source resolution (same as --set ingest.intrinsics=...)")
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
+                   help="camera intrinsics at the source resolution, optionally with the lens distortion "
+                   "(OpenCV order; frames are undistorted at ingest) (same as --set ingest.intrinsics=...)")
+    p.add_argument("--masks", metavar="DIR",
+                   help="your own masks: one PNG per frame (the frame's name, or frame order), non-zero = leave "
+                   "the pixel out of every loss and of the depth consensus (same as --set masks.user_dir=DIR)")
 
 
 def run_sets(a: argparse.Namespace) -> list[str]:
-    return [f"ingest.intrinsics={json.dumps(a.intrinsics)}"] if getattr(a, "intrinsics", None) else []
+    sets = [f"ingest.intrinsics={json.dumps(a.intrinsics)}"] if getattr(a, "intrinsics", None) else []
+    if getattr(a, "masks", None):
+        if not os.path.isdir(a.masks):
+            raise UsageError(f"--masks {a.masks}: not a folder")
+        sets.append(f"masks.user_dir={json.dumps(os.path.abspath(a.masks))}")
+    return sets
 
 
 def add_commands(sub) -> None:
@@ -47,6 +56,11 @@ def _add_synth(sub) -> None:
                    help="exposure swings between frames, relative gain (default 0; e.g. 0.2)")
     p.add_argument("--texture", type=float, default=1.0, metavar="F",
                    help="surface detail contrast (default 1; e.g. 0.2 for low texture)")
+    p.add_argument("--distortion", default=None, metavar="K1,K2,P1,P2",
+                   help="render through this lens distortion (OpenCV order; written to intrinsics.txt, "
+                   "the ground truth stays pinhole)")
+    p.add_argument("--focal", type=float, default=None, metavar="PX",
+                   help="focal length fx = fy in px (default 300/384 x long side, the guess used without intrinsics)")
     p.set_defaults(handler=cmd_synth)
 
 
@@ -185,9 +199,20 @@ def cmd_synth(a: argparse.Namespace) -> int:
     for name in ("noise", "blur", "exposure", "texture"):
         if not 0.0 <= getattr(a, name) < 1e3:
             raise UsageError(f"--{name} {getattr(a, name)}: must be a non-negative number")
+    if a.focal is not None and not 0 < a.focal < 1e6:
+        raise UsageError(f"--focal {a.focal}: must be a positive number of pixels")
+    dist = None
+    if a.distortion is not None:
+        try:
+            dist = tuple(float(v) for v in a.distortion.replace(",", " ").split())
+        except ValueError:
+            dist = ()
+        if len(dist) != 4 or not all(abs(v) < 1e6 for v in dist):
+            raise UsageError(f"--distortion {a.distortion!r}: expected 4 numbers k1,k2,p1,p2")
     clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
                        moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
-                       exposure=a.exposure, texture=a.texture)
+                       exposure=a.exposure, texture=a.texture, focal=a.focal,
+                       distortion=dist)
     write_generic_layout(a.out, clip)
     print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
           f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")

@@ -35,7 +35,7 @@ from pydantic import ConfigDict, Field, create_model, field_validator, model_val
 import artifacts_schema
 from gcvd_flow.engine.api import PipelineSpec
 from gcvd_flow.engine.config import Section
-from gcvd_flow.engine.dag import Const, ItemRef, MapStage, PartRef, Pipeline, Stage
+from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, PartRef, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io import run_dir
 from gcvd_flow.io.sources import Source, open_source as _open_source
@@ -116,14 +116,25 @@ def _camera_intrinsics(src: Source, p: IngestParams) -> tuple[tuple[float, float
     return None, "guess"
 
 
+def _camera_distortion(src: Source, p: IngestParams) -> tuple[float, float, float, float] | None:
+    """k1, k2, p1, p2 of --intrinsics (8 numbers), else of the layout's intrinsics.txt, else None."""
+    if p.intrinsics:
+        return ingest_mod.parse_distortion(p.intrinsics)
+    return src.distortion
+
+
 def _ingest_items(view, p: IngestParams):
     src: Source = view.source
     sel = list(range(len(src.items)))[p.start:p.end:p.stride]
     if len(sel) < 2:
         raise UsageError(f"ingest selects {len(sel)} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
+    dist = _camera_distortion(src, p)
+    # with a lens distortion each item undistorts its frame: the coefficients and the intrinsics
+    # they refer to are part of the item's key (without one the items are keyed as before)
+    extra = {} if dist is None else {"undistort": Const([list(_camera_intrinsics(src, p)[0]), list(dist)])}
     return [{"frame": src.items[i], "source_size": Const(list(src.size)),
-             "name": Const(src.names[i] if src.names else str(i))} for i in sel]
+             "name": Const(src.names[i] if src.names else str(i)), **extra} for i in sel]
 
 
 def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
@@ -131,6 +142,12 @@ def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
     intr, origin = _camera_intrinsics(src, p)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
+    dist = _camera_distortion(src, p)
+    if dist is not None:
+        if intr is None:
+            raise UsageError(f"{src.path}: lens distortion needs the intrinsics it refers to")
+        cam["distortion"] = [float(v) for v in dist]  # frames undistorted at ingest (pinhole K)
+        cam["distortion_intrinsics"] = [float(v) for v in intr]  # what the coefficients refer to (source px)
     cam["frame_indices"] = list(range(len(src.items)))[p.start:p.end:p.stride]
     cam["fps"] = src.fps
     cam["layout"] = src.layout
@@ -145,6 +162,9 @@ def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
         raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
                          f"the first frame's {src_w}x{src_h}")
     size = ingest_mod.working_size(src_w, src_h, p.long_side)
+    if "undistort" in inputs:  # [intrinsics (fx, fy, cx, cy), distortion (k1, k2, p1, p2)], source px
+        intr, dist = inputs["undistort"]
+        rgb = ingest_mod.undistort_frame(ingest_mod.prepare_frame(rgb, (src_w, src_h)), tuple(intr), tuple(dist))
     return {"image": ingest_mod.prepare_frame(rgb, size)}
 
 
@@ -152,6 +172,67 @@ INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", 
                   summary=_ingest_summary, summary_kind="camera",
                   selection_params=("start", "end", "stride", "intrinsics"),
                   description="frames at working resolution + camera"))
+
+
+# ============================================================================== calibrate
+CalibrateParams = section("calibrate", frontend_params.CalibrateSettings)
+
+
+class _SampledImages:
+    """images[i] -> ingest item i's image, decoded only when asked (the estimate samples frames)."""
+
+    def __init__(self, frames: Any):
+        self._frames = frames
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return np.asarray(self._frames[i]["image"])
+
+
+def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[str, Any]:
+    """ingest's camera -> {K (3, 3) at working resolution: the given intrinsics, or one focal length
+    estimated from the frames, or the guess; estimated, guessed (bool), origin, focal_source (fx, fy at
+    source resolution), rel_sigma (std / f of the estimate, None when not estimated), warning (str,
+    '' when none), pairs, rotation_pairs, median_px}. Given intrinsics: nothing is computed."""
+    frames = inputs[INGEST.name]
+    cam = frames.summary
+    K = np.asarray(cam["K"], np.float64)
+    sx, sy = cam["width"] / cam["source_width"], cam["height"] / cam["source_height"]
+    out = {"K": K, "estimated": False, "guessed": bool(cam["guessed"]), "origin": cam["origin"],
+           "focal_source": [float(K[0, 0] / sx), float(K[1, 1] / sy)], "rel_sigma": None, "warning": "",
+           "pairs": 0, "rotation_pairs": 0, "median_px": None}
+    if not cam["guessed"] or p.mode == "off":
+        return out
+    from gcvd_flow.io.native_output import native_stdout_silenced
+    from stages.frontend import calibrate as calibrate_mod
+
+    with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
+        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
+                                           n_features=p.features, max_rel_sigma=p.max_rel_sigma)
+    out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]), method=res["method"],
+               median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]))
+    rel = float(res["rel_sigma"])
+    out["rel_sigma"] = rel if np.isfinite(rel) else None
+    if not res["determined"]:
+        out["warning"] = f"focal length not estimated, the guess f = {K[0, 0]:.1f} px is kept: {res['reason']}"
+        ctx.log("warning: " + out["warning"])
+        return out
+    f = float(res["focal"])
+    K = K.copy()
+    K[0, 0] = K[1, 1] = f
+    out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
+               origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.2f} % at {cam['width']}x"
+                      f"{cam['height']} ({len(frames)} frames, {res['pairs']} pairs)")
+    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.2f} % (formal; guess {cam['K'][0][0]:.1f}; {res['method']}: "
+            f"{res['frames']} frames, {res['points']} points, {res['pairs']} pairs of which {res['rotation_pairs']} "
+            f"rotation-only, median residual {res['median_px']:.2f} px)")
+    return out
+
+
+CALIBRATE = declare(Stage("calibrate", run_calibrate, deps=(INGEST,), params="calibrate", kind="calibration",
+                          description="one focal length estimated from the video when no intrinsics are given"))
 
 
 # ============================================================================== flow
@@ -251,16 +332,46 @@ def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
     return {"direction": Const(direction), "chain": [ItemRef(FLOW, k) for k in flows]}
 
 
+def _user_mask_files(src: Source, p: MasksParams, sel: list[int]) -> list[str]:
+    """The --masks PNG of each selected source frame: DIR/<frame stem>.png, else the k-th PNG of DIR
+    (natural order) when DIR holds one per source frame. A missing one: one line, exit 2."""
+    from pathlib import Path
+
+    from gcvd_flow.io.sources import natural_key
+
+    d = Path(p.user_dir).expanduser()
+    pngs = sorted((f for f in d.iterdir() if f.suffix.lower() == ".png" and f.is_file()), key=lambda f: natural_key(f.name))
+    by_stem = {f.stem: f for f in pngs}
+    names = [Path(src.names[i]).stem if src.names else str(i) for i in sel]
+    if all(nm in by_stem for nm in names):
+        return [str(by_stem[nm]) for nm in names]
+    if len(pngs) == len(src.items):
+        return [str(pngs[i]) for i in sel]
+    missing = next(nm for nm in names if nm not in by_stem)
+    raise UsageError(f"{d}: no mask for frame {missing} (expected {missing}.png, or one PNG per frame in frame "
+                     f"order: found {len(pngs)} PNGs for {len(src.items)} frames)")
+
+
 def _mask_items(view, p: MasksParams):
-    # The semantic backend reads the frame itself; the motion backend its flows (only).
+    # The semantic backend reads the frame itself; the motion backend its flows (only); the user's
+    # mask of the frame enters by its content (an ExternalRef: file digest + loader).
     n = view.len(INGEST)
+    user = []
+    if p.user_dir:
+        from gcvd_flow.engine.keys import digest_file
+
+        sel = list(view.summary(INGEST)["frame_indices"])  # the source frames ingest selected
+        user = [ExternalRef(digest_file(f), _MaskFile(f)) for f in _user_mask_files(view.source, p, sel)]
     out = []
     for i in range(n):
         it: dict[str, Any] = {}
         if p.backend != "maskrcnn":
-            it = {"K": PartRef(INGEST, ("K",), summary=True), **_chain_refs(i, n, p.span)}
+            it = {"K": PartRef(CALIBRATE, ("K",)), **_chain_refs(i, n, p.span)}
         if "maskrcnn" in p.backend:
             it["image"] = ItemRef(INGEST, i)
+        if user:
+            it["user_mask"] = user[i]
+            it["source_size"] = Const(list(view.source.size))
         out.append(it)
     return out
 
@@ -269,7 +380,41 @@ def _open_maskrcnn(p: MasksParams) -> Any:
     return open_model("maskrcnn", p.weights, min_size=p.min_size)
 
 
+@dataclasses.dataclass(frozen=True)
+class _MaskFile:
+    """Picklable loader: a --masks PNG -> bool (H, W), True = leave out (any non-zero channel)."""
+
+    path: str
+
+    def __call__(self) -> np.ndarray:
+        from gcvd_flow.io.formats import read_rgb
+
+        return np.asarray(read_rgb(self.path)).max(axis=2) > 0
+
+
+def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
+    """static uint8 (h, w) with the user's mask (source resolution, True = out) set to 0."""
+    if "user_mask" not in inputs:
+        return static
+    import cv2
+
+    user = np.asarray(inputs["user_mask"], bool)
+    sw, sh = inputs["source_size"]
+    if user.shape != (sh, sw):
+        raise ingest_mod.FrameError(f"--masks: a mask is {user.shape[1]}x{user.shape[0]}, the frames are {sw}x{sh}")
+    h, w = static.shape
+    # a working pixel is left out when any source pixel it covers is
+    out = cv2.resize(user.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0
+    return np.where(out, 0, static).astype(np.uint8)
+
+
 def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
+    """Frame i -> {static: uint8 (H, W), 1 = static}: the backend's mask with the user's (--masks)
+    pixels set to 0."""
+    return {"static": _with_user_mask(_backend_mask(inputs, p, ctx)["static"], inputs)}
+
+
+def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
     """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows
     (backend motion), its image's Mask R-CNN instances of moving classes (maskrcnn), or both
     (motion+maskrcnn: static where both say static)."""
@@ -293,7 +438,7 @@ def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any
     return {"static": motion if semantic is None else np.minimum(motion, semantic)}
 
 
-MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, FLOW), params="masks", kind="mask",
+MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, CALIBRATE, FLOW), params="masks", kind="mask",
                  items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static"))
 
 
@@ -310,7 +455,7 @@ def _prior_items(view, p: PriorsParams):
     index = _far_index(view) if p.backend == "geometric" else {}
     out = []
     for i in range(n):
-        it: dict[str, Any] = {"image": ItemRef(INGEST, i), "K": PartRef(INGEST, ("K",), summary=True)}
+        it: dict[str, Any] = {"image": ItemRef(INGEST, i), "K": PartRef(CALIBRATE, ("K",))}
         js = _prior_refs(i, n, p)
         if js:
             it.update(_far_refs(index, i, js, p.preset, p.fb_thresh))
@@ -346,7 +491,7 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, FLOW_FAR), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, CALIBRATE, FLOW_FAR), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
                   description="MiDaS-shaped relative inverse depth"))
 
@@ -390,7 +535,7 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
     kf = inputs["keyframes"]["indices"]
     frames = inputs["ingest"]
-    K = np.asarray(frames.summary["K"])
+    K = np.asarray(inputs["calibrate"]["K"])
     images = [frames[i]["image"] for i in kf]
     kw: dict[str, Any] = dict(nms=p.nms, min_separation=p.min_separation,
                               min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent)
@@ -411,7 +556,7 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     return {"graph": graph, "edge_flows": flows_out}
 
 
-ASSOCIATION = declare(Stage("association", run_association, deps=(INGEST, KEYFRAMES), params="association",
+ASSOCIATION = declare(Stage("association", run_association, deps=(INGEST, CALIBRATE, KEYFRAMES), params="association",
                     kind="graph", resources={"model": _open_resnet}))
 
 
@@ -451,7 +596,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
     pair_flows = keyframes_mod.keyframe_pair_flows(kf, inputs["association"]["edge_flows"])
     res = opt_keyframes.optimize_keyframes(
         _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
-        _stack(inputs["masks"], kf, "static"), np.asarray(frames.summary["K"]), pair_flows,
+        _stack(inputs["masks"], kf, "static"), np.asarray(inputs["calibrate"]["K"]), pair_flows,
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seed=ctx.seed, checkpointer=ctx.checkpointer,
         window_map=ctx.map)  # schedule=independent: the windows side by side on the run's workers
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
@@ -462,7 +607,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
 
 
 OPTIMIZE_KEYFRAMES = declare(Stage("optimize_keyframes", run_optimize_keyframes,
-                           deps=(INGEST, PRIORS, MASKS, KEYFRAMES, ASSOCIATION), params=OPT,
+                           deps=(INGEST, CALIBRATE, PRIORS, MASKS, KEYFRAMES, ASSOCIATION), params=OPT,
                            kind="keyframe_solution", uses_seed=True))
 
 
@@ -478,7 +623,7 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     pos = {f: k for k, f in enumerate(kf)}
     T_w_k = np.asarray(okf["poses"])
     frames, priors_, masks_ = inputs["ingest"], inputs["priors"], inputs["masks"]
-    K = np.asarray(frames.summary["K"])
+    K = np.asarray(inputs["calibrate"]["K"])
     flows = {(e["i"], e["j"]): _flow_dict(e) for e in inputs["association"]["edge_flows"]}
     graph_edges = [(int(e["i"]), int(e["j"])) for e in inputs["association"]["graph"].get("nonsequential_edges", [])]
 
@@ -498,7 +643,7 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
 
 
 OPTIMIZE_EDGES = declare(Stage("optimize_edges", run_optimize_edges,
-                       deps=(INGEST, PRIORS, MASKS, ASSOCIATION, OPTIMIZE_KEYFRAMES),
+                       deps=(INGEST, CALIBRATE, PRIORS, MASKS, ASSOCIATION, OPTIMIZE_KEYFRAMES),
                        params=OPT + ("optimize_edges",), kind="edges", uses_seed=True))
 
 
@@ -563,7 +708,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     # the machine's core count (OpenBLAS's default thread count changed the poses' bits)
     with native_stdout_silenced(), threadpool_limits(limits=1, user_api="blas"):
         res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], edges, list(okf["keyframes"]),
-                                   np.asarray(inputs["ingest"].summary["K"]), stride=p.stride,
+                                   np.asarray(inputs["calibrate"]["K"]), stride=p.stride,
                                    track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
                                    prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
                                    max_iterations=p.max_iterations, consistent_px=p.consistent_px,
@@ -578,7 +723,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
 
 
 BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,
-                                  deps=(INGEST, ASSOCIATION, OPTIMIZE_KEYFRAMES, POSE_GRAPH),
+                                  deps=(INGEST, CALIBRATE, ASSOCIATION, OPTIMIZE_KEYFRAMES, POSE_GRAPH),
                                   params="bundle_adjustment", kind="poses"))
 
 
@@ -625,7 +770,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     okf, ba = inputs["optimize_keyframes"], inputs["bundle_adjustment"]
     res = opt_segments.optimize_segments(
         frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
-        np.asarray(frames.summary["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
+        np.asarray(inputs["calibrate"]["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
         np.asarray(ba["poses"]), _ScaledDepths(okf["depths"], np.asarray(ba["depth_scale"], np.float32)),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
         seed=ctx.seed, checkpointer=ctx.checkpointer, state=okf["state"], depth_sink=lambda i, d: ctx.put(d),
@@ -635,7 +780,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
 
 
 OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
-                          deps=(INGEST, FLOW, PRIORS, MASKS, OPTIMIZE_KEYFRAMES, BUNDLE_ADJUSTMENT),
+                          deps=(INGEST, CALIBRATE, FLOW, PRIORS, MASKS, OPTIMIZE_KEYFRAMES, BUNDLE_ADJUSTMENT),
                           params=OPT + ("optimize_segments",), kind="segment_solution", uses_seed=True))
 
 
@@ -650,7 +795,7 @@ def _fusion_items(view, p: DepthFusionParams):
     out = []
     for i in range(n):
         refs = _fusion_refs(i, n, p)
-        out.append({"index": Const(i), "K": PartRef(INGEST, ("K",), summary=True),
+        out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
                     "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
                     **_far_refs(index, i, refs, p.preset, p.fb_thresh), "ref_indices": Const(refs)})
@@ -673,7 +818,7 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, FLOW_FAR, OPTIMIZE_SEGMENTS),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 
@@ -725,7 +870,7 @@ def _consensus_items(view, p: DepthConsensusParams):
     out = []
     for i in range(n):
         refs = references.symmetric_references(i, n, p.offsets) if p.enabled else []
-        out.append({"index": Const(i), "K": PartRef(INGEST, ("K",), summary=True),
+        out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)), "depth": ItemRef(DEPTH_FILTER, i),
                     "refs": [ItemRef(DEPTH_FILTER, j) for j in refs], "ref_indices": Const(refs),
                     "static": [ItemRef(MASKS, j) for j in [i, *refs]] if refs else []})
@@ -752,7 +897,7 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
 
 
 DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
-                                   deps=(INGEST, MASKS, OPTIMIZE_SEGMENTS, DEPTH_FILTER),
+                                   deps=(INGEST, CALIBRATE, MASKS, OPTIMIZE_SEGMENTS, DEPTH_FILTER),
                                    params="depth_consensus",
                                    kind="depth", items=_consensus_items,
                                    description="filtered depth averaged with what confident views of the "
@@ -835,7 +980,13 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
     K = cam["K"]
-    note = "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin
+    note = ("not given: the focal length will be estimated from the video (calibrate stage; or pass "
+            "--intrinsics fx,fy,cx,cy)" if cam["guessed"] and config.calibrate.mode == "auto" else
+            "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin)
+    dist = _camera_distortion(src, p)
+    if dist is not None and intr is None:
+        raise UsageError(f"{path}: lens distortion needs the intrinsics it refers to")
+    note += "" if dist is None else f"; lens distortion k1,k2,p1,p2 = {','.join(f'{v:g}' for v in dist)}: undistorted at ingest"
     print(f"camera: {src.layout} input {src.size[0]}x{src.size[1]} -> working {w}x{h}, fx={K[0, 0]:.1f} "
           f"fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} ({note})", file=sys.stderr)
     return src

@@ -17,6 +17,7 @@ from dataclasses import field
 from typing import Any
 
 WEIGHTS_FILE = {"file": True}  # a path parameter: its content digest, not the path, enters keys
+USER_DIR = {"dir": True}  # a folder parameter: its files' names and contents, not the path, enter keys
 
 
 def param(default: Any, description: str = "", **constraints: Any) -> Any:

@@ -15,7 +15,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from gcvd_flow.engine.errors import UsageError
-from gcvd_flow.engine.keys import digest_file
+from gcvd_flow.engine.keys import digest_file, key_of
 
 
 class Section(BaseModel):
@@ -23,7 +23,8 @@ class Section(BaseModel):
 
     Fields whose ``json_schema_extra`` has ``{"file": True}`` name local files (model weights):
     their *content digest*, not their path, goes into the cache key, so that a teammate with
-    the same weights elsewhere on disk shares the cache.
+    the same weights elsewhere on disk shares the cache. ``{"dir": True}``: a folder (e.g. the
+    user's masks): the names and content digests of its files.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -37,6 +38,11 @@ class Section(BaseModel):
                 if not p.is_file():
                     raise UsageError(f"{name}: file not found: {p}")
                 out[name] = "blake3:" + digest_file(p)
+            elif extra.get("dir") and out.get(name):  # a folder of files: their names and contents
+                p = Path(out[name]).expanduser()
+                if not p.is_dir():
+                    raise UsageError(f"{name}: not a folder: {p}")
+                out[name] = "blake3:" + key_of(sorted((f.name, digest_file(f)) for f in p.iterdir() if f.is_file()))
         return out
 
 

@@ -79,8 +79,22 @@ def fingerprint(invocation: dict[str, Any], cache: str, out: str, watch: dict[st
         "config_file": _stat(invocation["config_file"]) if invocation.get("config_file") else None,
         "sources": sources,
         "libraries": {f: _stat(f) for f in watch.get("files", [])},
+        "set_paths": _set_paths(invocation.get("sets") or []),
     }
     return doc
+
+
+def _set_paths(sets: list[str]) -> dict[str, Any]:
+    """Files and folders named by --set values (weights files, a masks folder): their metadata, so
+    that editing one is not answered from the stamp."""
+    out: dict[str, Any] = {}
+    for item in sets:
+        value = item.partition("=")[2].strip()
+        if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+            value = value[1:-1]
+        if value and os.path.exists(os.path.expanduser(value)):
+            out.update(_tree_stats(os.path.expanduser(value)))
+    return out
 
 
 def write(out: str, invocation: dict[str, Any], cache: str, result: dict[str, Any],

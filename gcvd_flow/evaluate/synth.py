@@ -92,6 +92,9 @@ class SynthClip:
     dynamic: np.ndarray | None
     trajectory: str = "orbit"
     seed: int = 0
+    # lens distortion (k1, k2, p1, p2, OpenCV) the frames were rendered through; depth, dynamic and
+    # K stay those of the pinhole camera (the undistorted image)
+    distortion: tuple[float, float, float, float] | None = None
 
 
 def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
@@ -366,17 +369,27 @@ def render_clip(
     blur: float = 0.0,
     exposure: float = 0.0,
     texture: float = 1.0,
+    focal: float | None = None,
+    distortion: tuple[float, float, float, float] | None = None,
 ) -> SynthClip:
     """Render a synthetic clip of the textured room.
 
     n_frames: number of frames N (>= 2); trajectory: one of ``TRAJECTORIES``;
     size: (W, H) in pixels; moving_object: add one independently moving textured cube and
     return its per-pixel mask in ``dynamic``; seed: texture/colour seed; noise, blur, exposure,
-    texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera).
+    texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera); focal: fx = fy
+    in px (None: ``default_intrinsics``' 300/384 x long side), principal point at the centre;
+    distortion: (k1, k2, p1, p2) OpenCV lens distortion the frames are seen through (ground
+    truth stays pinhole).
     Returns a ``SynthClip`` (see its docstring for shapes and units).
     """
     w, h = int(size[0]), int(size[1])
+    if distortion is not None and any(distortion):
+        return _distorted_clip(n_frames, trajectory, (w, h), moving_object, seed, noise, blur, exposure, texture,
+                               focal, tuple(float(v) for v in distortion))
     K = default_intrinsics((w, h))
+    if focal is not None:
+        K[0, 0] = K[1, 1] = float(focal)
     poses = make_trajectory(trajectory, n_frames)
     static = _static_scene()
     n_static = 1 + len(_FURNITURE)
@@ -426,6 +439,35 @@ def render_clip(
         frames = impair(frames, depth, poses, K, noise=noise, blur=blur, exposure=exposure, seed=seed)
     log.debug("rendered %d frames (%s, %dx%d, moving_object=%s)", n, trajectory, w, h, moving_object)
     return SynthClip(frames=frames, depth=depth, poses=poses, K=K, dynamic=dynamic, trajectory=trajectory, seed=int(seed))
+
+
+def _distorted_clip(n_frames: int, trajectory: str, size: tuple[int, int], moving_object: bool, seed: int,
+                    noise: float, blur: float, exposure: float, texture: float, focal: float | None,
+                    distortion: tuple[float, float, float, float]) -> SynthClip:
+    """A clip seen through OpenCV's radial-tangential distortion: the pinhole clip is rendered on a
+    canvas padded by a third of the long side (same focal length, principal point moved by the
+    pad), and each distorted pixel samples it where the distortion model sends it (bilinear).
+    Depth and dynamic masks are the pinhole image's (the canvas' centre)."""
+    import cv2
+
+    w, h = size
+    pad = max(w, h) // 3
+    f = float(focal) if focal is not None else float(default_intrinsics(size)[0, 0])
+    big = render_clip(n_frames, trajectory, (w + 2 * pad, h + 2 * pad), moving_object, seed, noise, blur,
+                      exposure, texture, focal=f)
+    K = default_intrinsics(size)
+    K[0, 0] = K[1, 1] = f
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pts = np.stack([u.ravel(), v.ravel()], -1)[:, None, :]
+    und = cv2.undistortPoints(pts, K, np.asarray(distortion, np.float64), None, K,
+                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-9)).reshape(h, w, 2)
+    mx = (und[..., 0] + pad).astype(np.float32)
+    my = (und[..., 1] + pad).astype(np.float32)
+    frames = np.stack([cv2.remap(fr, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT) for fr in big.frames])
+    crop = (slice(None), slice(pad, pad + h), slice(pad, pad + w))
+    return SynthClip(frames=frames, depth=np.ascontiguousarray(big.depth[crop]), poses=big.poses, K=K,
+                     dynamic=None if big.dynamic is None else np.ascontiguousarray(big.dynamic[crop]),
+                     trajectory=trajectory, seed=int(seed), distortion=distortion)
 
 
 # ----------------------------------------------------------------------------- camera impairments

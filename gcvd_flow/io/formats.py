@@ -194,19 +194,23 @@ def read_redwood_log(path: PathLike) -> np.ndarray:
 def read_intrinsics_txt(path: PathLike) -> np.ndarray:
     """Read intrinsics -> K float64 (3, 3).
 
-    Accepts one line ``fx fy cx cy`` (pixels; the generic layout) or 9 numbers (a 3x3 matrix,
+    Accepts one line ``fx fy cx cy`` (pixels; the generic layout), the same followed by the lens
+    distortion ``k1 k2 p1 p2`` (OpenCV order; :func:`read_distortion_txt`), or 9 numbers (a 3x3 matrix,
     row-major, on one or three lines). Non-finite values and focal lengths <= 0 are a
     ``DatasetError`` naming the file (a garbage file must not run to the end).
     """
     path = Path(path)
     vals = [v for _, r in _numeric_rows(path) for v in r]
-    if len(vals) == 4:
-        fx, fy, cx, cy = vals
+    if len(vals) in (4, 8):  # fx fy cx cy [k1 k2 p1 p2]: read_distortion_txt reads the rest
+        if not np.all(np.isfinite(vals)):
+            raise DatasetError(path, "non-finite values (nan / inf); expected 'fx fy cx cy [k1 k2 p1 p2]'")
+        fx, fy, cx, cy = vals[:4]
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     elif len(vals) == 9:
         K = np.array(vals, dtype=np.float64).reshape(3, 3)
     else:
-        raise DatasetError(path, f"expected 'fx fy cx cy' (4 values) or a 3x3 matrix, got {len(vals)} values")
+        raise DatasetError(path, f"expected 'fx fy cx cy' (4 values), 'fx fy cx cy k1 k2 p1 p2' (8: with the "
+                           f"lens distortion, OpenCV order) or a 3x3 matrix, got {len(vals)} values")
     if not np.all(np.isfinite(K)):
         raise DatasetError(path, "non-finite values (nan / inf); expected 'fx fy cx cy' in pixels")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
@@ -214,11 +218,21 @@ def read_intrinsics_txt(path: PathLike) -> np.ndarray:
     return K
 
 
-def write_intrinsics_txt(path: PathLike, K: np.ndarray) -> None:
-    """Write K (3, 3) as one line ``fx fy cx cy`` (%.9f)."""
+def read_distortion_txt(path: PathLike) -> tuple[float, float, float, float] | None:
+    """The lens distortion (k1, k2, p1, p2) of an 8-value ``intrinsics.txt``; None otherwise (or all
+    zero). Call after :func:`read_intrinsics_txt` (which checks the file)."""
+    vals = [v for _, r in _numeric_rows(Path(path)) for v in r]
+    if len(vals) != 8 or not any(vals[4:]):
+        return None
+    return tuple(float(v) for v in vals[4:])  # type: ignore[return-value]
+
+
+def write_intrinsics_txt(path: PathLike, K: np.ndarray, distortion: Any = None) -> None:
+    """Write K (3, 3) as one line ``fx fy cx cy`` (%.9f), followed by ``k1 k2 p1 p2`` when given."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"{K[0, 0]:.9f} {K[1, 1]:.9f} {K[0, 2]:.9f} {K[1, 2]:.9f}\n")
+    extra = "" if distortion is None else " " + " ".join(f"{float(v):.9f}" for v in distortion)
+    path.write_text(f"{K[0, 0]:.9f} {K[1, 1]:.9f} {K[0, 2]:.9f} {K[1, 2]:.9f}{extra}\n")
 
 
 # ----------------------------------------------------------------------------- images
@@ -375,7 +389,7 @@ def write_generic_layout(out_dir: PathLike, clip: Any) -> Path:
     (out / "frames").mkdir(parents=True, exist_ok=True)
     for i, f in enumerate(frames):
         write_rgb_png(out / "frames" / f"{i:06d}.png", f)
-    write_intrinsics_txt(out / "intrinsics.txt", np.asarray(clip.K))
+    write_intrinsics_txt(out / "intrinsics.txt", np.asarray(clip.K), getattr(clip, "distortion", None))
     poses = getattr(clip, "poses", None)
     if poses is not None:
         write_tum_poses(out / "gt" / "poses.txt", np.arange(len(poses), dtype=np.float64), poses)

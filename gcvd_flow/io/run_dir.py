@@ -86,16 +86,53 @@ def write_run_dir(out: Path, runner: Any, config: Any, sources: RunSources) -> d
         np.save(depth_dir / f"{i:06d}.npy", np.asarray(item["depth"], np.float32), allow_pickle=False)
         if "confidence" in item:  # float32 (H, W) in [0, 1], 0 = unmeasured (stages/depth/fusion.py)
             np.save(conf_dir / f"{i:06d}.npy", np.asarray(item["confidence"], np.float32), allow_pickle=False)
-    K = np.asarray(cam["K"])
+    calib = _calibration(runner, cam)
+    K = np.asarray(calib["K"])
     doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
-           "source_height": cam["source_height"], "intrinsics_guessed": cam["guessed"],
-           "intrinsics_origin": cam["origin"], "frame_indices": idx, "fps": cam.get("fps"),
+           "source_height": cam["source_height"], "intrinsics_guessed": calib["guessed"],
+           "intrinsics_origin": "estimated" if calib["estimated"] else calib["origin"],
+           **_calibration_doc(calib, K, cam), **_distortion_doc(cam), "frame_indices": idx, "fps": cam.get("fps"),
            "timestamps": stamps, "timestamp_kind": stamp_kind, "layout": cam.get("layout"),
            "keyframes": [idx[k] for k in runner.value(sources.keyframes)["indices"]]}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
     return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "confidence": str(conf_dir),
             "cameras": str(out / "cameras.json")}
+
+
+def _calibration(runner: Any, cam: dict[str, Any]) -> dict[str, Any]:
+    """The calibrate stage's output (the K every stage used), or ingest's camera for a pipeline
+    without that stage."""
+    try:
+        return runner.value("calibrate")
+    except (KeyError, LookupError):
+        return {"K": cam["K"], "estimated": False, "guessed": cam["guessed"], "origin": cam["origin"],
+                "warning": "", "rel_sigma": None}
+
+
+def _distortion_doc(cam: dict[str, Any]) -> dict[str, Any]:
+    """cameras.json's account of a lens distortion the frames were undistorted with at ingest: the
+    coefficients (k1, k2, p1, p2, OpenCV) and the source intrinsics they refer to. K above is the
+    pinhole camera of the undistorted frames (what every stage and export uses)."""
+    if not cam.get("distortion"):
+        return {}
+    return {"distortion": [float(v) for v in cam["distortion"]],
+            "distortion_intrinsics": [float(v) for v in cam["distortion_intrinsics"]], "frames_undistorted": True}
+
+
+def _calibration_doc(calib: dict[str, Any], K: Any, cam: dict[str, Any]) -> dict[str, Any]:
+    """cameras.json's account of the focal length: estimated (value at source resolution,
+    relative uncertainty, what it was estimated from) and any warning."""
+    doc: dict[str, Any] = {}
+    if calib.get("estimated"):
+        fs = calib["focal_source"]
+        doc["intrinsics_estimate"] = {
+            "fx_source": float(fs[0]), "fy_source": float(fs[1]), "focal": float(K[0, 0]),
+            "rel_sigma": calib["rel_sigma"], "sigma_source_px": float(fs[0]) * float(calib["rel_sigma"] or 0.0),
+            "pairs": calib["pairs"], "rotation_pairs": calib["rotation_pairs"], "detail": calib["origin"]}
+    if calib.get("warning"):
+        doc["intrinsics_warning"] = calib["warning"]
+    return doc
 
 
 # ------------------------------------------------------------------------------ reading a run

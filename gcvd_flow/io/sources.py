@@ -30,7 +30,7 @@ import numpy as np
 from gcvd_flow.engine.dag import ExternalRef
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import digest_file, key_of
-from gcvd_flow.io.formats import read_intrinsics_txt, read_rgb, read_tum_stamped_files
+from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt, read_rgb, read_tum_stamped_files
 
 # FFmpeg's own log lines would break the one-line error contract; we report failures ourselves.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
@@ -104,6 +104,7 @@ class Source:
     fps: float | None = None
     intrinsics: tuple[float, float, float, float] | None = None  # at source resolution
     intrinsics_origin: str | None = None
+    distortion: tuple[float, float, float, float] | None = None  # k1 k2 p1 p2 (OpenCV) of intrinsics.txt
     gt: dict[str, str] = field(default_factory=dict)  # e.g. {"poses": path, "depth": folder}
     names: list[str] = field(default_factory=list)
     # source timestamp (seconds) of every frame where the input has one: TUM RGB-D rgb.txt
@@ -117,7 +118,8 @@ class Source:
         ``intrinsics.txt``, and where they came from), so editing that file re-runs ingest."""
         return key_of([[r.digest for r in self.items], self.layout,
                        None if self.intrinsics is None else [float(v) for v in self.intrinsics],
-                       self.intrinsics_origin])
+                       self.intrinsics_origin]
+                      + ([] if self.distortion is None else [[float(v) for v in self.distortion]]))
 
 
 def _image_files(folder: Path) -> list[Path]:
@@ -202,8 +204,9 @@ def open_source(path_str: str) -> Source:
             gt["poses"] = str(path / "gt" / "poses.txt")
         if (path / "gt" / "depth").is_dir():
             gt["depth"] = str(path / "gt" / "depth")
+        dist = read_distortion_txt(path / "intrinsics.txt") if intr else None
         return _from_images(path, _image_files(path / "frames"), "generic", intrinsics=intr,
-                            intrinsics_origin="intrinsics.txt" if intr else None, gt=gt)
+                            intrinsics_origin="intrinsics.txt" if intr else None, distortion=dist, gt=gt)
     # TUM RGB-D
     if (path / "rgb.txt").exists():
         stamps, files = read_tum_stamped_files(path / "rgb.txt")  # DatasetError names the line

@@ -269,10 +269,22 @@ def _frame_signals(data: ReportData, store: Any) -> None:
             "multi-view depth agreement", f"{100 * agree:.1f} % of pixels", V.low_is_bad(agree, V.AGREEMENT),
             f"depth of each keyframe, moved by the poses into the next keyframe, within {100 * AGREE_TOL:g} % "
             "of that frame's depth (where it lands inside): poses and depth that fit each other"))
-    if data.cams.get("intrinsics_guessed"):
+    if data.cams.get("intrinsics_warning"):  # the calibrate stage could not estimate the focal length
+        data.signals.append(Signal("intrinsics", "guessed (not determined by the motion)", "warn",
+                                   f"{data.cams['intrinsics_warning']}; pass --intrinsics "
+                                   "(not part of the verdict: the run cannot check them)", judged=False))
+    elif data.cams.get("intrinsics_guessed"):
         data.signals.append(Signal("intrinsics", "guessed", "warn",
                                    "no intrinsics given: f = 300/384 x long side; pass --intrinsics "
                                    "(not part of the verdict: the run cannot check them)", judged=False))
+    elif data.cams.get("intrinsics_origin") == "estimated":
+        est = data.cams.get("intrinsics_estimate")
+        est = est if isinstance(est, dict) else {}
+        rel = est.get("rel_sigma") if isinstance(est.get("rel_sigma"), (int, float)) else None
+        fx = est.get("fx_source") if isinstance(est.get("fx_source"), (int, float)) else float("nan")
+        data.signals.append(Signal("intrinsics", f"estimated fx {fx:.1f} px (source)", "info",
+                                   "focal length estimated from the video (calibrate stage)"
+                                   + (f", formal +- {100 * rel:.2f} %" if rel is not None else "")))
     if store is None:
         return
     try:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from stages.frontend.ingest import parse_intrinsics
-from stages.params import WEIGHTS_FILE, param
+from stages.params import USER_DIR, WEIGHTS_FILE, param
 
 DisPreset = Literal["ultrafast", "fast", "medium", "fine"]
 
@@ -26,7 +26,23 @@ class IngestSettings:
     end: int | None = param(None, "one past the last source frame (None: all)")
     stride: int = param(1, "take every stride-th frame", ge=1)
     long_side: int = param(256, "working resolution, px of the long side (paper: 384)", ge=16)
-    intrinsics: str | None = param(None, "fx,fy,cx,cy at the source resolution", validator=_valid_intrinsics)
+    intrinsics: str | None = param(None, "fx,fy,cx,cy at the source resolution, optionally followed by the lens "
+                                   "distortion k1,k2,p1,p2 (OpenCV order): frames are undistorted at ingest",
+                                   validator=_valid_intrinsics)
+
+
+@dataclass(frozen=True)
+class CalibrateSettings:
+    """One focal length estimated from the video when no intrinsics are given (stages.frontend.calibrate)."""
+
+    mode: Literal["auto", "off"] = param("auto", "auto: estimate one focal length (fx = fy) from the video when no "
+                                         "intrinsics are given (flag, intrinsics.txt or a dataset default); off: keep "
+                                         "the guess f = 300/384 x long side")
+    max_frames: int = param(48, "frames sampled by image motion over the clip for the estimate", ge=3)
+    features: int = param(1000, "SIFT features per sampled frame (the strongest; 2000: a textured synthetic clip "
+                          "7 % off and 2x slower)", ge=100)
+    max_rel_sigma: float = param(0.03, "an estimate less certain than this (std / f) is not used: the motion does "
+                                 "not determine the focal length; the guess is kept", gt=0)
 
 
 @dataclass(frozen=True)
@@ -57,6 +73,9 @@ class MasksSettings:
     weights: str | None = param(None, "Mask R-CNN weights file", json_schema_extra=WEIGHTS_FILE)
     score_thresh: float = param(0.5, "Mask R-CNN detections scoring less are ignored", ge=0, le=1)
     min_size: int = param(800, "Mask R-CNN input short side, px (torchvision: 800)", ge=32)
+    user_dir: str | None = param(None, "your own masks (--masks DIR): one PNG per frame, named as the frame (or in "
+                                 "frame order), non-zero = leave this pixel out; combined with the backend's masks",
+                                 json_schema_extra=USER_DIR)
 
     def check(self) -> None:
         if "maskrcnn" in self.backend and not self.weights:

@@ -1,0 +1,105 @@
+"""Lens distortion: `synth --distortion` renders through OpenCV's radial-tangential model and writes
+the coefficients into intrinsics.txt; ingest undistorts each frame with them (and the coefficients
+are in each ingest item's key); 4-number intrinsics keep working as before."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from conftest import cli
+
+from gcvd_flow import pipeline
+from gcvd_flow.evaluate.synth import render_clip
+from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt
+from gcvd_flow.io.sources import open_source
+from stages.frontend.ingest import parse_distortion, parse_intrinsics, undistort_frame
+
+DIST = (-0.28, 0.08, 0.001, -0.0005)
+
+
+def _interior(img: np.ndarray, border: int = 8) -> np.ndarray:
+    m = img.sum(-1) > 0
+    m[:border], m[-border:], m[:, :border], m[:, -border:] = False, False, False, False
+    return m
+
+
+def test_undistort_recovers_the_pinhole_frame():
+    d = render_clip(2, "loop", size=(160, 120), distortion=DIST)
+    p = render_clip(2, "loop", size=(160, 120))
+    assert d.distortion == DIST and np.array_equal(d.K, p.K) and np.array_equal(d.depth, p.depth)
+    K = d.K
+    u = undistort_frame(d.frames[1], (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), DIST)
+    m = _interior(u)
+    assert m.mean() > 0.7
+    err_undistorted = np.abs(u.astype(float) - p.frames[1])[m].mean()
+    err_distorted = np.abs(d.frames[1].astype(float) - p.frames[1])[m].mean()
+    assert err_undistorted < 3.0 < 8.0 < err_distorted, (err_undistorted, err_distorted)
+
+
+def test_parse_eight_numbers():
+    assert parse_intrinsics("100,101,50,40,-0.28,0.08,0,0") == (100.0, 101.0, 50.0, 40.0)
+    assert parse_distortion("100,101,50,40,-0.28,0.08,0,0") == (-0.28, 0.08, 0.0, 0.0)
+    assert parse_distortion("100,101,50,40") is None
+    with pytest.raises(ValueError, match="k1,k2,p1,p2"):
+        parse_intrinsics("1,2,3,4,5")
+
+
+def test_synth_writes_and_ingest_applies_the_distortion(tmp_path):
+    out = tmp_path / "clip"
+    r = cli("synth", str(out), "--frames", "3", "--size", "96x72", "--trajectory", "loop",
+            "--distortion=" + ",".join(str(v) for v in DIST))
+    assert r.returncode == 0, r.stderr
+    assert np.allclose(read_distortion_txt(out / "intrinsics.txt"), DIST)
+    K = read_intrinsics_txt(out / "intrinsics.txt")
+    src = open_source(str(out))
+    assert src.distortion == pytest.approx(DIST)
+    cfg = pipeline.GCVDConfig()
+    items = pipeline._ingest_items(SimpleNamespace(source=src), cfg.ingest)
+    assert items[0]["undistort"].value[1] == pytest.approx(list(DIST))  # in the item's key
+    it = items[1]
+    img = pipeline.run_ingest({"frame": it["frame"].loader(), "source_size": it["source_size"].value,
+                               "name": "f", "undistort": it["undistort"].value}, cfg.ingest, None)["image"]
+    raw = it["frame"].loader()
+    expect = undistort_frame(raw, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), DIST)
+    assert np.array_equal(img, expect) and not np.array_equal(img, raw)
+    # --intrinsics with 4 numbers: no undistortion, items keyed as before
+    cfg4 = pipeline.GCVDConfig(ingest={"intrinsics": f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"})
+    assert "undistort" not in pipeline._ingest_items(SimpleNamespace(source=src), cfg4.ingest)[0]
+
+
+def test_bad_distortion_is_one_line_exit_2(tmp_path):
+    r = cli("synth", str(tmp_path / "x"), "--frames", "2", "--distortion", "0.1,0.2")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+QUICK = ["--set", "optimize_keyframes.steps=2", "--set", "optimize_edges.steps=2",
+         "--set", "optimize_segments.steps=2", "--set", "depth_fusion.enabled=false"]
+
+
+@pytest.mark.slow
+def test_export_ships_undistorted_frames_with_a_pinhole_camera(tmp_path):
+    """A run of a distorted clip (coefficients in intrinsics.txt) exported to COLMAP at the source
+    resolution: the images are the undistorted source frames, the camera PINHOLE with the source
+    intrinsics, and pycolmap loads the model with the points reprojecting onto the images."""
+    pycolmap = pytest.importorskip("pycolmap")
+    import cv2
+    from conftest import cli_json
+
+    clip, run_dir, out = tmp_path / "clip", tmp_path / "run", tmp_path / "exp"
+    cli("synth", str(clip), "--frames", "8", "--size", "96x72", "--trajectory", "loop",
+        "--distortion=" + ",".join(str(v) for v in DIST), check=True)
+    cli_json("run", str(clip), "--out", str(run_dir), "--cache", str(tmp_path / "cache"), *QUICK,
+             "--set", "ingest.long_side=64")
+    cams = __import__("json").loads((run_dir / "cameras.json").read_text())
+    assert cams["frames_undistorted"] and cams["distortion"] == pytest.approx(list(DIST))
+    cli_json("export", str(run_dir), "--format", "colmap", "--to", str(out))
+    K = read_intrinsics_txt(clip / "intrinsics.txt")
+    rec = pycolmap.Reconstruction(str(out / "colmap/sparse/0"))
+    cam = rec.cameras[1]
+    assert cam.model.name == "PINHOLE" and (cam.width, cam.height) == (96, 72)
+    np.testing.assert_allclose(cam.params, [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5], rtol=1e-9)
+    rec.update_point_3d_errors()
+    assert rec.compute_mean_reprojection_error() < 1.0
+    src = cv2.imread(str(clip / "frames" / "000003.png"))[..., ::-1]
+    got = cv2.imread(str(out / "images/000003.png"))[..., ::-1]
+    np.testing.assert_array_equal(got, undistort_frame(src, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), DIST))
