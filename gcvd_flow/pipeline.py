@@ -791,6 +791,8 @@ class DepthFusionParams(Section):
                                "0.0530 -> 0.0523, loop 0.0419 -> 0.0405)")
     agree_log_dev: float = Field(0.3, gt=0, description="measurements within this of the optimised "
                                  "depth count as agreeing in the confidence")
+    coverage_refs: int = Field(2, ge=1, description="agreeing references that give a pixel full coverage "
+                               "in the confidence (with two offsets: agreeing / references)")
 
 
 def _fusion_items(view, p: DepthFusionParams):
@@ -819,7 +821,7 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
              for fl, d, j in zip(inputs["refs"], inputs["ref_dirs"], inputs["ref_indices"])]
     fused, measured, confidence = depth_fusion.fuse_depth_flows(
         depth, poses[i], flows, np.asarray(inputs["K"]), min_angle_deg=p.min_angle_deg,
-        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev)
+        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev, coverage_refs=p.coverage_refs)
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
