@@ -189,6 +189,12 @@ def _fusion_refs(i: int, n: int, p: "DepthFusionParams") -> list[int]:
     return [i + off for off in p.offsets if 0 <= i + off < n and off != 0] if p.enabled else []
 
 
+def _fusion_far_refs(i: int, n: int, p: "DepthFusionParams") -> list[int]:
+    """Frame i's fusion references whose flow flow_far computes: the adjacent ones (+-1) are the
+    flow stage's own pairs, read from there."""
+    return [j for j in _fusion_refs(i, n, p) if abs(j - i) != 1]
+
+
 def _far_pair(i: int, j: int, preset: str, fb_thresh: float) -> tuple[int, int, str, float]:
     return (min(i, j), max(i, j), preset, float(fb_thresh))
 
@@ -198,7 +204,7 @@ def _far_pairs(n: int, b: Any) -> list[tuple[int, int, str, float]]:
     for i in range(n):
         pairs.update(_far_pair(i, j, b.priors.preset, b.priors.fb_thresh) for j in _prior_refs(i, n, b.priors))
         pairs.update(_far_pair(i, j, b.depth_fusion.preset, b.depth_fusion.fb_thresh)
-                     for j in _fusion_refs(i, n, b.depth_fusion))
+                     for j in _fusion_far_refs(i, n, b.depth_fusion))
     return sorted(pairs)
 
 
@@ -801,11 +807,16 @@ def _fusion_items(view, p: DepthFusionParams):
     index = _far_index(view) if p.enabled else {}
     out = []
     for i in range(n):
-        refs = _fusion_refs(i, n, p)
+        far = _fusion_far_refs(i, n, p)
+        near = [j for j in _fusion_refs(i, n, p) if abs(j - i) == 1]
+        refs = _far_refs(index, i, far, p.preset, p.fb_thresh)
+        # adjacent references: the flow stage's pair (i, i+1) seen from i (fwd) or from i+1 (bwd)
+        refs["refs"] += [ItemRef("flow", min(i, j)) for j in near]
+        refs["ref_dirs"] = Const(refs["ref_dirs"].value + ["fwd" if j > i else "bwd" for j in near])
         out.append({"index": Const(i), "K": PartRef("ingest", ("K",), summary=True),
                     "poses": PartRef("optimize_segments", ("poses",)),
                     "depth": PartRef("optimize_segments", ("depths", i)),
-                    **_far_refs(index, i, refs, p.preset, p.fb_thresh), "ref_indices": Const(refs)})
+                    **refs, "ref_indices": Const(far + near)})
     return out
 
 
@@ -825,7 +836,7 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "flow_far", "optimize_segments"),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=("ingest", "flow", "flow_far", "optimize_segments"),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 

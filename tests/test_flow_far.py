@@ -104,6 +104,11 @@ def test_each_pair_once_and_offsets_do_not_invalidate_priors(clip, tmp_path):
     # fusion at +-4 needs no new flow: the span-4 prior computed those pairs already
     near = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -4, 4, 8]")
     assert near["flow_far"]["executed"] == 0 and near["priors"]["executed"] == 0
+    # fusion at +-1 reads the flow stage's adjacent pairs: no flow_far item either
+    adj = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -1, 1, 8]")
+    assert adj["flow_far"]["executed"] == 0
+    assert all(abs(a - b) != 1 for a, b, *_ in gp._far_pairs(N, type("B", (), {
+        "priors": gp.PriorsParams(), "depth_fusion": gp.DepthFusionParams(offsets=(-8, -1, 1, 8))})))
 
 
 def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
