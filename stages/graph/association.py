@@ -523,6 +523,8 @@ def _consecutive_flows(kfs: list[int], kf_images: list[np.ndarray] | np.ndarray,
     return {(kfs[m], kfs[m + 1]): fl for m, fl in enumerate(call_map(_pair_flow_call, calls))}
 
 
+# The body is the four steps in order (SIFT + consecutive flows, descriptors, candidates,
+# verification); long because half of it is the docstring documenting every argument and the output
 def build_graph(
     kf_indices: list[int],
     kf_images: list[np.ndarray] | np.ndarray,
