@@ -275,10 +275,16 @@ def _fusion_refs(i: int, n: int, p: Any) -> list[int]:
     return references.offset_references(i, n, p.offsets) if p.enabled else []
 
 
+def _fusion_far_refs(i: int, n: int, p: Any) -> list[int]:
+    """Frame i's fusion references whose flow flow_far computes: the adjacent ones (+-1) are the
+    flow stage's own pairs, read from there."""
+    return [j for j in _fusion_refs(i, n, p) if abs(j - i) != 1]
+
+
 def _far_pairs(n: int, b: Any) -> list[references.FarPair]:
     """The pairs flow_far computes: what priors and depth_fusion (bundle ``b``) ask for."""
     return references.far_pairs(n, [(lambda i: _prior_refs(i, n, b.priors), b.priors.preset, b.priors.fb_thresh),
-                                    (lambda i: _fusion_refs(i, n, b.depth_fusion), b.depth_fusion.preset,
+                                    (lambda i: _fusion_far_refs(i, n, b.depth_fusion), b.depth_fusion.preset,
                                      b.depth_fusion.fb_thresh)])
 
 
@@ -367,7 +373,7 @@ def _mask_items(view, p: MasksParams):
         it: dict[str, Any] = {}
         if p.backend != "maskrcnn":
             it = {"K": PartRef(CALIBRATE, ("K",)), **_chain_refs(i, n, p.span)}
-        if "maskrcnn" in p.backend:
+        if "maskrcnn" in p.backend or (p.backend != "none" and p.texture_frac > 0):
             it["image"] = ItemRef(INGEST, i)
         if user:
             it["user_mask"] = user[i]
@@ -409,15 +415,16 @@ def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
 
 
 def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
-    """Frame i -> {static: uint8 (H, W), 1 = static}: the backend's mask with the user's (--masks)
-    pixels set to 0."""
-    return {"static": _with_user_mask(_backend_mask(inputs, p, ctx)["static"], inputs)}
+    """Frame i -> {static: uint8 (H, W), 1 = static, solve: uint8 (H, W), 1 = static and flow the
+    optimisations trust}: the backend's masks with the user's (--masks) pixels set to 0."""
+    masks = _backend_mask(inputs, p, ctx)
+    return {k: _with_user_mask(v, inputs) for k, v in masks.items()}
 
 
 def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
-    """Frame i -> {static: uint8 (H, W), 1 = static}, from its adjacent and chained flows
-    (backend motion), its image's Mask R-CNN instances of moving classes (maskrcnn), or both
-    (motion+maskrcnn: static where both say static)."""
+    """Frame i -> {static, solve}, from its adjacent and chained flows (backend motion), its
+    image's Mask R-CNN instances of moving classes (maskrcnn), or both (motion+maskrcnn: static
+    where both say static)."""
     semantic = None
     if "maskrcnn" in p.backend:
         from stages.models.maskrcnn import semantic_static_mask
@@ -425,17 +432,27 @@ def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str,
         semantic = semantic_static_mask(ctx.resource("model"), inputs["image"]["image"],
                                         score_thresh=p.score_thresh, dilate=p.dilate)
         if p.backend == "maskrcnn":
-            return {"static": semantic}
+            return {"static": semantic, "solve": semantic}
     fwd = inputs["direction"] == "fwd"
     chain = [(fl["fwd"], fl["fwd_valid"]) if fwd else (fl["bwd"], fl["bwd_valid"]) for fl in inputs["chain"]]
     h, w = chain[0][0].shape[:2]
     if p.backend == "none":
-        return {"static": np.ones((h, w), np.uint8)}
+        return {"static": np.ones((h, w), np.uint8), "solve": np.ones((h, w), np.uint8)}
     neighbours = [chain[0]]
     if len(chain) > 1:
         neighbours.append(flow.chain_flows(chain))
-    motion = masks_mod.motion_static_mask(np.asarray(inputs["K"]), neighbours, dilate=p.dilate)
-    return {"static": motion if semantic is None else np.minimum(motion, semantic)}
+    image = inputs["image"]["image"] if p.texture_frac > 0 else None
+    motion, solve = masks_mod.motion_masks(np.asarray(inputs["K"]), neighbours, image=image, dilate=p.dilate,
+                                           sigma_mult=p.sigma_mult, texture_frac=p.texture_frac)
+    if semantic is not None:
+        motion, solve = np.minimum(motion, semantic), np.minimum(solve, semantic)
+    return {"static": motion, "solve": solve}
+
+
+def _solve_mask(item: dict[str, Any]) -> np.ndarray:
+    """The mask the optimisations use: ``solve`` (static and flow agreeing with the static scene),
+    ``static`` for a mask item without it."""
+    return np.asarray(item.get("solve", item["static"]))
 
 
 MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, CALIBRATE, FLOW), params="masks", kind="mask",
@@ -504,7 +521,7 @@ def run_keyframes(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     """All frames -> {indices, accumulated, threshold_px, motion} (JSON)."""
     flows, masks_ = inputs["flow"], inputs["masks"]
     n = len(masks_)
-    motion = [keyframes_mod.pair_motion(flows[i]["fwd"], flows[i]["fwd_valid"], masks_[i]["static"])
+    motion = [keyframes_mod.pair_motion(flows[i]["fwd"], flows[i]["fwd_valid"], _solve_mask(masks_[i]))
               for i in range(n - 1)]
     h, w = masks_[0]["static"].shape
     if not p.enabled:  # ablation "w/o keyframes": every frame is a keyframe
@@ -538,7 +555,9 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     K = np.asarray(inputs["calibrate"]["K"])
     images = [frames[i]["image"] for i in kf]
     kw: dict[str, Any] = dict(nms=p.nms, min_separation=p.min_separation,
-                              min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent)
+                              min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent,
+                              verify=p.verify, min_inliers=p.min_inliers, min_epipolar=p.min_epipolar,
+                              per_keyframe=p.per_keyframe, max_candidates=p.max_candidates)
     if p.threshold is not None:
         kw["similarity_threshold"] = p.threshold
     if p.backend == "resnet18":
@@ -596,7 +615,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
     pair_flows = keyframes_mod.keyframe_pair_flows(kf, inputs["association"]["edge_flows"])
     res = opt_keyframes.optimize_keyframes(
         _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
-        _stack(inputs["masks"], kf, "static"), np.asarray(inputs["calibrate"]["K"]), pair_flows,
+        np.stack([_solve_mask(inputs["masks"][i]) for i in kf]), np.asarray(inputs["calibrate"]["K"]), pair_flows,
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seed=ctx.seed, checkpointer=ctx.checkpointer,
         window_map=ctx.map)  # schedule=independent: the windows side by side on the run's workers
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
@@ -630,7 +649,7 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     def calls():  # built lazily: only the edges in flight are in memory
         for n, (i, j) in enumerate(graph_edges):
             yield dict(img_a=frames[i]["image"], img_b=frames[j]["image"], prior_a=priors_[i]["inv_depth"],
-                       prior_b=priors_[j]["inv_depth"], mask_a=masks_[i]["static"], mask_b=masks_[j]["static"], K=K,
+                       prior_b=priors_[j]["inv_depth"], mask_a=_solve_mask(masks_[i]), mask_b=_solve_mask(masks_[j]), K=K,
                        flow=flows[(i, j)], init_T_b_a=_inv(T_w_k[pos[j]]) @ T_w_k[pos[i]], depth=b.depth,
                        losses=b.losses, kf=b.optimize_keyframes, edge=b.optimize_edges, seed=ctx.seed + n)
 
@@ -769,7 +788,7 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
     frames, flows = inputs["ingest"], inputs["flow"]
     okf, ba = inputs["optimize_keyframes"], inputs["bundle_adjustment"]
     res = opt_segments.optimize_segments(
-        frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("static"),
+        frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("solve"),
         np.asarray(inputs["calibrate"]["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
         np.asarray(ba["poses"]), _ScaledDepths(okf["depths"], np.asarray(ba["depth_scale"], np.float32)),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
@@ -794,11 +813,16 @@ def _fusion_items(view, p: DepthFusionParams):
     index = _far_index(view) if p.enabled else {}
     out = []
     for i in range(n):
-        refs = _fusion_refs(i, n, p)
+        far = _fusion_far_refs(i, n, p)
+        near = [j for j in _fusion_refs(i, n, p) if abs(j - i) == 1]
+        refs = _far_refs(index, i, far, p.preset, p.fb_thresh)
+        # adjacent references: the flow stage's pair (i, i+1) seen from i (fwd) or from i+1 (bwd)
+        refs["refs"] += [ItemRef(FLOW, min(i, j)) for j in near]
+        refs["ref_dirs"] = Const(refs["ref_dirs"].value + ["fwd" if j > i else "bwd" for j in near])
         out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
                     "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
-                    **_far_refs(index, i, refs, p.preset, p.fb_thresh), "ref_indices": Const(refs)})
+                    **refs, "ref_indices": Const(far + near)})
     return out
 
 
@@ -814,11 +838,11 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
              for fl, d, j in zip(inputs["refs"], inputs["ref_dirs"], inputs["ref_indices"])]
     fused, measured, confidence = depth_fusion.fuse_depth_flows(
         depth, poses[i], flows, np.asarray(inputs["K"]), min_angle_deg=p.min_angle_deg,
-        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev)
+        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev, coverage_refs=p.coverage_refs)
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, OPTIMIZE_SEGMENTS),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 
@@ -914,6 +938,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     # The paper's / authors' settings (GPU-sized), and the paper's method: no bundle adjustment.
     "paper": {
         "bundle_adjustment": {"enabled": False},
+        "association": {"verify": "paper", "per_keyframe": 0},
         "ingest": {"long_side": 384},
         "flow": {"preset": "medium"},
         "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024},

@@ -19,6 +19,7 @@ from stages.graph.association import (
     DEFAULT_SIMILARITY_THRESHOLD,
     build_graph,
     candidate_pairs,
+    flow_epipolar_agreement,
     global_descriptor,
     keyframe_pair_flow,
     verify_pair,
@@ -39,11 +40,15 @@ def _keyframes(frames: np.ndarray, delta: float = 0.1) -> dict:
 
 
 @pytest.fixture(scope="module")
-def loop_clip():
+def loop_render():
+    return render_clip(121, "loop", size=SIZE)
+
+
+@pytest.fixture(scope="module")
+def loop_clip(loop_render):
     # 121 rendered poses with the last == the first; dropping it leaves a loop whose last frame
     # is one step short of the start (a real revisit, not a copy of frame 0).
-    clip = render_clip(121, "loop", size=SIZE)
-    return clip.frames[:-1], clip.K
+    return loop_render.frames[:-1], loop_render.K
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +82,10 @@ def test_candidate_pairs_separation_and_nms() -> None:
     assert a == 2 and b in (20, 21, 22) and s > 0.99
     assert len(candidate_pairs(desc, threshold=0.9, nms=1, min_separation=8)) == 3
     assert candidate_pairs(desc, threshold=0.9, nms=8, min_separation=25) == []
+    # per_keyframe: each of 20..22 also proposes its best partner (2): the whole revisit
+    more = candidate_pairs(desc, threshold=0.9, nms=8, min_separation=8, per_keyframe=1)
+    assert sorted((a, b) for a, b, _ in more) == [(2, 20), (2, 21), (2, 22)]
+    assert len(candidate_pairs(desc, threshold=0.9, nms=8, min_separation=8, per_keyframe=1, max_candidates=2)) == 2
 
 
 def test_keyframe_pair_flow_prewarp_matches_gt(rotation_clip) -> None:
@@ -106,7 +115,7 @@ def test_loop_closes_end_to_start(loop_clip) -> None:
     assert any(e["i"] <= kfs[1] and e["j"] >= kfs[-2] for e in loops), graph
     for e in loops:
         assert e["inlier_ratio"] >= 0.5 and e["consistent_fraction"] >= 0.1
-        assert e["mean_flow"] <= sel["threshold_px"]
+        assert e["n_inliers"] >= 20 and (e["epipolar"] == -1.0 or e["epipolar"] >= 0.5)
         assert (e["i"], e["j"]) in flows
     n = len(kfs)
     assert len(graph["sequential_edges"]) == sum(max(0, n - t) for t in (1, 2, 4, 8))
@@ -133,12 +142,13 @@ def test_forward_clip_has_no_loop_edge() -> None:
     sel = _keyframes(clip.frames, delta=0.03)
     kfs = sel["indices"]
     imgs = [clip.frames[i] for i in kfs]
-    graph, _ = build_graph(kfs, imgs, clip.K, sel["threshold_px"])
+    graph, _ = build_graph(kfs, imgs, clip.K, sel["threshold_px"], verify="paper")
     assert graph["nonsequential_edges"] == []
-    # Make every pair >= 3 keyframes apart a candidate: verification must reject them all,
-    # because such views are >= 3 keyframe thresholds of motion apart.
+    # Make every pair >= 3 keyframes apart a candidate: the paper's verification must reject them
+    # all, because such views are >= 3 keyframe thresholds of motion apart (the geometric one
+    # accepts what overlaps: these are true views of one scene).
     graph, flows = build_graph(
-        kfs, imgs, clip.K, sel["threshold_px"], similarity_threshold=-1.0, nms=1, min_separation=2
+        kfs, imgs, clip.K, sel["threshold_px"], similarity_threshold=-1.0, nms=1, min_separation=2, verify="paper"
     )
     assert graph["nonsequential_edges"] == []
     assert len(graph["rejected"]) >= 5
@@ -151,8 +161,63 @@ def test_verify_pair_accepts_a_near_view(loop_clip) -> None:
     v = verify_pair(frames[0], frames[3], K, keyframe_threshold_px=12.0)
     assert v["accepted"], v["reason"]
     assert v["mean_flow"] < 12.0 and v["inlier_ratio"] > 0.8
-    v = verify_pair(frames[0], frames[3], K, keyframe_threshold_px=0.5)
+    v = verify_pair(frames[0], frames[3], K, keyframe_threshold_px=0.5, mode="paper")
     assert not v["accepted"] and "mean flow" in v["reason"]
+    assert verify_pair(frames[0], frames[3], K, keyframe_threshold_px=0.5)["accepted"]
+
+
+def test_wide_baseline_revisit_closes_the_loop(loop_clip) -> None:
+    """A handheld camera returns near, not onto, its start: the clip stops 8 frames short of
+    closing its loop, so its last keyframe sees the start with 14 px of mean flow, more than
+    the 12 px keyframe threshold. The geometric verification accepts that revisit (and tracks it
+    into the graph); the paper's one-keyframe-apart rule rejects it."""
+    frames, K = loop_clip
+    frames = frames[:-8]
+    sel = _keyframes(frames)
+    kfs, thr = sel["indices"], sel["threshold_px"]
+    imgs = [frames[i] for i in kfs]
+    graph, flows = build_graph(kfs, imgs, K, thr, per_keyframe=1)
+    closing = [e for e in graph["nonsequential_edges"] if e["i"] <= kfs[1] and e["j"] >= kfs[-2]]
+    assert closing, graph["rejected"]
+    assert max(e["mean_flow"] for e in closing) > thr  # wider than the paper's rule allows
+    assert all((e["i"], e["j"]) in flows for e in closing)
+    assert graph["verify"] == "geometric" and graph["candidates"] >= len(graph["nonsequential_edges"])
+    paper, _ = build_graph(kfs, imgs, K, thr, per_keyframe=1, verify="paper")
+    assert not [e for e in paper["nonsequential_edges"] if e["i"] <= kfs[1] and e["j"] >= kfs[-2]]
+    assert any("mean flow" in r["reason"] for r in paper["rejected"])
+
+
+def test_false_candidates_are_rejected(loop_clip) -> None:
+    """A look-alike place (the same room layout with other surfaces: the descriptor finds it
+    similar) and a mirrored view are rejected by the geometric verification."""
+    frames, K = loop_clip
+    other = render_clip(2, "loop", size=SIZE, seed=5).frames[0]
+    v = verify_pair(frames[0], other, K, keyframe_threshold_px=12.0)
+    assert not v["accepted"] and ("matches" in v["reason"] or "inlier" in v["reason"]), v["reason"]
+    v = verify_pair(frames[0], np.ascontiguousarray(frames[20][:, ::-1]), K, keyframe_threshold_px=12.0)
+    assert not v["accepted"], v["reason"]
+
+
+def _essential(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
+    T_b_a = np.linalg.inv(T_w_b) @ T_w_a
+    t = T_b_a[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return tx @ T_b_a[:3, :3]
+
+
+def test_flow_epipolar_agreement(loop_render) -> None:
+    """Dense flow that obeys the two views' geometry agrees with their essential matrix; the
+    same flow against another pair's geometry does not (what rejects a candidate whose few
+    feature matches fit a geometry its dense flow does not)."""
+    c = loop_render
+    a, b = 0, 12
+    fl = rigid_flow(c.depth[a], c.K, c.poses[a], c.poses[b])
+    valid = np.isfinite(fl).all(-1)
+    fl = np.where(valid[..., None], fl, 0.0)
+    right = flow_epipolar_agreement(_essential(c.poses[a], c.poses[b]), c.K, fl, valid)
+    wrong = flow_epipolar_agreement(_essential(c.poses[a], c.poses[60]), c.K, fl, valid)
+    assert right > 0.99 and wrong < 0.3, (right, wrong)
+    assert flow_epipolar_agreement(_essential(c.poses[a], c.poses[b]), c.K, fl, np.zeros_like(valid)) == 0.0
 
 
 def test_resnet18_roundtrip_safetensors_and_pth(tmp_path: Path, loop_clip) -> None:

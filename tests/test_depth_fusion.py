@@ -80,3 +80,25 @@ def test_fusion_fuses_within_max_log_dev_but_counts_agreement_within_agree_log_d
     assert np.median(np.abs(narrow[region] * scale / gt[region] - 1)) > 0.3
     np.testing.assert_array_equal(conf_wide, conf_narrow)  # same agreeing measurements, same confidence
     assert np.median(conf_wide[region]) < 0.1 < np.median(conf_wide)
+
+
+def test_confident_share_on_a_fast_pan_with_near_and_far_references():
+    """Wide-baseline footage (a room scan panning several degrees per frame): far references
+    leave the view, near ones measure. With coverage counted against two agreeing views
+    (``coverage_refs=2``, the pipeline's default) a large share of the pixels is confident and
+    right; counted against every reference (the rule before 2026-11-25) few are."""
+    clip = render_clip(100, "scan", size=(128, 96), seed=0)
+    i = 53
+    gt = clip.depth[i]
+    v, u = np.mgrid[0:96, 0:128]
+    smooth = (gt * (1 + 0.15 * np.sin(u / 20.0) * np.cos(v / 15.0))).astype(np.float32)
+    refs = [(clip.frames[i + k], clip.poses[i + k]) for k in (-8, -4, -2, 2, 4, 8)]
+    fused, _, conf = fuse_depth(clip.frames[i], smooth, clip.poses[i], refs, clip.K, coverage_refs=2)
+    _, _, conf_all = fuse_depth(clip.frames[i], smooth, clip.poses[i], refs, clip.K, coverage_refs=len(refs))
+    ok = (conf >= 0.5) & (gt > 0)
+    err = np.abs(fused * np.median(gt[gt > 0] / fused[gt > 0]) - gt) / np.maximum(gt, 1e-6)
+    share, share_all = ok.mean(), ((conf_all >= 0.5) & (gt > 0)).mean()
+    print(f"confident share {share:.3f} (every reference: {share_all:.3f}), AbsRel on it {err[ok].mean():.4f}, "
+          f"elsewhere {err[~ok & (gt > 0)].mean():.4f}")
+    assert share >= 0.4 and share >= share_all + 0.2
+    assert err[ok].mean() <= 0.05 and err[ok].mean() < err[~ok & (gt > 0)].mean()

@@ -42,17 +42,22 @@ def test_graph_priors_and_fusion_read_flow_far():
 
 
 def test_pairs_are_the_union_of_both_consumers():
-    pairs = _pairs(N)
+    two = {"offsets": (-8, 8)}  # fusion's references until 2026-11-25
+    pairs = _pairs(N, depth_fusion=two)
     assert len(pairs) == len(set(pairs)) and all(a < b for a, b, _, _ in pairs)
     spans = Counter(b - a for a, b, _, _ in pairs)
     # i-8 / i+8 of fusion and the span-8 prior share one set of pairs; the span-4 prior its own
     assert spans == {8: N - 8, 4: N - 4}
     # a consumer of each kind asks for 2 flows per frame: 4 per frame before, ~2 per frame now
-    asked = sum(len(gp._prior_refs(i, N, gp.PriorsParams())) + len(gp._fusion_refs(i, N, gp.DepthFusionParams()))
+    asked = sum(len(gp._prior_refs(i, N, gp.PriorsParams())) + len(gp._fusion_refs(i, N, gp.DepthFusionParams(**two)))
                 for i in range(N))
     assert asked == 2 * N + 2 * (N - 8) and len(pairs) == 2 * N - 12
+    # the default references (+-1, 2, 4, 8): +-8 and +-4 shared with the priors, +-1 the flow
+    # stage's own pairs; only the +-2 pairs are new
+    assert Counter(b - a for a, b, _, _ in _pairs(N)) == {8: N - 8, 4: N - 4, 2: N - 2}
+    pairs = _pairs(N, depth_fusion=two)
     # sections disagreeing on the DIS settings get separate pairs, nothing shared by mistake
-    apart = _pairs(N, depth_fusion={"preset": "medium"})
+    apart = _pairs(N, depth_fusion={"preset": "medium", **two})
     assert len(apart) == len(pairs) + (N - 8)
     assert _pairs(N, priors={"backend": "midas", "weights": __file__}, depth_fusion={"enabled": False}) == []
 
@@ -97,11 +102,17 @@ def test_each_pair_once_and_offsets_do_not_invalidate_priors(clip, tmp_path):
         assert np.array_equal(pri[i]["inv_depth"], ref["inv_depth"].astype(np.float32))
     # a further fusion reference computes only its new pairs; the priors stay cached
     more = _run(clip, tmp_path, "depth_fusion.offsets=[-8, 8, 12]")
-    assert more["flow_far"]["executed"] == N - 12 and more["flow_far"]["cached"] == len(_pairs(N))
+    assert more["flow_far"]["executed"] == N - 12
+    assert more["flow_far"]["cached"] == len(_pairs(N, depth_fusion={"offsets": (-8, 8)}))
     assert more["priors"]["executed"] == 0 and more["priors"]["cached"] == N
     # fusion at +-4 needs no new flow: the span-4 prior computed those pairs already
     near = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -4, 4, 8]")
     assert near["flow_far"]["executed"] == 0 and near["priors"]["executed"] == 0
+    # fusion at +-1 reads the flow stage's adjacent pairs: no flow_far item either
+    adj = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -1, 1, 8]")
+    assert adj["flow_far"]["executed"] == 0
+    assert all(abs(a - b) != 1 for a, b, *_ in gp._far_pairs(N, type("B", (), {
+        "priors": gp.PriorsParams(), "depth_fusion": gp.DepthFusionParams(offsets=(-8, -1, 1, 8))})))
 
 
 def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):

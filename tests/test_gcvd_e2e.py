@@ -100,18 +100,20 @@ def test_killed_optimisation_resumes_from_checkpoint(reference_run, loop_clip, t
 
 
 def test_pose_graph_lowers_ate_on_the_loop(reference_run, loop_clip):
-    """The loop edge (end -> start) enters the pose graph and pulls the drift back: the same run
-    with `pose_graph.enabled=false` (sharing the cache: only pose_graph and what follows re-run)
-    ends further from the ground truth. Measured: ATE 1.15 % vs 1.34 % of the path."""
+    """The loop edge (end -> start) enters the pose graph and pulls the drift back: with bundle
+    adjustment off in both (since 2026-11-25 its weak prior lets it close the loop by itself, over
+    the tracks that hop across the loop edge, so the final poses no longer show the pose graph),
+    the run with `pose_graph.enabled=false` (sharing the cache: only pose_graph and what follows
+    re-run) ends further from the ground truth. Measured: ATE 1.15 % vs 1.34 % of the path."""
     work = reference_run.parent
-    off = work / "run-no-pose-graph"
-    doc = cli_json("run", str(loop_clip), "--out", str(off), "--cache", str(work / "cache"), *QUICK,
-                   "--set", "pose_graph.enabled=false")
-    st = by_stage(doc)
-    assert st["optimize_keyframes"]["executed"] == 0 and st["optimize_edges"]["executed"] == 0
-    assert st["pose_graph"]["executed"] == 1
-    rj = json.loads((reference_run / "run.json").read_text())
-    assert rj["stages"]["pose_graph"]["output"] != json.loads((off / "run.json").read_text())["stages"]["pose_graph"]["output"]
-    on = cli_json("eval", str(reference_run), "--gt", str(loop_clip))
-    without = cli_json("eval", str(off), "--gt", str(loop_clip))
+    runs = {}
+    for name, pg in (("pg", "true"), ("no-pg", "false")):
+        out = work / f"run-ba-off-{name}"
+        doc = cli_json("run", str(loop_clip), "--out", str(out), "--cache", str(work / "cache"), *QUICK,
+                       "--set", f"pose_graph.enabled={pg}", "--set", "bundle_adjustment.enabled=false")
+        st = by_stage(doc)
+        assert st["optimize_keyframes"]["executed"] == 0 and st["optimize_edges"]["executed"] == 0
+        runs[name] = out
+    on = cli_json("eval", str(runs["pg"]), "--gt", str(loop_clip))
+    without = cli_json("eval", str(runs["no-pg"]), "--gt", str(loop_clip))
     assert on["ate_rmse"] < 0.95 * without["ate_rmse"], (on["ate_rmse"], without["ate_rmse"])

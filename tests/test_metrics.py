@@ -292,3 +292,22 @@ def test_run_eval_against_the_icl_frames_by_index(tmp_path):
     res = evaluate(run, icl)
     assert res["association"] == "frame index" and res["frames"] == len(frames) == res["depth_frames"]
     assert res["ate_rmse"] < 1e-9 and res["scale"] == pytest.approx(2.0) and res["abs_rel"] < 1e-6
+
+
+def test_window_scales_see_scale_drift():
+    """A trajectory whose second half is travelled at twice the scale: the windows there need
+    half the scale of the first half's; an exact copy has all window scales 1."""
+    from gcvd_flow.evaluate.metrics import window_scales
+
+    n = 80
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    t = np.linspace(0, 1, n)
+    gt[:, :3, 3] = np.stack([np.cos(3 * t), np.sin(3 * t), 0.3 * t], 1)
+    assert np.allclose(window_scales(gt, gt), 1.0)
+    est = gt.copy()
+    steps = np.diff(gt[:, :3, 3], axis=0)
+    steps[n // 2:] *= 2.0
+    est[1:, :3, 3] = gt[0, :3, 3] + np.cumsum(steps, axis=0)
+    ws = window_scales(est, gt)
+    assert len(ws) == 4 and ws[:2].min() / ws[2:].max() == pytest.approx(2.0, rel=1e-6)
+    assert len(window_scales(gt[:30], gt[:30])) == 0

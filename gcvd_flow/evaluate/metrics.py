@@ -110,6 +110,23 @@ def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, delta: int = 1, align: str 
     return {"rpe_trans": float(np.sqrt(np.mean(t ** 2))), "rpe_rot": float(np.sqrt(np.mean(r ** 2)))}
 
 
+def window_scales(est_poses: np.ndarray, gt_poses: np.ndarray, window: int = 20) -> np.ndarray:
+    """Scale drift: for every run of ``window`` consecutive frames, the Sim(3) (Umeyama) scale
+    fitted on that window's camera positions alone, divided by the whole trajectory's; (W,)
+    float64, empty when there are fewer than two windows. 1 everywhere = no drift; the spread
+    (max / min) is what windows chained by relative poses accumulate."""
+    est_poses, gt = _check_pair(est_poses, gt_poses)
+    n = len(gt)
+    if n < 2 * window or window < 3:
+        return np.zeros(0)
+    s_all, _, _ = umeyama_alignment(est_poses[:, :3, 3], gt[:, :3, 3], with_scale=True)
+    out = []
+    for a in range(0, n - window + 1, window):
+        s, _, _ = umeyama_alignment(est_poses[a:a + window, :3, 3], gt[a:a + window, :3, 3], with_scale=True)
+        out.append(s / s_all)
+    return np.asarray(out, np.float64)
+
+
 def path_length(poses: np.ndarray) -> float:
     """Total distance travelled by the camera centres of (N, 4, 4) poses (pose units)."""
     p = np.asarray(poses)[:, :3, 3]

@@ -158,6 +158,9 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     res.update(metrics.rpe(est, gt, delta=1))
     res["path_length"] = float(metrics.path_length(gt))
     res["ate_percent_of_path"] = 100.0 * res["ate_rmse"] / max(res["path_length"], 1e-12)
+    ws = metrics.window_scales(est, gt, window=20)
+    if len(ws):  # scale drift between 20-frame windows (1 = none)
+        res["scale_window_min"], res["scale_window_max"] = float(ws.min()), float(ws.max())
     return res
 
 

@@ -17,7 +17,7 @@ objects, textureless areas); the rest are fused in inverse depth with weights = 
 
 Confidence per pixel, in [0, 1] (what NeRF / Gaussian-splatting users weight or mask with):
 agreement x coverage x angle = (measurements agreeing / measurements made at the pixel) x
-(measurements agreeing / references) x (1 - exp(-rms angle / ``ANGLE_SCALE_DEG``)), agreeing =
+min(1, measurements agreeing / ``coverage_refs`` (2)) x (1 - exp(-rms angle / ``ANGLE_SCALE_DEG``)), agreeing =
 within ``agree_log_dev`` (0.3) of the optimised depth; 0 where no
 reference gave a forward-backward-consistent, triangulable measurement.
 
@@ -63,6 +63,7 @@ def fuse_depth(
     min_angle_deg: float = _DEFAULTS.min_angle_deg,
     max_log_dev: float = _DEFAULTS.max_log_dev,
     agree_log_dev: float = _DEFAULTS.agree_log_dev,
+    coverage_refs: int = _DEFAULTS.coverage_refs,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Fused depth float32 (H, W) of one frame, the fraction of pixels measured, and the
     per-pixel confidence float32 (H, W) in [0, 1] (module docstring).
@@ -75,7 +76,7 @@ def fuse_depth(
         fl = flow_mod.compute_pair_flow(image, img_j, preset=preset, fb_thresh=fb_thresh)
         flows.append((fl["fwd"], fl["fwd_valid"], pose_j))
     return fuse_depth_flows(depth, pose, flows, K, min_angle_deg=min_angle_deg, max_log_dev=max_log_dev,
-                            agree_log_dev=agree_log_dev)
+                            agree_log_dev=agree_log_dev, coverage_refs=coverage_refs)
 
 
 def _measure(fwd: np.ndarray, fwd_valid: np.ndarray, depth: np.ndarray, T: np.ndarray, K: np.ndarray,
@@ -105,6 +106,7 @@ def fuse_depth_flows(
     min_angle_deg: float = _DEFAULTS.min_angle_deg,
     max_log_dev: float = _DEFAULTS.max_log_dev,
     agree_log_dev: float = _DEFAULTS.agree_log_dev,
+    coverage_refs: int = _DEFAULTS.coverage_refs,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """``fuse_depth`` with the flows given: flows [(fwd float32 (H, W, 2) this frame -> j,
     fwd_valid bool (H, W) its forward-backward consistency, pose_j (4, 4) camera-to-world), ...]
@@ -115,7 +117,12 @@ def fuse_depth_flows(
     (textureless or thin surfaces) the triangulation is still the better depth, but a pixel whose
     views disagree that much is not one to trust (fused at 0.3: AbsRel ICL 0.0530, loop 0.0419;
     at 0.6: 0.0523, 0.0405; counting those as agreeing too raised the share of confident pixels
-    on the scan and their AbsRel from 0.19 to 0.28)."""
+    on the scan and their AbsRel from 0.19 to 0.28).
+
+    Coverage is agreeing / ``coverage_refs`` (at most 1): with more references than that (near
+    ones for wide-baseline footage, whose far views leave the image, far ones for slow cameras),
+    ``coverage_refs`` agreeing views are enough; with two references and ``coverage_refs`` 2 it
+    is the original agreeing / references."""
     depth = np.asarray(depth, np.float64)
     h, w = depth.shape
     K = np.asarray(K, np.float64)
@@ -149,6 +156,7 @@ def fuse_depth_flows(
     # 3x3 median: per-pixel flow noise, and seams between measured and kept pixels
     fused = cv2.medianBlur(fused.astype(np.float32), 3)
     rms_angle = np.sqrt(den_agree / np.maximum(agreeing, 1.0))
-    confidence = ((agreeing / np.maximum(made, 1.0)) * (agreeing / max(len(flows), 1))
+    full = max(1, min(len(flows), int(coverage_refs)))  # agreeing measurements for full coverage
+    confidence = ((agreeing / np.maximum(made, 1.0)) * np.minimum(agreeing / full, 1.0)
                   * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG)))
     return fused, float(have.mean()), confidence.astype(np.float32)

@@ -68,6 +68,12 @@ class MasksSettings:
         "motion", "motion: flow vs. static geometry; maskrcnn: COCO instances of moving "
         "classes (needs weights); motion+maskrcnn: dynamic if either says so")
     dilate: int = param(5, ge=0)
+    texture_frac: float = param(1.0, "motion evidence is scaled down where the image's Shi-Tomasi texture is "
+                                "below this x its median (flow there is interpolated, not measured); 0 = off. "
+                                "Static real walk-through: 4.1 % of pixels flagged -> 0.9 % (with sigma_mult 5), "
+                                "moving-object IoU 0.459 -> 0.454", ge=0)
+    sigma_mult: float = param(5.0, "a pixel moves when its epipolar residual exceeds median + sigma_mult x "
+                              "robust sigma (4 until 2026-11-25)", gt=0)
     span: int = param(6, "frames spanned by the chained flow (an object moving along epipolar lines over 1 "
                       "frame rarely does over several)", ge=1)
     weights: str | None = param(None, "Mask R-CNN weights file", json_schema_extra=WEIGHTS_FILE)
