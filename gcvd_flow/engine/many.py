@@ -22,6 +22,11 @@ from gcvd_flow.engine.errors import UsageError
 MAX_EXIT = 100
 
 
+
+def _prefixed(log: Callable[[str], None], name: str) -> Callable[[str], None]:
+    """``log`` with every line prefixed by the input's run-dir name."""
+    return lambda m: log(f"[{name}] {m}")
+
 def run_dir_names(inputs: list[str]) -> list[str]:
     """One distinct directory name per input: its file stem or folder name; on a clash the
     later input gets the first free ``NAME-2``, ``NAME-3``, ... not already taken by any input's
@@ -82,7 +87,7 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
             out = root / name
             t0 = time.perf_counter()
             try:
-                res = api.run(replace(base, input=inp, out=str(out)), log=lambda m, n=name: log(f"[{n}] {m}"),
+                res = api.run(replace(base, input=inp, out=str(out)), log=_prefixed(log, name),
                               executor=executor)
                 rows.append(_row(inp, out, res, time.perf_counter() - t0 + early.get(name, (0, 0.0))[1], None,
                                  early.get(name, (0, 0.0))[0]))
@@ -131,7 +136,7 @@ def _map_stages_of_all_inputs(inputs: list[str], names: list[str], root: Path, b
         for target in targets:
             try:
                 res = api.run(replace(base, input=inp, out=str(root / name)), target=target,
-                              log=lambda m, n=name: log(f"[{n}] {m}"), executor=executor)
+                              log=_prefixed(log, name), executor=executor)
             except Exception:  # noqa: BLE001 - reported by the full pass
                 break
             executed += sum(s["executed"] for s in res.get("stages") or [])

@@ -40,7 +40,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Literal
 
 from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import StoreError, UsageError
@@ -548,7 +548,7 @@ class _RemoteErrors:
     def __enter__(self) -> None:
         return None
 
-    def __exit__(self, typ, exc, tb) -> bool:
+    def __exit__(self, typ, exc, tb) -> Literal[False]:  # never swallows: returns False or raises
         if exc is None or isinstance(exc, (UsageError, StoreError)) or not isinstance(exc, Exception):
             return False
         if isinstance(exc, _BUGS):  # our bug, not the remote's state: keep the traceback
@@ -653,30 +653,33 @@ class RemoteRecords:
 
     def get_record(self, key: str) -> dict[str, Any] | None:
         rec = self.store.get_record(key)
-        if rec is None and self._down is not None and key not in self._tried:
+        down = self._down
+        if rec is None and down is not None and key not in self._tried:
             self._tried.add(key)
-            self._guard("read-through", lambda: self._down.download([key], objects=False))
+            self._guard("read-through", lambda: down.download([key], objects=False))
             rec = self.store.get_record(key)
         return rec
 
     def prefetch(self, keys: list[str]) -> None:
         """Items of a map stage: the records this store lacks, fetched in concurrent batches
         (one request per record: the cost follows the run's size, not the remote's)."""
-        if self._down is None:
+        down = self._down
+        if down is None:
             return
         missing = [k for k in keys if k not in self._tried and self.store.get_record(k) is None]
         self._tried.update(missing)
         if missing:
-            self._guard("read-through", lambda: self._down.download(missing, objects=False))
+            self._guard("read-through", lambda: down.download(missing, objects=False))
 
     def stage_done(self, key: str | None, executed: int) -> None:
-        if not self.push or key is None or self.remote is None:
+        remote = self.remote
+        if not self.push or key is None or remote is None:
             return
 
         def push_stage() -> None:
-            if not executed and key in self.remote.record_keys([key]):
+            if not executed and key in remote.record_keys([key]):
                 return
-            st = upload(self.store, self.remote, [key], self.log)
+            st = upload(self.store, remote, [key], self.log)
             for k in self.pushed:
                 self.pushed[k] += st[k]
 
@@ -739,11 +742,11 @@ def _fsck_remote(r: Remote, repair: bool) -> dict[str, Any]:
             except ValueError:
                 rec = None
             problem = "unreadable" if raw is None else record_problem(k, rec)
-            if problem is None:
+            if problem is None and isinstance(rec, dict):  # record_problem checked its shape
                 lost = [d for d, s in rec["objects"].items() if good.get(d) != s]
                 problem = f"names {len(lost)} missing or bad object(s), e.g. {lost[0][:12]}" if lost else None
-            if problem is not None:
-                bad_records[k] = problem
+            if problem is not None or not isinstance(rec, dict):
+                bad_records[k] = problem or "not a record"
             else:
                 recs[k] = rec
     for k, rec in recs.items():
@@ -772,7 +775,7 @@ def _fsck_remote(r: Remote, repair: bool) -> dict[str, Any]:
 
 def _mtime(entry: dict[str, Any], default: float) -> float:
     for k in ("mtime", "LastModified", "created", "time"):
-        v = entry.get(k)
+        v: Any = entry.get(k)
         if isinstance(v, (int, float)):
             return float(v)
         if hasattr(v, "timestamp"):
