@@ -22,10 +22,10 @@ from gcvd_flow.engine.errors import UsageError
 MAX_EXIT = 100
 
 
-
 def _prefixed(log: Callable[[str], None], name: str) -> Callable[[str], None]:
     """``log`` with every line prefixed by the input's run-dir name."""
     return lambda m: log(f"[{name}] {m}")
+
 
 def run_dir_names(inputs: list[str]) -> list[str]:
     """One distinct directory name per input: its file stem or folder name; on a clash the
