@@ -12,6 +12,7 @@ code is the number of failures (at most 100).
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -69,7 +70,7 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
     """Run every input with the settings of ``base`` (an api.Invocation); never stops early."""
     from gcvd_flow.engine import api
     from gcvd_flow.engine.errors import StoreError
-    from gcvd_flow.engine.executors import make_executor, resolve_jobs
+    from gcvd_flow.engine.executors import closing, make_executor, resolve_jobs
 
     if not inputs:
         raise UsageError("run-many: no INPUT given")
@@ -81,7 +82,8 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
     rows = []
     t_all = time.perf_counter()
     names = run_dir_names(inputs)
-    try:
+    # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the shared workers at once (executors.closing)
+    with closing(executor) if executor is not None else contextlib.nullcontext():
         early = _map_stages_of_all_inputs(inputs, names, root, base, spec, executor, log) if executor else {}
         for inp, name in zip(inputs, names):
             out = root / name
@@ -99,12 +101,6 @@ def run_many(inputs: list[str], out_root: str, base: Any, log: Callable[[str], N
                 rows.append(_row(inp, out, None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}".splitlines()[0]))
             if not rows[-1]["ok"]:
                 log(f"[{name}] failed: {rows[-1]['error']}")
-    except BaseException as exc:
-        if executor is not None:  # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the workers at once
-            executor.close(abort=not isinstance(exc, Exception))
-        raise
-    if executor is not None:
-        executor.close()
     failed = sum(1 for r in rows if not r["ok"])
     return {"runs": rows, "failed": failed, "seconds": round(time.perf_counter() - t_all, 3)}
 

@@ -20,6 +20,7 @@ grid and, as runs finish, each run's stages and metrics (what `runs` and `report
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -314,7 +315,7 @@ def run_sweep(plan: SweepPlan, log: Callable[[str], None],
               evaluate: Callable[[Path, str], dict[str, Any]] | None = None) -> dict[str, Any]:
     """Run every combination (never stops early on a failing one); returns the --json doc."""
     from gcvd_flow.engine import api
-    from gcvd_flow.engine.executors import make_executor, resolve_jobs
+    from gcvd_flow.engine.executors import closing, make_executor, resolve_jobs
 
     base = plan.base
     spec = api.load_spec(base.pipeline, allow_module_ref=True)
@@ -328,18 +329,13 @@ def run_sweep(plan: SweepPlan, log: Callable[[str], None],
         executor = make_executor(base.jobs, spec.pipeline.worker_init, base.executor, base.scheduler)
     t_all = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    try:
+    # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the shared workers at once (executors.closing)
+    with closing(executor) if executor is not None else contextlib.nullcontext():
         early = _prefix_waves(plan.combos, invs, spec, executor, log) if executor and _waves_help(spec, plan.combos) \
             else {}
         for c in plan.combos:
             rows.append(_run_one(c, invs[c.name], early, executor, plan.gt, evaluate, log))
             _write_json(plan.root / SWEEP_FILE, _sweep_doc(plan, rows + pending[len(rows):], "running"))
-    except BaseException as exc:
-        if executor is not None:  # an interrupt (Ctrl-C, SIGTERM, SIGHUP) ends the workers at once
-            executor.close(abort=not isinstance(exc, Exception))
-        raise
-    if executor is not None:
-        executor.close()
     _write_json(plan.root / SWEEP_FILE, _sweep_doc(plan, rows, "done"))
     failed = sum(1 for r in rows if not r["ok"])
     return {"runs": rows, "failed": failed, "seconds": round(time.perf_counter() - t_all, 3)}
