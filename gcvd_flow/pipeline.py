@@ -41,7 +41,7 @@ from gcvd_flow.io import run_dir
 from gcvd_flow.io.sources import Source, open_source as _open_source
 from gcvd_flow.io.weights import open_model
 from stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion, params as depth_params
-from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, params as frontend_params, priors as priors_mod
+from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, params as frontend_params, priors as priors_mod, user_masks
 from stages.graph import keyframes as keyframes_mod, params as graph_params, references
 from stages.optimize import params as opt_params
 
@@ -362,12 +362,14 @@ def _mask_items(view, p: MasksParams):
     # The semantic backend reads the frame itself; the motion backend its flows (only); the user's
     # mask of the frame enters by its content (an ExternalRef: file digest + loader).
     n = view.len(INGEST)
-    user = []
+    user, und = [], None
     if p.user_dir:
         from gcvd_flow.engine.keys import digest_file
 
         sel = list(view.summary(INGEST)["frame_indices"])  # the source frames ingest selected
         user = [ExternalRef(digest_file(f), _MaskFile(f)) for f in _user_mask_files(view.source, p, sel)]
+        cam = view.summary(INGEST)
+        und = [cam["distortion_intrinsics"], cam["distortion"]] if "distortion" in cam else None
     out = []
     for i in range(n):
         it: dict[str, Any] = {}
@@ -378,6 +380,8 @@ def _mask_items(view, p: MasksParams):
         if user:
             it["user_mask"] = user[i]
             it["source_size"] = Const(list(view.source.size))
+            if und:  # ingest undistorts the frames: the masks go through the same remap
+                it["undistort"] = Const(und)
         out.append(it)
     return out
 
@@ -398,27 +402,35 @@ class _MaskFile:
         return np.asarray(read_rgb(self.path)).max(axis=2) > 0
 
 
-def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
-    """static uint8 (h, w) with the user's mask (source resolution, True = out) set to 0."""
-    if "user_mask" not in inputs:
-        return static
-    import cv2
-
+def _user_keep(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
+    """The user's mask (source resolution, True = out) as a kept mask uint8 (h, w) at working
+    resolution, 1 = kept: a working pixel is out when any source pixel it is made of is (through
+    ingest's undistortion when it has one: stages.frontend.user_masks.source_to_working)."""
     user = np.asarray(inputs["user_mask"], bool)
     sw, sh = inputs["source_size"]
     if user.shape != (sh, sw):
         raise ingest_mod.FrameError(f"--masks: a mask is {user.shape[1]}x{user.shape[0]}, the frames are {sw}x{sh}")
-    h, w = static.shape
-    # a working pixel is left out when any source pixel it covers is
-    out = cv2.resize(user.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0
-    return np.where(out, 0, static).astype(np.uint8)
+    und = inputs.get("undistort")
+    return user_masks.source_to_working(user, (shape[1], shape[0]), None if und is None else (und[0], und[1]))
+
+
+def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
+    """static uint8 (h, w) with the user's mask (source resolution, True = out) set to 0."""
+    if "user_mask" not in inputs:
+        return static
+    return np.where(_user_keep(inputs, static.shape) > 0, static, 0).astype(np.uint8)
 
 
 def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
     """Frame i -> {static: uint8 (H, W), 1 = static, solve: uint8 (H, W), 1 = static and flow the
-    optimisations trust}: the backend's masks with the user's (--masks) pixels set to 0."""
+    optimisations trust}: the backend's masks with the user's (--masks) pixels set to 0; with
+    --masks also user_keep: uint8 (H, W), 1 = not masked by the user (what the later stages
+    exclude hard, at every resolution: stages.frontend.user_masks)."""
     masks = _backend_mask(inputs, p, ctx)
-    return {k: _with_user_mask(v, inputs) for k, v in masks.items()}
+    if "user_mask" not in inputs:
+        return masks
+    keep = _user_keep(inputs, masks["static"].shape)
+    return {**{k: np.where(keep > 0, v, 0).astype(np.uint8) for k, v in masks.items()}, "user_keep": keep}
 
 
 def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
@@ -453,6 +465,36 @@ def _solve_mask(item: dict[str, Any]) -> np.ndarray:
     """The mask the optimisations use: ``solve`` (static and flow agreeing with the static scene),
     ``static`` for a mask item without it."""
     return np.asarray(item.get("solve", item["static"]))
+
+
+def _hard_mask(item: dict[str, Any]) -> np.ndarray:
+    """``_solve_mask`` with the user's (--masks) pixels as -1 (int8) when there are any, the
+    optimisations' hard exclusion (stages.frontend.user_masks.hard_masks); uint8 as before without."""
+    return user_masks.hard_masks(_solve_mask(item), item.get("user_keep"))
+
+
+def _user_keeps(masks: Any, frames: Any) -> list[np.ndarray] | None:
+    """The user's (--masks) kept pixels bool (H, W) of ``frames`` (mask items' user_keep), None without --masks."""
+    frames = [int(f) for f in frames]
+    if not frames or "user_keep" not in masks[frames[0]]:
+        return None
+    return [np.asarray(masks[f]["user_keep"]) > 0 for f in frames]
+
+
+class _HardMasks:
+    """masks[i] / masks[a:b] -> ``_hard_mask`` of those mask items, loaded when read (the lazy
+    field stack optimize_segments reads one window at a time)."""
+
+    def __init__(self, items: Any):
+        self._items = items
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i: Any) -> np.ndarray:
+        if isinstance(i, slice):
+            return np.stack([_hard_mask(self._items[j]) for j in range(*i.indices(len(self._items)))])
+        return _hard_mask(self._items[int(i)])
 
 
 MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, CALIBRATE, FLOW), params="masks", kind="mask",
@@ -615,7 +657,7 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
     pair_flows = keyframes_mod.keyframe_pair_flows(kf, inputs["association"]["edge_flows"])
     res = opt_keyframes.optimize_keyframes(
         _stack(frames, kf, "image"), _stack(inputs["priors"], kf, "inv_depth"),
-        np.stack([_solve_mask(inputs["masks"][i]) for i in kf]), np.asarray(inputs["calibrate"]["K"]), pair_flows,
+        np.stack([_hard_mask(inputs["masks"][i]) for i in kf]), np.asarray(inputs["calibrate"]["K"]), pair_flows,
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seed=ctx.seed, checkpointer=ctx.checkpointer,
         window_map=ctx.map)  # schedule=independent: the windows side by side on the run's workers
     return {"keyframes": kf, "poses": np.asarray(res["poses"], np.float64),
@@ -649,7 +691,7 @@ def run_optimize_edges(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, An
     def calls():  # built lazily: only the edges in flight are in memory
         for n, (i, j) in enumerate(graph_edges):
             yield dict(img_a=frames[i]["image"], img_b=frames[j]["image"], prior_a=priors_[i]["inv_depth"],
-                       prior_b=priors_[j]["inv_depth"], mask_a=_solve_mask(masks_[i]), mask_b=_solve_mask(masks_[j]), K=K,
+                       prior_b=priors_[j]["inv_depth"], mask_a=_hard_mask(masks_[i]), mask_b=_hard_mask(masks_[j]), K=K,
                        flow=flows[(i, j)], init_T_b_a=_inv(T_w_k[pos[j]]) @ T_w_k[pos[i]], depth=b.depth,
                        losses=b.losses, kf=b.optimize_keyframes, edge=b.optimize_edges, seed=ctx.seed + n)
 
@@ -731,7 +773,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
                                    track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
                                    prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
                                    max_iterations=p.max_iterations, consistent_px=p.consistent_px,
-                                   solver=p.solver)
+                                   solver=p.solver, keep=_user_keeps(inputs["masks"], okf["keyframes"]))
     ctx.log(f"{res['landmarks']} tracks, {res['observations']} observations, median reprojection error "
             f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px"
             + (" (poses kept: already consistent with the tracks)" if res["skipped"] and res["landmarks"] else ""))
@@ -742,7 +784,7 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
 
 
 BUNDLE_ADJUSTMENT = declare(Stage("bundle_adjustment", run_bundle_adjustment,
-                                  deps=(INGEST, CALIBRATE, ASSOCIATION, OPTIMIZE_KEYFRAMES, POSE_GRAPH),
+                                  deps=(INGEST, CALIBRATE, MASKS, ASSOCIATION, OPTIMIZE_KEYFRAMES, POSE_GRAPH),
                                   params="bundle_adjustment", kind="poses"))
 
 
@@ -787,8 +829,10 @@ def run_optimize_segments(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str,
 
     frames, flows = inputs["ingest"], inputs["flow"]
     okf, ba = inputs["optimize_keyframes"], inputs["bundle_adjustment"]
+    masks_ = inputs["masks"]
+    hard = _HardMasks(masks_) if "user_keep" in masks_[0] else masks_.field("solve")  # --masks: int8, -1 = user's
     res = opt_segments.optimize_segments(
-        frames.field("image"), inputs["priors"].field("inv_depth"), inputs["masks"].field("solve"),
+        frames.field("image"), inputs["priors"].field("inv_depth"), hard,
         np.asarray(inputs["calibrate"]["K"]), _FlowDicts(flows.recent(48)), list(okf["keyframes"]),
         np.asarray(ba["poses"]), _ScaledDepths(okf["depths"], np.asarray(ba["depth_scale"], np.float32)),
         depth=b.depth, losses=b.losses, kf=b.optimize_keyframes, seg=b.optimize_segments,
@@ -811,6 +855,7 @@ def _fusion_items(view, p: DepthFusionParams):
     # the flows to the references are flow_far's items (shared with priors)
     n = view.len(INGEST)
     index = _far_index(view) if p.enabled else {}
+    user = p.enabled and _has_user_masks(view)
     out = []
     for i in range(n):
         far = _fusion_far_refs(i, n, p)
@@ -822,8 +867,29 @@ def _fusion_items(view, p: DepthFusionParams):
         out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
                     "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
-                    **refs, "ref_indices": Const(far + near)})
+                    **refs, "ref_indices": Const(far + near), **_user_mask_refs(user, [i, *far, *near])})
     return out
+
+
+def _has_user_masks(view) -> bool:
+    """Whether the masks stage's items carry the user's (--masks) kept pixels."""
+    return view.len(MASKS) > 0 and "user_keep" in view.value(MASKS)[0]
+
+
+def _user_mask_refs(user: bool, frames: list[int]) -> dict[str, Any]:
+    """{"user_masks": the mask items of ``frames``} with --masks (``user``: their user_keep), {}
+    without (the items are keyed as before)."""
+    return {"user_masks": [ItemRef(MASKS, j) for j in frames]} if user else {}
+
+
+def _eroded_keep(item: dict[str, Any]) -> np.ndarray:
+    """A mask item's user_keep bool (H, W) less every pixel next to a user-masked one: a bilinear
+    sample (OpenCV's 1/32-quantised weights included) that reads only pixels kept here mixes no
+    user-masked pixel."""
+    import cv2
+
+    return cv2.erode(np.asarray(item["user_keep"], np.uint8), np.ones((3, 3), np.uint8),
+                     borderType=cv2.BORDER_REPLICATE) > 0
 
 
 def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
@@ -836,13 +902,16 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     i = int(inputs["index"])
     flows = [(*_far_flow(fl, d), poses[int(j)])
              for fl, d, j in zip(inputs["refs"], inputs["ref_dirs"], inputs["ref_indices"])]
+    if "user_masks" in inputs:  # --masks: no triangulation of, or from, a user-masked pixel
+        keep = [np.asarray(m["user_keep"]) > 0 for m in inputs["user_masks"]]  # frame i's, then the references'
+        flows = [(f, v & keep[0] & user_masks.flow_target_kept(f, k), T) for (f, v, T), k in zip(flows, keep[1:])]
     fused, measured, confidence = depth_fusion.fuse_depth_flows(
         depth, poses[i], flows, np.asarray(inputs["K"]), min_angle_deg=p.min_angle_deg,
         max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev, coverage_refs=p.coverage_refs)
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, OPTIMIZE_SEGMENTS),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, MASKS, OPTIMIZE_SEGMENTS),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 
@@ -854,11 +923,13 @@ DepthFilterParams = section("depth_filter", depth_params.DepthFilterSettings)
 def _filter_items(view, p: DepthFilterParams):
     n = view.len(INGEST)
     r = p.radius if p.enabled else 0
+    user = r > 0 and _has_user_masks(view)
     out = []
     for i in range(n):
         lo, hi = references.window(i, n, r)
         out.append({"center": Const(i - lo), "depths": [ItemRef(DEPTH_FUSION, j) for j in range(lo, hi + 1)],
-                    "flows": [ItemRef(FLOW, j) for j in range(lo, hi)], "image": ItemRef(INGEST, i)})
+                    "flows": [ItemRef(FLOW, j) for j in range(lo, hi)], "image": ItemRef(INGEST, i),
+                    **_user_mask_refs(user, list(range(lo, hi + 1)))})
     return out
 
 
@@ -870,6 +941,9 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
     conf = np.asarray(inputs["depths"][center].get("confidence", np.zeros_like(depths[center])), np.float32)
     if not p.enabled or len(depths) == 1:
         return {"depth": depths[center].astype(np.float32), "confidence": conf}
+    if "user_masks" in inputs:  # --masks: the neighbours' depths at and next to user-masked pixels are not read
+        keep = [_eroded_keep(m) for m in inputs["user_masks"]]
+        depths = np.stack([d if j == center else np.where(k, d, 0) for j, (d, k) in enumerate(zip(depths, keep))])
     fwd = np.stack([fl["fwd"] for fl in inputs["flows"]])
     bwd = np.stack([fl["bwd"] for fl in inputs["flows"]])
     out = np.asarray(depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border),
@@ -881,7 +955,7 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
     return {"depth": out, "confidence": conf}
 
 
-DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=(INGEST, FLOW, DEPTH_FUSION), params="depth_filter",
+DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=(INGEST, FLOW, MASKS, DEPTH_FUSION), params="depth_filter",
                         kind="depth", items=_filter_items))
 
 
@@ -914,6 +988,8 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
     refs = [(np.asarray(r["depth"]), np.asarray(r.get("confidence", np.zeros_like(depth))), poses[int(j)])
             for r, j in zip(inputs["refs"], inputs["ref_indices"])]
     static = [np.asarray(m["static"]) for m in inputs["static"]]  # frame i's, then the references'
+    if "user_keep" in inputs["static"][0]:  # --masks: no reference sample mixes a user-masked pixel
+        static[1:] = [np.where(_eroded_keep(m), st, 0) for m, st in zip(inputs["static"][1:], static[1:])]
     out = depth_consensus.consensus_depth(depth, conf, poses[int(inputs["index"])], refs, np.asarray(inputs["K"]),
                                           max_log_dev=p.max_log_dev, reproj_sigma_px=p.reproj_sigma_px,
                                           static=static[0], ref_static=static[1:])

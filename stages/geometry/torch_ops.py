@@ -32,6 +32,7 @@ __all__ = [
     "rigid_flow",
     "sample_bilinear",
     "sample_frames",
+    "footprint_kept",
     "gather_pixels",
 ]
 
@@ -217,6 +218,22 @@ def sample_frames(field: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor) ->
     top = f00 + (f01 - f00) * ax
     bottom = f10 + (f11 - f10) * ax
     return top + (bottom - top) * ay
+
+
+def footprint_kept(keep: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Whether bilinear samples at pixel points uv (P, M, 2) of frames keep (P, H, W) bool mix only
+    kept pixels -> (P, M) bool: the four pixels floor(u) + {0, 1}, floor(v) + {0, 1} (clamped to
+    the image, as the samplers clamp) are all kept. Counts the second pixel even at a weight of
+    0: grid_sample's coordinate round trip may give it a weight of 1e-7."""
+    p, h, w = keep.shape
+    uv = torch.nan_to_num(uv.detach(), nan=0.0, posinf=1e9, neginf=-1e9)
+    x0 = uv[..., 0].clamp(0, w - 1).floor().long()
+    y0 = uv[..., 1].clamp(0, h - 1).floor().long()
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    flat = keep.reshape(p, h * w)
+    ok = flat.gather(1, (y0 * w + x0).reshape(p, -1)) & flat.gather(1, (y0 * w + x1).reshape(p, -1))
+    ok &= flat.gather(1, (y1 * w + x0).reshape(p, -1)) & flat.gather(1, (y1 * w + x1).reshape(p, -1))
+    return ok.reshape(uv.shape[:-1])
 
 
 def gather_pixels(img: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:

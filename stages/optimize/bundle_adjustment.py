@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Literal, Mapping, Sequence, TypedDict
 
 import numpy as np
 
+from stages.frontend.user_masks import footprint_kept
 from stages.optimize import ba_solver
 from stages.optimize.params import BundleAdjustmentSettings
 
@@ -75,7 +76,7 @@ Track = list[tuple[int, float, float]]  # [(keyframe position, u, v), ...], firs
 
 def build_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
                        shape: tuple[int, int], stride: int = 12, track_length: int = 4,
-                       border: int = 2) -> list[Track]:
+                       border: int = 2, keep: Sequence[np.ndarray] | None = None) -> list[Track]:
     """Tracks over the keyframe graph: started on a ``stride`` grid in every keyframe, followed
     forward through the consecutive keyframes' flows for up to ``track_length`` keyframes, and at
     every keyframe the track reaches, one hop across each other edge of the graph (loop edges of
@@ -83,7 +84,9 @@ def build_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], ke
     a loop to the same point seen at its end — what lets bundle adjustment keep the loop closed.
 
     edge_flows: (frame i, frame j) -> {fwd, bwd (H, W, 2) px, fwd_valid, bwd_valid (H, W) bool};
-    keyframes: frame index of each keyframe position."""
+    keyframes: frame index of each keyframe position; keep: per keyframe position bool (H, W), the
+    user's (--masks) kept pixels, or None: a track starts, and continues, only at positions whose
+    bilinear footprint holds no user-masked pixel."""
     pos = {int(f): m for m, f in enumerate(keyframes)}
     n = len(keyframes)
     seq = {m: edge_flows[(keyframes[m], keyframes[m + 1])] for m in range(n - 1)
@@ -100,6 +103,9 @@ def build_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], ke
     tracks: list[Track] = []
     for m in range(n):
         x, y = uu.ravel().astype(np.float64), vv.ravel().astype(np.float64)
+        if keep is not None:
+            ok0 = footprint_kept(keep[m], x, y)
+            x, y = x[ok0], y[ok0]
         obs: list[Track] = [[(m, float(a), float(b))] for a, b in zip(x, y)]
         alive = np.arange(len(x))
         for k in range(m, min(m + track_length, n)):
@@ -107,6 +113,8 @@ def build_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], ke
                 if k - 1 not in seq:
                     break
                 x, y, ok = _follow(seq[k - 1]["fwd"], seq[k - 1]["fwd_valid"], x, y, border)
+                if keep is not None:
+                    ok &= footprint_kept(keep[k], x, y)
                 x, y, alive = x[ok], y[ok], alive[ok]
                 for t, a, b in zip(alive, x, y):
                     obs[t].append((k, float(a), float(b)))
@@ -114,6 +122,8 @@ def build_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], ke
                 if m <= other < m + track_length:
                     continue  # the chain sees it already
                 hx, hy, ok = _follow(fwd, valid, x, y, border)
+                if keep is not None:
+                    ok &= footprint_kept(keep[other], hx, hy)
                 for t, a, b in zip(alive[ok], hx[ok], hy[ok]):
                     if all(o[0] != other for o in obs[t]):
                         obs[t].append((other, float(a), float(b)))
@@ -188,7 +198,8 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                         prior_rot_sigma: float = _DEFAULTS.prior_rot_sigma,
                         prior_trans_frac: float = _DEFAULTS.prior_trans_frac,
                         max_iterations: int = _DEFAULTS.max_iterations, consistent_px: float = _DEFAULTS.consistent_px,
-                        solver: Literal["schur", "gtsam"] = _DEFAULTS.solver) -> BundleResult:
+                        solver: Literal["schur", "gtsam"] = _DEFAULTS.solver,
+                        keep: Sequence[np.ndarray] | None = None) -> BundleResult:
     """Refine keyframe poses T_w_k (K, 4, 4) over tracks of the keyframe graph
     (:func:`build_tracks`), landmarks as inverse depth in their first keyframe.
 
@@ -200,13 +211,14 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
 
     ``solver``: "schur" (:mod:`stages.optimize.ba_solver`: analytic Jacobians, Schur complement;
     >10x faster on keyframe-heavy clips) or "gtsam" (the same factor graph in gtsam's
-    Levenberg-Marquardt, the reference)."""
+    Levenberg-Marquardt, the reference). ``keep``: the user's (--masks) kept pixels per keyframe
+    (bool (H, W)) or None (:func:`build_tracks`)."""
     if solver not in ("schur", "gtsam"):
         raise ValueError(f"unknown bundle adjustment solver {solver!r}")
     T_w_k = np.asarray(T_w_k, np.float64)
     n = len(T_w_k)
     h, w = np.asarray(depths[0]).shape
-    tracks = [t for t in build_tracks(edge_flows, keyframes, (h, w), stride, track_length)
+    tracks = [t for t in build_tracks(edge_flows, keyframes, (h, w), stride, track_length, keep=keep)
               if len(t) >= min_views]
     none: BundleResult = {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
                           "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}

@@ -13,6 +13,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
+from stages.frontend.user_masks import flow_target_kept, user_keep
 from stages.models.depth_net import DepthNet, mesh_shape
 from stages.optimize.frames import flow_at_loss_res, init_depth_full, loss_size, prepare_frames
 from stages.optimize.init import sample_np, triangulate, two_view_pose
@@ -53,6 +54,9 @@ def optimize_edge(
     K = np.asarray(K, np.float64)
     T_b_a0 = np.asarray(init_T_b_a, np.float64)
     gshape = mesh_shape(*loss_size(H, W, kf.loss_scale)[:2], depth.mesh_vertices)
+    keep_b = user_keep(mask_b)
+    if keep_b is not None:  # --masks: a correspondence whose target in b mixes a user-masked pixel is out
+        mask_a = (np.asarray(mask_a) > 0) & flow_target_kept(np.asarray(flow["fwd"], np.float64), keep_b)
     with torch_threads(edge.threads), deterministic(seed) as gen:
         if edge.essential_init:
             T_b_a0 = _two_view_init(flow, mask_a, K, T_b_a0)
@@ -66,7 +70,7 @@ def optimize_edge(
         mesh0 = torch.as_tensor(log_m, dtype=torch.float32)[:, None, None].expand(2, *gshape).clone()
         win = Window(
             fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, [Pair(0, 1, 1, 1.0, *fa), Pair(1, 0, 1, 1.0, *fb)],
-            base, torch.tensor([0.0, 1.0], dtype=torch.float64), mesh0, torch.ones(2),
+            base, torch.tensor([0.0, 1.0], dtype=torch.float64), mesh0, torch.ones(2), keep=fr.keep,
         )
         solver = Solver(win, net, None, edge.lr, depth, losses, kf)
         loss = run_solver(solver, gen, edge.steps, 0, None)

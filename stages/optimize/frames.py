@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from stages.frontend.user_masks import user_keep
 from stages.models.depth_net import DEPTH_MAX, DEPTH_MIN, DepthNet, Encoded, upsample_mesh
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "scaled_K",
     "loss_size",
     "area_resize",
+    "keep_resize",
     "images_tensor",
     "normalised_prior",
     "prepare_frames",
@@ -93,14 +95,16 @@ class Frames:
     dyn_mesh: torch.Tensor  # (n, gh, gw) float32 dynamic fraction per mesh cell
     K: torch.Tensor  # (3, 3) float64 at loss resolution
     f: float  # downsampling factor W / w
+    keep: torch.Tensor | None = None  # (n, h, w) float32 1 = no user-masked pixel in the cell; None: no --masks
 
 
 def prepare_frames(
     net: DepthNet, images: np.ndarray, priors: np.ndarray, masks: np.ndarray, K: np.ndarray, scale: float,
     gshape: tuple[int, int],
 ) -> Frames:
-    """images (n, H, W, 3) uint8, priors (n, H, W), masks (n, H, W) 1 = static, K (3, 3) at
-    working resolution -> their ``Frames`` at ``loss_size(H, W, scale)``; gshape = (gh, gw) mesh."""
+    """images (n, H, W, 3) uint8, priors (n, H, W), masks (n, H, W) 1 = static (int8 with -1 where
+    the user masked: stages.frontend.user_masks), K (3, 3) at working resolution -> their
+    ``Frames`` at ``loss_size(H, W, scale)``; gshape = (gh, gw) mesh."""
     n, H, W = images.shape[:3]
     h, w, f = loss_size(H, W, scale)
     # the backbone runs at the loss resolution: only the head's loss-resolution correction is
@@ -112,7 +116,18 @@ def prepare_frames(
     st = (np.asarray(masks) > 0).astype(np.float32)
     static = (area_resize(st, h, w) > 0.99).float()
     dyn = 1 - area_resize(st, gshape[0], gshape[1])
-    return Frames(imgs, enc, static, dyn, torch.as_tensor(scaled_K(K, f)), f)
+    keep = user_keep(masks)
+    keep_lr = None if keep is None else keep_resize(keep, h, w)
+    if keep_lr is not None:
+        static = static * keep_lr
+    return Frames(imgs, enc, static, dyn, torch.as_tensor(scaled_K(K, f)), f, keep_lr)
+
+
+def keep_resize(keep: np.ndarray | torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """The user's kept mask (N, H, W) (1 = kept) -> float32 (N, h, w), 1 where no pixel of the
+    cell's footprint (the pixels ``area_resize`` averages) is masked: a min-pool, never an average."""
+    out = 1 - torch.as_tensor(np.asarray(keep), dtype=torch.float32)
+    return 1 - F.adaptive_max_pool2d(out[:, None], (h, w))[:, 0]
 
 
 def flow_at_loss_res(fl: Mapping[str, np.ndarray], key: str, h: int, w: int, f: float) -> FlowLR:

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from stages.frontend.flow import warp_sample
+from stages.frontend.user_masks import flow_target_kept, user_keep
 from stages.geometry.two_view import pose_from_essential, rotation_from_homography
 from stages.optimize.frames import normalised_prior
 
@@ -162,6 +163,7 @@ def essential_chain(
     """
     n = len(flows) + 1
     sm = np.asarray(static_masks) > 0
+    keep = user_keep(np.asarray(static_masks))  # the user's kept pixels (int8 masks, -1 = masked), or None
     T_next_cur: list[np.ndarray] = []  # T_{k+1}_k: camera k -> camera k+1, unit translation
     d_fwd: list[np.ndarray | None] = []  # depth of frame k from pair (k, k+1), unit baseline
     d_bwd: list[np.ndarray | None] = []  # depth of frame k+1 from pair (k, k+1), unit baseline
@@ -170,6 +172,9 @@ def essential_chain(
         fl = flows[k]
         fv = np.asarray(fl["fwd_valid"], bool) & sm[k]
         bv = np.asarray(fl["bwd_valid"], bool) & sm[k + 1]
+        if keep is not None:  # --masks: a correspondence whose target mixes a user-masked pixel is out
+            fv &= flow_target_kept(np.asarray(fl["fwd"], np.float64), keep[k + 1])
+            bv &= flow_target_kept(np.asarray(fl["bwd"], np.float64), keep[k])
         T_k1_k, corr = two_view_pose(np.asarray(fl["fwd"], np.float32), fv, K)
         T_next_cur.append(T_k1_k)
         if corr is None:

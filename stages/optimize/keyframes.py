@@ -215,6 +215,7 @@ def _keyframe_window(
     return Window(
         fr.imgs[sl], Encoded(fr.enc.feat[sl], fr.enc.log_prior[sl]), fr.static[sl], fr.dyn_mesh[sl],
         fr.K, pairs, base, pose_train, mesh0, torch.ones(n), codes[sl] if codes is not None else None,
+        keep=None if fr.keep is None else fr.keep[sl],
     )
 
 
@@ -347,7 +348,7 @@ def solve_keyframe_window(job: KeyframeJob) -> KeyframeWindowResult:
             pose_train = torch.ones(n, dtype=torch.float64)
             pose_train[0] = 0  # gauge
             win = Window(fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, poses, pose_train, meshes,
-                         torch.ones(n), codes)
+                         torch.ones(n), codes, keep=fr.keep)
             solver = Solver(win, net, posenet, kf.lr, st.depth, st.losses, kf, kf.pair_blocks)
             run_solver(solver, gen, kf.steps, 0, None)
             with torch.no_grad():

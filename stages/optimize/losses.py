@@ -85,23 +85,31 @@ def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 PriorGradients = list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
 
 
-def prior_gradients(prior_disp: torch.Tensor, scales: int = 3, mask: torch.Tensor | None = None) -> PriorGradients:
+def prior_gradients(prior_disp: torch.Tensor, scales: int = 3, mask: torch.Tensor | None = None,
+                    keep: torch.Tensor | None = None) -> PriorGradients:
     """The prior's side of :func:`gradient_orientation_loss`, per scale: (rx, ry, |r|, w), each
     (B, h_s - 1, w_s - 1). It does not change during an optimisation, so the solver computes it
-    once per window. prior_disp (B, h, w) relative inverse depth; mask (B, h, w) optional weights."""
+    once per window. prior_disp (B, h, w) relative inverse depth; mask (B, h, w) optional weights
+    (area-pooled: soft at the coarser scales); keep (B, h, w) optional hard mask, 1 = kept (the
+    user's --masks): min-pooled, and a gradient is out when any of the three pixels it differences is."""
     ref = prior_disp
     m = torch.ones_like(ref) if mask is None else mask.to(ref.dtype)
+    k = None if keep is None else keep.to(ref.dtype)
     out: PriorGradients = []
     for s in range(scales):
         if s > 0:
             ref = F.avg_pool2d(ref[:, None], 2)[:, 0]
             m = F.avg_pool2d(m[:, None], 2)[:, 0]
+            if k is not None:
+                k = 1 - F.max_pool2d(1 - k[:, None], 2)[:, 0]
         if min(ref.shape[-2:]) < 3:
             break
         rx, ry = _grad_xy(ref)
         nr = (rx * rx + ry * ry).sqrt()
         # only where the prior has a gradient worth following
         w = m[:, :-1, :-1] * (nr > 1e-3 * ref.abs().mean((1, 2), keepdim=True)).to(ref.dtype)
+        if k is not None:
+            w = w * k[:, :-1, :-1] * k[:, :-1, 1:] * k[:, 1:, :-1]
         out.append((rx, ry, nr, w))
     return out
 

@@ -402,6 +402,7 @@ def solve_window(job: WindowJob) -> WindowResult:
         win = Window(
             fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, torch.as_tensor(poses0),
             torch.as_tensor((~job.is_kf).astype(np.float64)), mesh, torch.ones(n), None, st.seg.grad_mult,
+            keep=fr.keep,
         )
         solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf)
         run_solver(solver, gen, st.seg.steps, 0, None)

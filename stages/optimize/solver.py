@@ -45,6 +45,7 @@ from typing import Any, Callable, Iterator, Mapping, Protocol
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from stages.geometry import torch_ops as G
 from stages.models.depth_net import DepthNet, Encoded
@@ -145,6 +146,7 @@ class Window:
     mesh_train: torch.Tensor  # (n,) float32 1 = trainable
     pose_code: torch.Tensor | None = None  # (n, D) PoseNet codes
     grad_mult: float = 1.0
+    keep: torch.Tensor | None = None  # (n, h, w) 1 = no user-masked (--masks) pixel in the cell; None: none
 
 
 @dataclass
@@ -164,6 +166,7 @@ class _PairBlock:
     flow_idx: torch.Tensor  # (Pf,) block-local indices of the pairs with a flow loss
     flows: torch.Tensor | None  # (Pf, h * w, 2) their flows, px
     fvalid: torch.Tensor | None  # (Pf, h * w) their consistency masks
+    keep_pb: torch.Tensor | None = None  # (P, h, w) bool the user's kept cells of frame b (None: no --masks)
 
     @classmethod
     def gather(cls, win: "Window", pw: torch.Tensor, first: int, stride: int, hw: int) -> "_PairBlock":
@@ -179,8 +182,15 @@ class _PairBlock:
         amask = win.static[pa].reshape(len(sub), hw).clone()
         if fl:
             amask[flow_idx] = amask[flow_idx] * fvalid
+        keep_pb = None
+        if win.keep is not None:
+            # the user's exclusion is hard: a point whose 3x3 patch holds a user-masked cell of
+            # frame a is out (its neighbours' colours enter the photometric term), and so is a
+            # point whose samples in b mix one (_block_loss)
+            amask = amask * (1 - F.max_pool2d(1 - win.keep[pa][:, None], 3, 1, 1)[:, 0]).reshape(len(sub), hw)
+            keep_pb = win.keep[pb] > 0
         return cls(sel, pa, pb, pw[sel], amask, win.imgs[pa], win.imgs[pb], (pa * hw)[:, None], flow_idx,
-                   flows, fvalid)
+                   flows, fvalid, keep_pb)
 
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
@@ -244,7 +254,7 @@ class Solver:
         pw = pw / pw.sum().clamp(min=1e-9)
         hw = self.h * self.w_
         self.head_in = self.net.head_input(win.enc)  # (n * h * w, C + 1)
-        self.prior_grads = L.prior_gradients(torch.exp(win.enc.log_prior[:, 0]), 3, win.static)
+        self.prior_grads = L.prior_gradients(torch.exp(win.enc.log_prior[:, 0]), 3, win.static, keep=win.keep)
         n_blocks = max(1, min(n_blocks, len(pr)))
         self.blocks = [_PairBlock.gather(win, pw, k, n_blocks, hw) for k in range(n_blocks)]
 
@@ -309,6 +319,8 @@ class Solver:
         d_b = G.sample_frames(depth, blk.pb, uvc)  # (npair, M)
         ins_c = inside.reshape(npair, M, 9)[:, :, 4]
         wgt = blk.amask.gather(1, idx) * ins_c.float() * (zc > 1e-3).float()
+        if blk.keep_pb is not None:  # every sample of the point in b (its patch, its depth) mixes kept cells only
+            wgt = wgt * G.footprint_kept(blk.keep_pb, uv.detach()).reshape(npair, M, 9).all(-1).float()
         pair_loss = torch.zeros(npair)
         if lw.w_photo > 0:
             pa_ = img_a.reshape(npair, M, 9, 3)
@@ -321,7 +333,10 @@ class Solver:
             fidx = idx[fi]
             tgt = blk.flows.gather(1, fidx[..., None].expand(-1, -1, 2))
             base_uv = torch.stack([u0[fi], v0[fi]], -1).to(torch.float32)
-            fl = L.flow_loss(uvc[fi], base_uv + tgt, blk.amask[fi].gather(1, fidx))
+            fwgt = blk.amask[fi].gather(1, fidx)
+            if blk.keep_pb is not None:  # the flow's target in b mixes kept cells only
+                fwgt = fwgt * G.footprint_kept(blk.keep_pb[fi], base_uv + tgt).float()
+            fl = L.flow_loss(uvc[fi], base_uv + tgt, fwgt)
             pair_loss = pair_loss.index_add(0, fi, lw.w_flow * fl)
         return (blk.pw * pair_loss).sum()
 
