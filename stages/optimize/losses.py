@@ -107,9 +107,11 @@ def prior_gradients(prior_disp: torch.Tensor, scales: int = 3, mask: torch.Tenso
         rx, ry = _grad_xy(ref)
         nr = (rx * rx + ry * ry).sqrt()
         # only where the prior has a gradient worth following
-        w = m[:, :-1, :-1] * (nr > 1e-3 * ref.abs().mean((1, 2), keepdim=True)).to(ref.dtype)
-        if k is not None:
-            w = w * k[:, :-1, :-1] * k[:, :-1, 1:] * k[:, 1:, :-1]
+        if k is None:
+            w = m[:, :-1, :-1] * (nr > 1e-3 * ref.abs().mean((1, 2), keepdim=True)).to(ref.dtype)
+        else:  # the scale of the prior, and the weights, from the kept pixels only
+            scale = (ref.abs() * k).sum((1, 2), keepdim=True) / k.sum((1, 2), keepdim=True).clamp(min=1)
+            w = m[:, :-1, :-1] * (nr > 1e-3 * scale).to(ref.dtype) * k[:, :-1, :-1] * k[:, :-1, 1:] * k[:, 1:, :-1]
         out.append((rx, ry, nr, w))
     return out
 
