@@ -310,3 +310,25 @@ def test_user_mask_follows_the_frames_undistortion_and_resize():
     # the masks stage: user_keep beside static / solve, both 0 where the user masked
     inputs = {"user_mask": user, "source_size": [sw, sh], "undistort": [list(intr), list(dist)]}
     assert np.array_equal(pipeline._user_keep(inputs, (sh, sw)), keep)
+
+
+def test_pipeline_hands_the_users_exclusion_to_the_optimisations():
+    """run_masks adds user_keep (and zeroes static / solve there); the optimisations get int8
+    masks with -1 there (one frame or a lazily stacked window), bundle adjustment the kept pixels;
+    without --masks the masks are the uint8 arrays of before."""
+    fl = {"fwd": np.zeros((24, 32, 2), np.float32), "fwd_valid": np.ones((24, 32), bool),
+          "bwd": np.zeros((24, 32, 2), np.float32), "bwd_valid": np.ones((24, 32), bool)}
+    user = np.zeros((48, 64), bool)
+    user[10:20, 30:41] = True
+    p = pipeline.MasksParams(backend="none")
+    item = pipeline.run_masks({"direction": "fwd", "chain": [fl], "user_mask": user, "source_size": [64, 48]}, p, None)
+    assert item["user_keep"][5:10, 15:21].max() == 0 and item["user_keep"].sum() == 24 * 32 - 5 * 6
+    assert np.array_equal(item["solve"], item["user_keep"]) and np.array_equal(item["static"], item["user_keep"])
+    hard = pipeline._hard_mask(item)
+    assert hard.dtype == np.int8 and set(np.unique(hard)) == {-1, 1} and np.array_equal(hard < 0, item["user_keep"] == 0)
+    plain = pipeline.run_masks({"direction": "fwd", "chain": [fl]}, p, None)
+    assert "user_keep" not in plain and pipeline._hard_mask(plain).dtype == np.uint8
+    stack = pipeline._HardMasks([item, item, item])
+    assert stack[0:3].shape == (3, 24, 32) and stack[0:3].dtype == np.int8 and np.array_equal(stack[1], hard)
+    keeps = pipeline._user_keeps([item, item, item], [0, 2])
+    assert len(keeps) == 2 and keeps[1].dtype == bool and pipeline._user_keeps([plain], [0]) is None
