@@ -481,6 +481,27 @@ def _user_keeps(masks: Any, frames: Any) -> list[np.ndarray] | None:
     return [np.asarray(masks[f]["user_keep"]) > 0 for f in frames]
 
 
+def _has_user_masks(view) -> bool:
+    """Whether the masks stage's items carry the user's (--masks) kept pixels."""
+    return view.len(MASKS) > 0 and "user_keep" in view.value(MASKS)[0]
+
+
+def _user_mask_refs(user: bool, frames: list[int]) -> dict[str, Any]:
+    """{"user_masks": the mask items of ``frames``} with --masks (``user``: their user_keep), {}
+    without (the items are keyed as before)."""
+    return {"user_masks": [ItemRef(MASKS, j) for j in frames]} if user else {}
+
+
+def _eroded_keep(item: dict[str, Any]) -> np.ndarray:
+    """A mask item's user_keep bool (H, W) less every pixel next to a user-masked one: a bilinear
+    sample (OpenCV's 1/32-quantised weights included) that reads only pixels kept here mixes no
+    user-masked pixel."""
+    import cv2
+
+    return cv2.erode(np.asarray(item["user_keep"], np.uint8), np.ones((3, 3), np.uint8),
+                     borderType=cv2.BORDER_REPLICATE) > 0
+
+
 class _HardMasks:
     """masks[i] / masks[a:b] -> ``_hard_mask`` of those mask items, loaded when read (the lazy
     field stack optimize_segments reads one window at a time)."""
@@ -512,12 +533,13 @@ def _prior_items(view, p: PriorsParams):
     # The direct flows are flow_far's items (shared with depth_fusion).
     n = view.len(INGEST)
     index = _far_index(view) if p.backend == "geometric" else {}
+    user = p.backend == "geometric" and _has_user_masks(view)
     out = []
     for i in range(n):
         it: dict[str, Any] = {"image": ItemRef(INGEST, i), "K": PartRef(CALIBRATE, ("K",))}
         js = _prior_refs(i, n, p)
         if js:
-            it.update(_far_refs(index, i, js, p.preset, p.fb_thresh))
+            it.update(_far_refs(index, i, js, p.preset, p.fb_thresh), **_user_mask_refs(user, [i, *js]))
         out.append(it)
     return out
 
@@ -538,9 +560,12 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
     # direct flows to the far reference (more parallax) and the near one (sees what the far
     # one lost); the prior fuses both (stages.frontend.priors.geometric_prior)
     flows = []
-    for fl, direction in zip(inputs.get("refs", []), inputs.get("ref_dirs", [])):
+    keep = [np.asarray(m["user_keep"]) > 0 for m in inputs.get("user_masks", [])]  # --masks: frame i's, the refs'
+    for k, (fl, direction) in enumerate(zip(inputs.get("refs", []), inputs.get("ref_dirs", []))):
         fwd, valid = _far_flow(fl, direction)
         if valid.mean() >= priors_mod.MIN_VALID_FRACTION:
+            if keep:  # no triangulation of, or from, a user-masked pixel
+                valid = valid & keep[0] & user_masks.flow_target_kept(fwd, keep[k + 1])
             flows.append((fwd, valid))
     out = priors_mod.geometric_prior(image, K, flows[:1], extra=flows[1:]) if flows else None
     if out is None:
@@ -550,7 +575,7 @@ def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: Any) -> dict[str, A
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, CALIBRATE, FLOW_FAR), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, CALIBRATE, FLOW_FAR, MASKS), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
                   description="MiDaS-shaped relative inverse depth"))
 
@@ -869,27 +894,6 @@ def _fusion_items(view, p: DepthFusionParams):
                     "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
                     **refs, "ref_indices": Const(far + near), **_user_mask_refs(user, [i, *far, *near])})
     return out
-
-
-def _has_user_masks(view) -> bool:
-    """Whether the masks stage's items carry the user's (--masks) kept pixels."""
-    return view.len(MASKS) > 0 and "user_keep" in view.value(MASKS)[0]
-
-
-def _user_mask_refs(user: bool, frames: list[int]) -> dict[str, Any]:
-    """{"user_masks": the mask items of ``frames``} with --masks (``user``: their user_keep), {}
-    without (the items are keyed as before)."""
-    return {"user_masks": [ItemRef(MASKS, j) for j in frames]} if user else {}
-
-
-def _eroded_keep(item: dict[str, Any]) -> np.ndarray:
-    """A mask item's user_keep bool (H, W) less every pixel next to a user-masked one: a bilinear
-    sample (OpenCV's 1/32-quantised weights included) that reads only pixels kept here mixes no
-    user-masked pixel."""
-    import cv2
-
-    return cv2.erode(np.asarray(item["user_keep"], np.uint8), np.ones((3, 3), np.uint8),
-                     borderType=cv2.BORDER_REPLICATE) > 0
 
 
 def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:

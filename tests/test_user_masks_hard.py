@@ -332,3 +332,37 @@ def test_pipeline_hands_the_users_exclusion_to_the_optimisations():
     assert stack[0:3].shape == (3, 24, 32) and stack[0:3].dtype == np.int8 and np.array_equal(stack[1], hard)
     keeps = pipeline._user_keeps([item, item, item], [0, 2])
     assert len(keeps) == 2 and keeps[1].dtype == bool and pipeline._user_keeps([plain], [0]) is None
+
+
+def test_geometric_prior_never_triangulates_a_masked_pixel():
+    """The prior densifies triangulations of frame i's flows: flows of its user-masked pixels
+    scrambled (and ones landing in the reference's mask moved inside it) leave it bit-identical."""
+    import cv2
+
+    h, w, K = 72, 96, _K()
+    keep_i, keep_j = np.ones((h, w), bool), np.ones((h, w), bool)
+    keep_i[10:30, 10:40] = False
+    keep_j[40:60, 50:80] = False
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    d = _plane(0.0)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], -1)
+    flow = ((rays * d[..., None] + np.array([-0.2, 0.05])) / d[..., None] * K[0, 0] + K[:2, 2]
+            - np.stack([u, v], -1)).astype(np.float32)
+    image = (np.random.default_rng(1).random((h, w, 3)) * 255).astype(np.uint8)
+    deep = cv2.erode((~keep_j).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    inner = ~user_masks.flow_target_kept(flow, ~deep)
+    rng = np.random.default_rng(4)
+    noisy = np.where(keep_i[..., None], flow, flow + rng.normal(0, 3, flow.shape))
+    noisy = np.where(inner[..., None], noisy + rng.uniform(-0.9, 0.9, flow.shape), noisy).astype(np.float32)
+
+    def run(f, with_masks=True):
+        fl = {"fwd": f, "bwd": -f, "fwd_valid": np.ones((h, w), bool), "bwd_valid": np.ones((h, w), bool)}
+        inputs = {"image": {"image": image}, "K": K, "refs": [fl], "ref_dirs": ["fwd"]}
+        if with_masks:
+            inputs["user_masks"] = [_mask_item(keep_i), _mask_item(keep_j)]
+        return pipeline.run_priors(inputs, pipeline.PriorsParams(), None)["inv_depth"]
+
+    a = run(flow)
+    assert inner.sum() > 100 and a.std() > 0
+    assert np.array_equal(a, run(noisy))
+    assert not np.array_equal(run(flow, False), run(noisy, False))
