@@ -90,10 +90,11 @@ def test_gcvd_map_stages_on_workers_are_bit_identical_to_in_process(tmp_path):
     outs = []
     for jobs in ("1", "2"):
         out, executed = {}, {}
-        for until in ("masks", "priors"):  # masks needs flow; priors needs flow_far
+        for until in ("masks", "priors"):  # masks needs flow; priors needs flow_far (and masks)
             doc = cli_json("run", str(clip), "--out", str(tmp_path / f"o{jobs}"), "--cache",
                            str(tmp_path / f"c{jobs}"), "--until", until, "--jobs", jobs)
-            executed.update({s["name"]: s["executed"] for s in doc["stages"]})
+            for s in doc["stages"]:  # the first run's report of a stage counts
+                executed.setdefault(s["name"], s["executed"])
             out.update({k: v["output"] for k, v in json.loads((tmp_path / f"o{jobs}" / "run.json").read_text())["stages"].items()})
         assert executed["flow"] == 15 and executed["masks"] == 16 and executed["priors"] == 16, executed
         outs.append(out)
