@@ -337,7 +337,7 @@ def test_bundle_adjustment_stage_runs_numpy_blas_on_one_thread(monkeypatch):
     poses = np.tile(np.eye(4), (2, 1, 1))
     inputs = {"pose_graph": {"poses": poses}, "optimize_keyframes": {"depths": [np.ones((4, 4))] * 2, "keyframes": [0, 1]},
               "association": {"edge_flows": []}, "ingest": SimpleNamespace(summary={"K": np.eye(3)}),
-              "calibrate": {"K": np.eye(3)}}
+              "calibrate": {"K": np.eye(3)}, "masks": [{"static": np.ones((4, 4), np.uint8)}] * 2}
     ctx = SimpleNamespace(log=lambda msg: None)
     with threadpool_limits(limits=2, user_api="blas"):  # as on a 2-core machine, whatever this one has
         before = blas_threads()
