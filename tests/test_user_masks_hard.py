@@ -366,3 +366,40 @@ def test_geometric_prior_never_triangulates_a_masked_pixel():
     assert inner.sum() > 100 and a.std() > 0
     assert np.array_equal(a, run(noisy))
     assert not np.array_equal(run(flow, False), run(noisy, False))
+
+
+def test_a_masked_run_hands_the_users_masks_to_every_stage_that_samples(tmp_path, monkeypatch):
+    """A whole run with --masks (in process): the masks stage's items carry user_keep, and the
+    footprint checks of priors and fusion, bundle adjustment, the window losses, filter and
+    consensus all run (the items functions found the user's masks)."""
+    from collections import Counter
+
+    from conftest import cli
+
+    from gcvd_flow import api
+    from stages.geometry import torch_ops
+    from stages.optimize import bundle_adjustment as ba_mod
+
+    clip = tmp_path / "clip"
+    cli("synth", str(clip), "--frames", "12", "--size", "96x72", "--trajectory", "loop", "--moving-object", check=True)
+    calls: Counter = Counter()
+
+    def spy(name, real):
+        def f(*a, **kw):
+            calls[name] += 1
+            return real(*a, **kw)
+        return f
+
+    monkeypatch.setattr(user_masks, "flow_target_kept", spy("targets", user_masks.flow_target_kept))
+    monkeypatch.setattr(ba_mod, "footprint_kept", spy("tracks", ba_mod.footprint_kept))
+    monkeypatch.setattr(torch_ops, "footprint_kept", spy("losses", torch_ops.footprint_kept))
+    monkeypatch.setattr(pipeline, "_eroded_keep", spy("depth reads", pipeline._eroded_keep))
+    sets = [f"masks.user_dir={clip / 'gt' / 'dynamic'}", "optimize_keyframes.steps=4", "optimize_edges.steps=2",
+            "optimize_segments.steps=2"]
+    api.run(api.Invocation(input=str(clip), out=str(tmp_path / "run"), cache=str(tmp_path / "cache"), profile="fast",
+                           sets=sets, jobs=1, json_mode=True), log=lambda m: None)
+    masks = api.recorded_output(tmp_path / "run", "masks", str(tmp_path / "cache"))
+    assert all("user_keep" in masks[i] for i in range(12)) and masks[3]["user_keep"].min() == 0
+    # priors (12 frames x refs) and fusion triangulate; the tracks, losses and depth reads check footprints
+    assert calls["targets"] >= 24 and calls["tracks"] > 0 and calls["losses"] > 0, calls
+    assert calls["depth reads"] >= 24, calls  # depth_filter's neighbours and depth_consensus's references
