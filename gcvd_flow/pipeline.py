@@ -945,11 +945,15 @@ def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: Any) -> 
     conf = np.asarray(inputs["depths"][center].get("confidence", np.zeros_like(depths[center])), np.float32)
     if not p.enabled or len(depths) == 1:
         return {"depth": depths[center].astype(np.float32), "confidence": conf}
-    if "user_masks" in inputs:  # --masks: the neighbours' depths at and next to user-masked pixels are not read
-        keep = [_eroded_keep(m) for m in inputs["user_masks"]]
-        depths = np.stack([d if j == center else np.where(k, d, 0) for j, (d, k) in enumerate(zip(depths, keep))])
     fwd = np.stack([fl["fwd"] for fl in inputs["flows"]])
     bwd = np.stack([fl["bwd"] for fl in inputs["flows"]])
+    if "user_masks" in inputs:  # --masks: nothing at or next to a user-masked pixel is read: the
+        # neighbours' depths there are invalid (0), and a track whose flow sample meets one (on
+        # its way through any frame, there or back) becomes NaN, which the filter drops
+        keep = [_eroded_keep(m) for m in inputs["user_masks"]]
+        depths = np.stack([d if j == center else np.where(k, d, 0) for j, (d, k) in enumerate(zip(depths, keep))])
+        fwd = np.where(np.stack(keep[:-1])[..., None], fwd, np.nan).astype(np.float32)  # on frame k's grid
+        bwd = np.where(np.stack(keep[1:])[..., None], bwd, np.nan).astype(np.float32)  # on frame k+1's grid
     out = np.asarray(depth_filter.filter_depth(depths, fwd, bwd, center, radius=p.radius, border=p.border),
                      np.float32)
     conf = np.where(out > 0, conf, 0.0).astype(np.float32)

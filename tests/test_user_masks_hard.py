@@ -276,19 +276,28 @@ def test_depth_filter_never_reads_a_neighbours_masked_depth():
     for k, kp in enumerate(keeps):
         kp[10:30, 20 + k : 40 + k] = False
 
-    def run(scramble: bool):
+    def run(scramble: bool, flows: bool = False, masks: bool = True):
         rng = np.random.default_rng(2)
-        depths = []
+        depths, fls = [], []
         for k, kp in enumerate(keeps):
-            d = np.full((h, w), 2.0, np.float32) + 0.01 * k
+            d = np.full((h, w), 2.0, np.float32) + 0.01 * k + 0.002 * np.arange(w, dtype=np.float32)
             if scramble and k != 2:
                 d = np.where(kp, d, rng.uniform(1.9, 2.1, d.shape)).astype(np.float32)
             depths.append({"depth": d, "confidence": np.full((h, w), 0.5, np.float32)})
-        inputs = {"center": 2, "depths": depths, "flows": [fl] * 4, "image": {"image": np.zeros((h, w, 3), np.uint8)},
-                  "user_masks": [_mask_item(kp) for kp in keeps]}
+        for k in range(4):  # pair (k, k+1): fwd on frame k's grid, bwd on frame k+1's
+            f = dict(fl)
+            if flows:  # what moves a track through a masked pixel of an intermediate frame
+                f["fwd"] = np.where(keeps[k][..., None], fl["fwd"], fl["fwd"] + rng.normal(0, 1, flow.shape))
+                f["bwd"] = np.where(keeps[k + 1][..., None], fl["bwd"], fl["bwd"] + rng.normal(0, 1, flow.shape))
+            fls.append({n: np.asarray(v, np.float32) if n in ("fwd", "bwd") else v for n, v in f.items()})
+        inputs = {"center": 2, "depths": depths, "flows": fls, "image": {"image": np.zeros((h, w, 3), np.uint8)}}
+        if masks:
+            inputs["user_masks"] = [_mask_item(kp) for kp in keeps]
         return pipeline.run_depth_filter(inputs, pipeline.DepthFilterParams(radius=2), None)["depth"]
 
-    assert np.array_equal(run(False), run(True))
+    base = run(False)
+    assert np.array_equal(base, run(True)) and np.array_equal(base, run(True, flows=True))
+    assert not np.array_equal(run(False, masks=False), run(True, flows=True, masks=False))
 
 
 def test_user_mask_follows_the_frames_undistortion_and_resize():
