@@ -481,9 +481,16 @@ def _user_keeps(masks: Any, frames: Any) -> list[np.ndarray] | None:
     return [np.asarray(masks[f]["user_keep"]) > 0 for f in frames]
 
 
+def _mask_summary(view, p: MasksParams) -> dict[str, Any] | None:
+    """{"user_masks": True} when the items carry the user's (--masks) kept pixels, else None (the
+    stage's manifest as without a summary): what later items functions ask, without loading an item
+    (a read-through run from a remote fetches no mask item then)."""
+    return {"user_masks": True} if p.user_dir else None
+
+
 def _has_user_masks(view) -> bool:
-    """Whether the masks stage's items carry the user's (--masks) kept pixels."""
-    return view.len(MASKS) > 0 and "user_keep" in view.value(MASKS)[0]
+    """Whether the masks stage's items carry the user's (--masks) kept pixels (user_keep)."""
+    return bool((view.summary(MASKS) or {}).get("user_masks"))
 
 
 def _user_mask_refs(user: bool, frames: list[int]) -> dict[str, Any]:
@@ -519,7 +526,8 @@ class _HardMasks:
 
 
 MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, CALIBRATE, FLOW), params="masks", kind="mask",
-                 items=_mask_items, resources={"model": _open_maskrcnn}, description="1 = static"))
+                 items=_mask_items, summary=_mask_summary, resources={"model": _open_maskrcnn},
+                 description="1 = static"))
 
 
 # ============================================================================== priors
