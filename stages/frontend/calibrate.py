@@ -13,19 +13,26 @@ focal length from the frames (principal point fixed, at the image centre unless 
    K^-1 H K is from a scaled rotation, then a joint robust refinement of f and each pair's
    rotation on the transfer error, :func:`refine_focal`); pure rotation determines f, the
    epipolar constraint does not.
-3. Otherwise: tracks (RANSAC-verified matches chained over frames 1-3 apart), a small incremental
-   structure from motion at the current f (two-view start, PnP, triangulation; bundle
-   adjustments with f free whenever the registered frames grew by half, and a new reconstruction
-   where the track chain breaks), then a gtsam bundle adjustment of all reconstructions with one
-   shared focal length (``Cal3f``; two rounds, the second on the observations within 2 px);
-   repeated from its f while that moves > 1 %. Two-view geometry alone was 8-10 % off on
-   handheld footage (near the two-view degenerate configuration); the multi-view adjustment is
-   what determines f (docs/benchmarks.md).
-4. Uncertainty: the marginal std of f from the dense Gauss-Newton information matrix, scaled by
-   the robust residual spread (a lower bound: correlated errors and the principal point are not
-   in it). Not determined (the caller keeps the guess and warns): fewer than 6 usable pairs (a
-   camera that hardly moves), a reconstruction of < 25 % of the chosen frames, an uncertainty
-   above ``max_rel_sigma``, or an estimate outside 0.3-3 x the guess.
+3. Otherwise: tracks (RANSAC-verified matches chained over frames 1-3 apart; each pair matched
+   once), at most ~``tracks_per_frame`` per frame kept for the structure from motion (spatially
+   bucketed, the longest first: :func:`select_tracks`; a richly textured clip has thousands), a
+   small incremental structure from motion at the current f (two-view start, PnP, triangulation;
+   bundle adjustments with f free whenever the registered frames grew by half, and a new
+   reconstruction where the track chain breaks), then a gtsam bundle adjustment of all
+   reconstructions with one shared focal length (``Cal3f``; two rounds, the second on the
+   observations within 2 px); repeated from its f while that moves > 1 %; finally one adjustment
+   over all tracks from that solution (the capped set alone left the synthetic loop's f 1-2 %
+   towards the guess). Two-view geometry alone was 8-10 % off on handheld footage (near the
+   two-view degenerate configuration); the multi-view adjustment is what determines f
+   (docs/benchmarks.md).
+4. Uncertainty (:func:`_uncertainty`), meant to match the real error rather than the formal one
+   (0.01-0.1 % where real clips were 1-3 % off): the jackknife spread over frame blocks left
+   out, how far f moves when the principal point is ``pp_frac`` of the image size off the centre,
+   and the formal std, combined in quadrature. Not determined (the caller keeps the guess and
+   warns): fewer than 6 usable pairs (a camera that hardly moves), a reconstruction of < 25 % of
+   the chosen frames, an uncertainty above ``max_rel_sigma``, forward-only motion
+   (:func:`forward_share`: f and the principal point trade off), or an estimate outside 0.3-3 x
+   the guess.
 
 Pure: arrays in, a dict out; deterministic (OpenCV's RANSAC seeded; SIFT, gtsam, scipy are).
 Units: pixels at the frames' (working) resolution.
@@ -529,13 +536,14 @@ def _observations(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], 
 
 
 def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
-            robust_px: float, iterations: int, max_px: float) -> dict[str, Any]:
+            robust_px: float, iterations: int, max_px: float, marginal: bool = False) -> dict[str, Any]:
     """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
     poses, points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected
     reconstructions (models) of one camera share the focal length. Gauge of each model: its first
     pose and its first point are held by tight priors (the point fixes the scale). Returns {focal,
     median_px, observations, points, frames, iterations (LM), T (world-to-camera (4, 4) per frame),
-    pts, errors (reprojection error per observation, px)}."""
+    pts, errors (reprojection error per observation, px), with ``marginal`` rel_sigma_formal
+    (:func:`_formal_rel_sigma`)}."""
     import gtsam
 
     C = lambda k: gtsam.symbol("c", k)  # noqa: E731
@@ -577,8 +585,34 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     points = {i: np.asarray(res.atPoint3(P(i))) for i in ids}
     K1 = _K(f, np.asarray(K)[:2, 2])
     err = _obs_errors(K1, poses, points, obs)
-    return {"focal": f, "median_px": float(np.median(err)), "observations": n_obs, "points": len(ids),
-            "frames": len(frames), "iterations": int(opt.iterations()), "T": poses, "pts": points, "errors": err}
+    out = {"focal": f, "median_px": float(np.median(err)), "observations": n_obs, "points": len(ids),
+           "frames": len(frames), "iterations": int(opt.iterations()), "T": poses, "pts": points, "errors": err}
+    if marginal:
+        out["rel_sigma_formal"] = _formal_rel_sigma(graph, res, KEY, [P(i) for i in ids], C(frames[0]), f, err)
+    return out
+
+
+def _formal_rel_sigma(graph, res, key: int, point_keys: list[int], first_pose: int, f: float, err: np.ndarray
+                      ) -> float:
+    """Marginal std of f / f from the sparse Gauss-Newton information (gtsam Marginals), scaled by
+    the robust residual spread. Small on real clips (0.01-0.1 % where the errors were 1-3 %), but
+    large where the motion leaves f unobservable (pure forward translation: the cost is flat along
+    f), which the perturbation terms of :func:`_uncertainty` cannot see. Weak priors on the points
+    (10 x the scene's size) keep a point seen from nearly one place from making the system
+    indeterminate. inf when it cannot be computed."""
+    import gtsam
+
+    s = max(1.4826 * float(np.median(err)) / 1.1774, 1e-3)  # |r| of a 2-D Gaussian: median = 1.1774 sigma
+    origin = res.atPose3(first_pose).translation()
+    size = float(np.median([np.linalg.norm(res.atPoint3(k) - origin) for k in point_keys]))
+    g = gtsam.NonlinearFactorGraph(graph)
+    for k in point_keys:
+        g.add(gtsam.PriorFactorPoint3(k, res.atPoint3(k), gtsam.noiseModel.Isotropic.Sigma(3, 10.0 * max(size, 1e-9))))
+    try:
+        var = float(gtsam.Marginals(g, res).marginalCovariance(key)[0, 0])
+    except RuntimeError:
+        return float("inf")
+    return float(np.sqrt(var) * s / f) if np.isfinite(var) and var > 0 else float("inf")
 
 
 def _obs_errors(K: np.ndarray, T: dict[int, np.ndarray], pts: dict[int, np.ndarray],
@@ -667,16 +701,20 @@ def _chosen(feat: Any, n: int, target: float, knn: _Knn) -> list[int]:
 
 
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
-                   n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
+                   n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.05,
                    robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    passes: int = 4, motion_frac: float = 0.05, tracks_per_frame: int = 150,
-                   blocks: int = 5, pp_frac: float = 0.02) -> dict[str, Any]:
+                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f: the spread over leave-one-block-out re-estimates, :func:`_jackknife`),
     method ("bundle adjustment" | "rotation"), pairs, rotation_pairs, frames (registered), points,
     tracks, median_px, iterations (LM iterations of all bundle adjustments), block_focals,
-    reason (why not determined, '' when determined)}. The principal point is K_guess's.
+    pp_focals, rel_sigma_blocks / _pp / _formal (the terms of rel_sigma), forward_share
+    (:func:`forward_share`), reason (why not determined, '' when determined)}. The principal point
+    is K_guess's: not determined (the guess is kept, with the reason) when rel_sigma exceeds
+    ``max_rel_sigma`` or a share >= ``max_forward_share`` of the steps between registered frames
+    moves along the optical axis (forward-only motion: KITTI 1.0, HoloLens walk 0.41, ICL 0).
 
     Mostly-rotating clips (a share >= ``rotation_share`` of the frame pairs explained by a
     homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
@@ -703,7 +741,8 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
                          "the camera hardly moves")
         return out
     if n_rot >= rotation_share * len(pairs):
-        f, rel = _rotation_focal([g for g in pairs if g.kind == "rotation"], c, f_guess, blocks, out)
+        size = np.asarray(images[sel[0]]).shape[1::-1]
+        f, rel = _rotation_focal([g for g in pairs if g.kind == "rotation"], c, f_guess, blocks, pp_frac, size, out)
         out.update(frames=len(sel))
     else:
         size = np.asarray(images[sel[0]]).shape[1::-1]
@@ -716,28 +755,47 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
             rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
     out["rel_sigma"] = rel
     in_range = 0.3 * f_guess < f < 3.0 * f_guess
-    if rel <= max_rel_sigma and in_range:
+    forward = out.get("forward_share", 0.0) >= max_forward_share
+    if rel <= max_rel_sigma and in_range and not forward:
         out.update(focal=float(f), determined=True, reason="")
     else:
         out["estimate"] = float(f)
-        out["reason"] = (f"the motion does not determine the focal length (estimate {f:.1f} px +- "
-                         f"{100 * rel:.0f} %: forward-only or near-static motion?)")
+        rel_pp, rel_b = out.get("rel_sigma_pp", 0.0), out.get("rel_sigma_blocks", 0.0)
+        if forward:
+            out["reason"] = (f"the camera only moves forward ({100 * out['forward_share']:.0f} % of the steps along "
+                             "the optical axis): the focal length cannot be separated from the principal point "
+                             f"(assumed at the image centre; estimate {f:.1f} px +- {100 * rel:.0f} %)")
+        elif in_range and np.isfinite(rel) and rel_pp > rel_b:
+            out["reason"] = (f"the motion does not separate the focal length from the principal point (assumed at "
+                             f"the image centre): estimate {f:.1f} px +- {100 * rel:.0f} %, of which "
+                             f"{100 * rel_pp:.0f} % for a principal point {100 * pp_frac:g} % of the image size off "
+                             "(forward-only motion?)")
+        else:
+            out["reason"] = (f"the motion does not determine the focal length (estimate {f:.1f} px +- "
+                             f"{100 * rel:.0f} %: forward-only or near-static motion?)")
     return out
 
 
-def _rotation_focal(rot: list[PairGeometry], c: np.ndarray, f_guess: float, blocks: int,
-                    out: dict[str, Any]) -> tuple[float, float]:
+def _rotation_focal(rot: list[PairGeometry], c: np.ndarray, f_guess: float, blocks: int, pp_frac: float,
+                    size: tuple[int, int], out: dict[str, Any]) -> tuple[float, float]:
     """Focal length (px) of a rotating camera from its homographies and its relative uncertainty:
     the jackknife spread of the same refinement with each of ``blocks`` contiguous runs of pairs
-    left out (from the full estimate). Fills out's method, median_px, block_focals."""
+    left out, combined with how far f moves with the principal point ``pp_frac`` x the image size
+    off (as :func:`_uncertainty`). Fills out's method, median_px, block_focals, pp_focals,
+    rel_sigma_blocks, rel_sigma_pp."""
     f0, _, _ = initial_focal(rot, c, f_guess)
     fit = refine_focal(rot, c, f0, robust_px=0.5)
     f = fit["focal"]
     parts = [p for p in np.array_split(np.arange(len(rot)), blocks) if len(p)] if len(rot) >= 2 * blocks else []
     fs = [refine_focal([g for k, g in enumerate(rot) if k not in set(p.tolist())], c, f, robust_px=0.5)["focal"]
           for p in parts]
-    out.update(method="rotation", median_px=fit["median_px"], block_focals=[float(x) for x in fs])
-    return f, _jackknife_rel(fs)
+    pp_fs = [refine_focal(rot, c + np.asarray(d), f, robust_px=0.5)["focal"]
+             for d in ((pp_frac * size[0], 0.0), (0.0, pp_frac * size[1]))]
+    rel_b = _jackknife_rel(fs)
+    rel_pp = float(np.sqrt(sum(np.log(x / f) ** 2 for x in pp_fs)))
+    out.update(method="rotation", median_px=fit["median_px"], block_focals=[float(x) for x in fs],
+               pp_focals=[float(x) for x in pp_fs], rel_sigma_blocks=rel_b, rel_sigma_pp=rel_pp)
+    return f, float(np.hypot(rel_b, rel_pp))
 
 
 def _jackknife_rel(fs: Sequence[float]) -> float:
@@ -792,9 +850,26 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
         if pol["T"] and pol["frames"] >= final["frames"] and 0.3 * f_guess < pol["focal"] < 3.0 * f_guess:
             f = pol["focal"]
             out.update(median_px=pol["median_px"], points=pol["points"])
+    out["forward_share"] = forward_share(final["T"])
     rel, it = _uncertainty(tracks, final, _K(f, c), robust_px, blocks, pp_frac, size, out)
     out["iterations"] = iters[0] + it
     return f, rel
+
+
+def forward_share(T: dict[int, np.ndarray], max_deg: float = 30.0) -> float:
+    """Share of consecutive registered frames (world-to-camera poses T (4, 4)) whose baseline lies
+    within ``max_deg`` of the first one's optical axis: 1 for a camera that only moves forward (a
+    car, a walk looking ahead), where the focal length and the principal point trade off."""
+    fr = sorted(T)
+    n, k = 0, 0
+    for a, b in zip(fr, fr[1:]):
+        ca, cb = -T[a][:3, :3].T @ T[a][:3, 3], -T[b][:3, :3].T @ T[b][:3, 3]
+        d = T[a][:3, :3] @ (cb - ca)  # baseline in camera a
+        if np.linalg.norm(d) < 1e-12:
+            continue
+        n += 1
+        k += abs(d[2]) / np.linalg.norm(d) >= np.cos(np.radians(max_deg))
+    return k / n if n else 0.0
 
 
 def _retriangulate(tracks, ba_tracks, ba: dict[str, Any], K: np.ndarray) -> dict[int, np.ndarray]:
@@ -820,29 +895,27 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
     how far f moves when the principal point (assumed at the centre) is off by ``pp_frac`` x the
     image's width (x) and height (y) (the bundle adjustment repeated from ``ba`` with it moved). The
     second term is what forward motion cannot separate (KITTI: a principal point 10 px off at
-    1226 px moved f 11 %). Returns (rel sigma, LM iterations); fills out's block_focals,
-    pp_focals, rel_sigma_blocks, rel_sigma_pp."""
+    1226 px moved f 11 %); and the formal std (:func:`_formal_rel_sigma`: where f is unobservable,
+    the perturbed adjustments stay where they start). Returns (rel sigma, LM iterations); fills
+    out's block_focals, pp_focals, rel_sigma_blocks, rel_sigma_pp, rel_sigma_formal."""
     fs, iters = _jackknife(tracks, ba, K, robust_px, blocks)
     rel_b = _jackknife_rel(fs)
-    f0 = float(K[0, 0])
     pp_fs = []
     for d in ((pp_frac * size[0], 0.0), (0.0, pp_frac * size[1])):
-        Kd = K.copy()
-        Kd[0, 2] += d[0]
-        Kd[1, 2] += d[1]
-        res = bundle_adjust_focal(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=20)
+        Kd = _K(ba["focal"], K[:2, 2] + np.asarray(d))  # from the capped adjustment's own solution
+        res = _adjust(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=20, max_px=10.0)
         iters += res["iterations"]
         pp_fs.append(float(res["focal"]) if res["T"] else float("inf"))
-    f_ref = bundle_adjust_focal(tracks, ba["T"], ba["pts"], K, robust_px=robust_px, iterations=20)
-    iters += f_ref["iterations"]
-    ref = float(f_ref["focal"]) if f_ref["T"] else f0
-    rel_pp = float(np.sqrt(sum(np.log(x / ref) ** 2 for x in pp_fs)))
-    out.update(block_focals=fs, pp_focals=pp_fs, rel_sigma_blocks=rel_b, rel_sigma_pp=rel_pp)
-    return float(np.hypot(rel_b, rel_pp)), iters
+    rel_pp = float(np.sqrt(sum(np.log(x / ba["focal"]) ** 2 for x in pp_fs)))
+    formal = _adjust(tracks, ba["T"], ba["pts"], _K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
+                     marginal=True)
+    rel_f = float(formal.get("rel_sigma_formal", float("inf")))
+    out.update(block_focals=fs, pp_focals=pp_fs, rel_sigma_blocks=rel_b, rel_sigma_pp=rel_pp, rel_sigma_formal=rel_f)
+    return float(np.sqrt(rel_b ** 2 + rel_pp ** 2 + rel_f ** 2)), iters
 
 
 def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, blocks: int,
-               max_px: float = 2.0, iterations: int = 20) -> tuple[list[float], int]:
+               max_px: float = 2.0, iterations: int = 10) -> tuple[list[float], int]:
     """The final bundle adjustment repeated ``blocks`` times (from its solution), each time without
     one contiguous block of the registered frames. The spread of these focal lengths is the
     estimate's uncertainty: it reflects how much f depends on which motion the clip happens to have
