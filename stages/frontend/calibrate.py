@@ -900,13 +900,18 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
     out's block_focals, pp_focals, rel_sigma_blocks, rel_sigma_pp, rel_sigma_formal."""
     fs, iters = _jackknife(tracks, ba, K, robust_px, blocks)
     rel_b = _jackknife_rel(fs)
-    pp_fs = []
-    for d in ((pp_frac * size[0], 0.0), (0.0, pp_frac * size[1])):
-        Kd = _K(ba["focal"], K[:2, 2] + np.asarray(d))  # from the capped adjustment's own solution
-        res = _adjust(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=20, max_px=10.0)
-        iters += res["iterations"]
-        pp_fs.append(float(res["focal"]) if res["T"] else float("inf"))
-    rel_pp = float(np.sqrt(sum(np.log(x / ba["focal"]) ** 2 for x in pp_fs)))
+    pp_fs, sens = [], []
+    for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]])):
+        pair = []
+        for sign in (1.0, -1.0):  # central difference: both runs gated and converged alike
+            Kd = _K(ba["focal"], K[:2, 2] + sign * d)  # from the capped adjustment's own solution
+            res = _adjust(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=30,
+                          max_px=2.0 + float(np.abs(d).sum()))
+            iters += res["iterations"]
+            pair.append(float(res["focal"]) if res["T"] else float("nan"))
+        pp_fs += pair
+        sens.append(abs(np.log(pair[0] / pair[1])) / 2 if all(np.isfinite(pair)) else float("inf"))
+    rel_pp = float(np.hypot(*sens))
     formal = _adjust(tracks, ba["T"], ba["pts"], _K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
                      marginal=True)
     rel_f = float(formal.get("rel_sigma_formal", float("inf")))
