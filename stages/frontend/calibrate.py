@@ -787,12 +787,15 @@ def _rotation_focal(rot: list[PairGeometry], c: np.ndarray, f_guess: float, bloc
     fit = refine_focal(rot, c, f0, robust_px=0.5)
     f = fit["focal"]
     parts = [p for p in np.array_split(np.arange(len(rot)), blocks) if len(p)] if len(rot) >= 2 * blocks else []
-    fs = [refine_focal([g for k, g in enumerate(rot) if k not in set(p.tolist())], c, f, robust_px=0.5)["focal"]
-          for p in parts]
-    pp_fs = [refine_focal(rot, c + np.asarray(d), f, robust_px=0.5)["focal"]
-             for d in ((pp_frac * size[0], 0.0), (0.0, pp_frac * size[1]))]
+    fs = [refine_focal([g for k, g in enumerate(rot) if k not in set(p.tolist())], c, f, robust_px=0.5,
+                       max_nfev=15)["focal"] for p in parts]
+    pp_fs = [refine_focal(rot, c + sign * np.asarray(d), f, robust_px=0.5, max_nfev=15)["focal"]
+             for d in ((pp_frac * size[0], 0.0), (0.0, pp_frac * size[1])) for sign in (1.0, -1.0)]
     rel_b = _jackknife_rel(fs)
-    rel_pp = float(np.sqrt(sum(np.log(x / f) ** 2 for x in pp_fs)))
+    # the larger one-sided move per axis: for a rotating camera a principal point shift is nearly a
+    # rotation, so f's first-order (central) change is ~0 and understated the error (0.09 % vs 0.19 %)
+    dev = np.abs(np.log(np.asarray(pp_fs) / f)).reshape(2, 2).max(axis=1)
+    rel_pp = float(np.hypot(*dev))
     out.update(method="rotation", median_px=fit["median_px"], block_focals=[float(x) for x in fs],
                pp_focals=[float(x) for x in pp_fs], rel_sigma_blocks=rel_b, rel_sigma_pp=rel_pp)
     return f, float(np.hypot(rel_b, rel_pp))
