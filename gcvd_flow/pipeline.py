@@ -210,9 +210,11 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
         res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
-                                           n_features=p.features, max_rel_sigma=p.max_rel_sigma)
+                                           n_features=p.features, max_rel_sigma=p.max_rel_sigma,
+                                           tracks_per_frame=p.tracks_per_frame, pp_frac=p.pp_frac)
     out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]), method=res["method"],
-               median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]))
+               median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]),
+               iterations=int(res["iterations"]))
     rel = float(res["rel_sigma"])
     out["rel_sigma"] = rel if np.isfinite(rel) else None
     if not res["determined"]:
@@ -223,10 +225,11 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
     K = K.copy()
     K[0, 0] = K[1, 1] = f
     out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
-               origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.2f} % at {cam['width']}x"
+               origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.1f} % at {cam['width']}x"
                       f"{cam['height']} ({len(frames)} frames, {res['pairs']} pairs)")
-    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.2f} % (formal; guess {cam['K'][0][0]:.1f}; {res['method']}: "
-            f"{res['frames']} frames, {res['points']} points, {res['pairs']} pairs of which {res['rotation_pairs']} "
+    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; {res['method']}: "
+            f"{res['frames']} frames, {res['points']} points, {res['iterations']} LM iterations, {res['pairs']} pairs of which "
+            f"{res['rotation_pairs']} "
             f"rotation-only, median residual {res['median_px']:.2f} px)")
     return out
 

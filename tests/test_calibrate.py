@@ -19,8 +19,46 @@ def test_focal_recovered_at_other_fields_of_view(trajectory, n, scale):
     res = estimate_focal(list(clip.frames), K_guess)
     assert res["determined"], res
     assert res["method"] == "bundle adjustment"
-    assert abs(res["focal"] / clip.K[0, 0] - 1) < 0.02, (res["focal"], clip.K[0, 0])
-    assert 0 < res["rel_sigma"] < 0.03
+    err = abs(res["focal"] / clip.K[0, 0] - 1)
+    assert err < 0.02, (res["focal"], clip.K[0, 0])
+    # an uncertainty that covers the error without being absurd (the formal one alone: 0.06-0.1 %)
+    assert err <= 2 * res["rel_sigma"] and 0.005 < res["rel_sigma"] < 0.05, res
+    assert res["forward_share"] < 0.5
+    assert res["points"] > res["tracks"]  # the final adjustment used every track, the SfM the capped set
+
+
+@pytest.mark.slow
+def test_forward_motion_keeps_the_guess_and_says_why():
+    """Forward-only motion (a car, KITTI): f trades off against the principal point; the estimate
+    here was 24 % off while its spreads said 3-4 %: the stage keeps the guess and prints one
+    warning line naming the principal point (cameras.json and the report carry the same text)."""
+    from gcvd_flow import pipeline
+
+    K_guess = default_intrinsics(SIZE)
+    clip = render_clip(30, "forward", size=SIZE, seed=0, focal=K_guess[0, 0] * 0.8)
+    ctx = _Ctx()
+    out = pipeline.run_calibrate({"ingest": _Frames(list(clip.frames), K_guess, True)}, pipeline.CalibrateParams(), ctx)
+    assert not out["estimated"] and out["guessed"]
+    np.testing.assert_array_equal(out["K"], K_guess)
+    warnings = [ln for ln in ctx.lines if ln.startswith("warning: ")]
+    assert warnings == ["warning: " + out["warning"]]
+    assert "only moves forward" in out["warning"] and "principal point" in out["warning"], out["warning"]
+
+
+def test_forward_share_of_poses():
+    from stages.frontend.calibrate import forward_share
+
+    def T_c_w(c, yaw=0.0):  # camera at c (world), turned by yaw about y; world-to-camera
+        R = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, -R @ np.asarray(c, float)
+        return T
+
+    ahead = {k: T_c_w([0.01 * k, 0, 0.2 * k]) for k in range(10)}
+    sideways = {k: T_c_w([0.2 * k, 0, 0.01 * k]) for k in range(10)}
+    assert forward_share(ahead) == 1.0 and forward_share(sideways) == 0.0
+    turned = {k: T_c_w([0.2 * k, 0, 0], yaw=np.pi / 2) for k in range(10)}  # x in the world = its optical axis
+    assert forward_share(turned) == 1.0
 
 
 @pytest.mark.slow
@@ -29,7 +67,9 @@ def test_focal_recovered_from_pure_rotation():
     clip = render_clip(20, "rotation", size=SIZE, seed=0, focal=K_guess[0, 0] * 0.8)
     res = estimate_focal(list(clip.frames), K_guess)
     assert res["determined"] and res["method"] == "rotation", res
-    assert abs(res["focal"] / clip.K[0, 0] - 1) < 0.02, (res["focal"], clip.K[0, 0])
+    err = abs(res["focal"] / clip.K[0, 0] - 1)
+    assert err < 0.02, (res["focal"], clip.K[0, 0])
+    assert err <= 2 * res["rel_sigma"] < 0.05, res
 
 
 def test_static_clip_keeps_the_guess_and_says_why():
@@ -91,3 +131,29 @@ def test_calibrate_stage_with_given_intrinsics_does_nothing():
     assert not out["estimated"] and not out["guessed"] and not out["warning"] and not ctx.lines
     np.testing.assert_array_equal(out["K"], K)
     assert out["focal_source"] == [222.0, 222.0]
+
+
+def test_select_tracks_caps_each_frame_and_keeps_the_image_covered():
+    from stages.frontend.calibrate import select_tracks
+
+    rng = np.random.default_rng(0)
+    W, H = 160, 120
+    tracks = []
+    for _ in range(3000):  # a richly textured clip: 3000 tracks over 10 frames, 3-6 frames long
+        a = int(rng.integers(0, 7))
+        uv = rng.uniform([0, 0], [W, H])
+        tracks.append({f: uv + 0.5 * (f - a) for f in range(a, min(10, a + int(rng.integers(3, 7))))})
+    kept = select_tracks(tracks, (W, H), per_frame=48, grid=(8, 6))
+    per_frame = [sum(f in t for t in kept) for f in range(10)]
+    # each frame: its own share (one track per cell) plus tracks other frames kept
+    assert max(per_frame) < 0.25 * max(sum(f in t for t in tracks) for f in range(10))
+    assert len(kept) < 600
+    assert kept == [t for t in tracks if any(t is k for k in kept)]  # original order
+    def cell(uv):
+        return min(7, max(0, int(uv[0] * 8 / W))), min(5, max(0, int(uv[1] * 6 / H)))
+
+    for f in range(10):  # every cell of every frame that had a track keeps one
+        assert {cell(t[f]) for t in kept if f in t} == {cell(t[f]) for t in tracks if f in t}
+    # the longest tracks of a cell are the ones kept
+    assert np.mean([len(t) for t in kept]) > np.mean([len(t) for t in tracks]) + 0.5
+    assert select_tracks(tracks, (W, H), per_frame=0) is tracks

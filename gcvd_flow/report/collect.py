@@ -284,7 +284,8 @@ def _frame_signals(data: ReportData, store: Any) -> None:
         fx = est.get("fx_source") if isinstance(est.get("fx_source"), (int, float)) else float("nan")
         data.signals.append(Signal("intrinsics", f"estimated fx {fx:.1f} px (source)", "info",
                                    "focal length estimated from the video (calibrate stage)"
-                                   + (f", formal +- {100 * rel:.2f} %" if rel is not None else "")))
+                                   + (f" +- {100 * rel:.1f} % (spread over frame blocks and a principal point "
+                                      "2 % off)" if rel is not None else "")))
     if store is None:
         return
     try:

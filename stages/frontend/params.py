@@ -41,8 +41,13 @@ class CalibrateSettings:
     max_frames: int = param(48, "frames sampled by image motion over the clip for the estimate", ge=3)
     features: int = param(1000, "SIFT features per sampled frame (the strongest; 2000: a textured synthetic clip "
                           "7 % off and 2x slower)", ge=100)
-    max_rel_sigma: float = param(0.03, "an estimate less certain than this (std / f) is not used: the motion does "
-                                 "not determine the focal length; the guess is kept", gt=0)
+    max_rel_sigma: float = param(0.03, "an estimate whose spread over frame blocks and formal std (std / f) exceed "
+                                 "this is not used: the motion does not determine the focal length; the guess is "
+                                 "kept (the reported uncertainty also holds the principal-point term)", gt=0)
+    tracks_per_frame: int = param(150, "SIFT tracks per frame for the structure from motion (spatially bucketed; "
+                                  "one final adjustment uses all): bounds the work on richly textured clips", ge=0)
+    pp_frac: float = param(0.02, "the principal point is assumed at the centre; the uncertainty includes how far f "
+                           "moves if it is off by this x the image size (x and y)", ge=0)
 
 
 @dataclass(frozen=True)
