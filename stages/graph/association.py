@@ -37,6 +37,7 @@ from scipy.ndimage import maximum_filter
 
 from stages.frontend.flow import dis_flow, fb_consistency
 from stages.geometry.image import to_gray
+from stages.graph import retrieval as retrieval_mod
 
 log = logging.getLogger(__name__)
 
@@ -358,6 +359,7 @@ def keyframe_pair_flow(
     return out
 
 
+RetrievalMode = Literal["vlad", "global"]
 VerifyMode = Literal["geometric", "paper"]
 
 
@@ -542,6 +544,12 @@ def build_graph(
     min_epipolar: float = 0.5,
     per_keyframe: int = 0,
     max_candidates: int | None = None,
+    retrieval: RetrievalMode = "vlad",
+    words: int = retrieval_mod.DEFAULT_WORDS,
+    top_k: int = 5,
+    min_ratio: float = 0.1,
+    window: int = 1,
+    seed: int = 0,
 ) -> tuple[dict[str, Any], dict[tuple[int, int], dict[str, np.ndarray]]]:
     """Build the keyframe graph: sequential edges + verified non-sequential edges.
 
@@ -558,7 +566,15 @@ def build_graph(
             ``descriptor_fn`` (default :func:`global_descriptor`).
         call_map: runs the independent calls (SIFT per keyframe, flow per consecutive pair,
             verification per loop candidate), e.g. on worker processes; results are the same.
-        per_keyframe, max_candidates: see :func:`candidate_pairs`.
+        per_keyframe, max_candidates: see :func:`candidate_pairs` (max_candidates caps both
+            retrievals: the best-scoring candidates are verified).
+        retrieval: "vlad" (default when neither ``descriptors`` nor ``descriptor_fn`` is given):
+            a VLAD vocabulary of ``words`` words learned (``seed``) from these keyframes' own SIFT
+            features, candidates by :func:`stages.graph.retrieval.relative_candidates` (``top_k``
+            per keyframe, score >= ``min_ratio`` relative to the temporal neighbours', averaged
+            over +-``window`` keyframes of the path); "global": the whole-image descriptor with
+            ``similarity_threshold`` and NMS (:func:`candidate_pairs`; also whenever descriptors
+            or a descriptor_fn are given, e.g. ResNet-18).
         verify, min_inliers, min_epipolar: :func:`verify_pair`'s ``mode`` ("geometric", the
             default, accepts wide-baseline revisits; "paper" keeps the one-keyframe-apart rule)
             and its thresholds.
@@ -585,17 +601,25 @@ def build_graph(
     features = list(call_map(_sift_features, kf_images))
     edge_flows = _consecutive_flows(kfs, kf_images, features, fb_thresh, call_map)
 
-    if descriptors is None:
-        fn = descriptor_fn or global_descriptor
-        descriptors = (
-            np.stack([fn(img) for img in kf_images]) if n else np.zeros((0, 1), np.float32)
-        )
-    desc = np.asarray(descriptors)
-    if desc.shape[0] != n:
-        raise ValueError(f"descriptors have {desc.shape[0]} rows for {n} keyframes")
-
-    cands = candidate_pairs(desc, similarity_threshold, nms=nms, min_separation=sep, per_keyframe=per_keyframe,
-                            max_candidates=max_candidates) if n else []
+    if retrieval not in ("vlad", "global"):
+        raise ValueError(f"retrieval must be 'vlad' or 'global', got {retrieval!r}")
+    use_vlad = retrieval == "vlad" and descriptors is None and descriptor_fn is None
+    if use_vlad:
+        desc = retrieval_mod.vlad_descriptors([f[1] for f in features], words=words, seed=seed)
+        cands = retrieval_mod.relative_candidates(desc, min_separation=sep, top_k=top_k, min_ratio=min_ratio,
+                                                  window=window) if n else []
+        cands = cands if max_candidates is None else cands[: int(max_candidates)]
+    else:
+        if descriptors is None:
+            fn = descriptor_fn or global_descriptor
+            descriptors = (
+                np.stack([fn(img) for img in kf_images]) if n else np.zeros((0, 1), np.float32)
+            )
+        desc = np.asarray(descriptors)
+        if desc.shape[0] != n:
+            raise ValueError(f"descriptors have {desc.shape[0]} rows for {n} keyframes")
+        cands = candidate_pairs(desc, similarity_threshold, nms=nms, min_separation=sep, per_keyframe=per_keyframe,
+                                max_candidates=max_candidates) if n else []
     accepted, rejected = _verify_candidates(
         cands, kfs, kf_images, K, keyframe_threshold_px, edge_flows, features, call_map,
         min_inlier_ratio=min_inlier_ratio, min_consistent=min_consistent, fb_thresh=fb_thresh, mode=verify,
@@ -609,6 +633,7 @@ def build_graph(
         "similarity_threshold": float(similarity_threshold),
         "keyframe_threshold_px": float(keyframe_threshold_px),
         "verify": verify,
+        "retrieval": "vlad" if use_vlad else "global",
         "candidates": len(cands),
         "sequential_edges": sequential,
         "nonsequential_edges": accepted,
