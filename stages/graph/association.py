@@ -359,7 +359,7 @@ def keyframe_pair_flow(
     return out
 
 
-RetrievalMode = Literal["vlad", "global"]
+RetrievalMode = Literal["vocabulary", "global"]
 VerifyMode = Literal["geometric", "paper"]
 
 
@@ -398,6 +398,9 @@ def verify_pair(
     consistent pixels, in original coordinates), ``epipolar`` (flow share agreeing with E, -1
     when not computed), ``reason`` ("ok" or why it was rejected) and the flow dict of
     :func:`keyframe_pair_flow` (``fwd``, ``bwd``, ``fwd_valid``, ``bwd_valid``, ``homography``).
+    A pair the feature matches already reject (too few matches, inlier ratio, too few inliers)
+    gets no dense flow (the expensive part: retrieval proposes many candidates): no flow keys,
+    ``consistent_fraction`` -1, ``mean_flow`` inf.
     """
     if mode not in ("geometric", "paper"):
         raise ValueError(f"mode must be 'geometric' or 'paper', got {mode!r}")
@@ -406,6 +409,17 @@ def verify_pair(
     _, h_ratio = _homography(pts_a, pts_b)
     E, e_ratio, n_inl = _essential(pts_a, pts_b, K)
     inlier_ratio = max(h_ratio, e_ratio)
+    n_model = int(max(n_inl, int(round(h_ratio * n_matches))))
+    sparse = None  # the feature matches alone reject the pair: no dense flow (most of the cost)
+    if n_matches < MIN_MATCHES:
+        sparse = f"too few matches ({n_matches} < {MIN_MATCHES})"
+    elif inlier_ratio < min_inlier_ratio:
+        sparse = f"inlier ratio {inlier_ratio:.3f} < {min_inlier_ratio}"
+    elif mode == "geometric" and n_model < min_inliers:
+        sparse = f"too few inliers ({n_model} < {min_inliers})"
+    if sparse is not None:
+        return {"accepted": False, "inlier_ratio": float(inlier_ratio), "n_matches": n_matches, "n_inliers": n_model,
+                "consistent_fraction": -1.0, "mean_flow": float("inf"), "epipolar": -1.0, "reason": sparse}
     flow = keyframe_pair_flow(img_a, img_b, fb_thresh=fb_thresh, _matches=(pts_a, pts_b))
     valid = flow["fwd_valid"]
     consistent = float(valid.mean())
@@ -416,16 +430,10 @@ def verify_pair(
     if mode == "geometric" and E is not None and not planar:
         epi = flow_epipolar_agreement(E, K, flow["fwd"], valid, max_px=epipolar_px)
 
-    if n_matches < MIN_MATCHES:
-        reason = f"too few matches ({n_matches} < {MIN_MATCHES})"
-    elif inlier_ratio < min_inlier_ratio:
-        reason = f"inlier ratio {inlier_ratio:.3f} < {min_inlier_ratio}"
-    elif consistent < min_consistent:
+    if consistent < min_consistent:
         reason = f"consistent fraction {consistent:.3f} < {min_consistent}"
     elif mode == "paper" and not mean_flow <= keyframe_threshold_px:
         reason = f"mean flow {mean_flow:.2f} px > keyframe threshold {keyframe_threshold_px:.2f} px"
-    elif mode == "geometric" and max(n_inl, int(round(h_ratio * n_matches))) < min_inliers:
-        reason = f"too few inliers ({max(n_inl, int(round(h_ratio * n_matches)))} < {min_inliers})"
     elif mode == "geometric" and not planar and epi < min_epipolar:
         reason = f"flow disagrees with the matches' geometry ({epi:.3f} < {min_epipolar} within {epipolar_px} px)"
     else:
@@ -434,7 +442,7 @@ def verify_pair(
         "accepted": reason == "ok",
         "inlier_ratio": float(inlier_ratio),
         "n_matches": n_matches,
-        "n_inliers": int(max(n_inl, int(round(h_ratio * n_matches)))),
+        "n_inliers": n_model,
         "consistent_fraction": consistent,
         "mean_flow": mean_flow,
         "epipolar": float(epi),
@@ -544,7 +552,7 @@ def build_graph(
     min_epipolar: float = 0.5,
     per_keyframe: int = 0,
     max_candidates: int | None = None,
-    retrieval: RetrievalMode = "vlad",
+    retrieval: RetrievalMode = "vocabulary",
     words: int = retrieval_mod.DEFAULT_WORDS,
     top_k: int = 5,
     min_ratio: float = 0.1,
@@ -568,11 +576,12 @@ def build_graph(
             verification per loop candidate), e.g. on worker processes; results are the same.
         per_keyframe, max_candidates: see :func:`candidate_pairs` (max_candidates caps both
             retrievals: the best-scoring candidates are verified).
-        retrieval: "vlad" (default when neither ``descriptors`` nor ``descriptor_fn`` is given):
-            a VLAD vocabulary of ``words`` words learned (``seed``) from these keyframes' own SIFT
-            features, candidates by :func:`stages.graph.retrieval.relative_candidates` (``top_k``
-            per keyframe, score >= ``min_ratio`` relative to the temporal neighbours', averaged
-            over +-``window`` keyframes of the path); "global": the whole-image descriptor with
+        retrieval: "vocabulary" (default when neither ``descriptors`` nor ``descriptor_fn`` is
+            given): visual vocabularies learned (``seed``) from these keyframes' own SIFT features
+            (VLAD of ``words`` words and a TF-IDF bag of words), candidates over all keyframe
+            pairs by :func:`stages.graph.retrieval.relative_candidates` (``top_k`` per keyframe,
+            score >= ``min_ratio`` relative to the temporal neighbours', averaged over
+            +-``window`` keyframes of the path); "global": the whole-image descriptor with
             ``similarity_threshold`` and NMS (:func:`candidate_pairs`; also whenever descriptors
             or a descriptor_fn are given, e.g. ResNet-18).
         verify, min_inliers, min_epipolar: :func:`verify_pair`'s ``mode`` ("geometric", the
@@ -601,12 +610,13 @@ def build_graph(
     features = list(call_map(_sift_features, kf_images))
     edge_flows = _consecutive_flows(kfs, kf_images, features, fb_thresh, call_map)
 
-    if retrieval not in ("vlad", "global"):
-        raise ValueError(f"retrieval must be 'vlad' or 'global', got {retrieval!r}")
-    use_vlad = retrieval == "vlad" and descriptors is None and descriptor_fn is None
-    if use_vlad:
-        desc = retrieval_mod.vlad_descriptors([f[1] for f in features], words=words, seed=seed)
-        cands = retrieval_mod.relative_candidates(desc, min_separation=sep, top_k=top_k, min_ratio=min_ratio,
+    if retrieval not in ("vocabulary", "global"):
+        raise ValueError(f"retrieval must be 'vocabulary' or 'global', got {retrieval!r}")
+    use_vocab = retrieval == "vocabulary" and descriptors is None and descriptor_fn is None
+    if use_vocab:
+        raw = [f[1] for f in features]
+        descs = [retrieval_mod.vlad_descriptors(raw, words=words, seed=seed), retrieval_mod.bow_descriptors(raw, seed=seed)]
+        cands = retrieval_mod.relative_candidates(descs, min_separation=sep, top_k=top_k, min_ratio=min_ratio,
                                                   window=window) if n else []
         cands = cands if max_candidates is None else cands[: int(max_candidates)]
     else:
@@ -633,7 +643,7 @@ def build_graph(
         "similarity_threshold": float(similarity_threshold),
         "keyframe_threshold_px": float(keyframe_threshold_px),
         "verify": verify,
-        "retrieval": "vlad" if use_vlad else "global",
+        "retrieval": "vocabulary" if use_vocab else "global",
         "candidates": len(cands),
         "sequential_edges": sequential,
         "nonsequential_edges": accepted,

@@ -35,15 +35,17 @@ class AssociationSettings:
                               "extra, wider edges moved the synthetic loop's pose graph 1.00 -> 1.28 mm and the "
                               "real walk-through's bundle adjustment by noise, 0.0536 -> 0.0517 m)", ge=0)
     max_candidates: int = param(40, "loop candidates verified at most (the most similar)", ge=0)
-    retrieval: Literal["vlad", "global"] = param(
-        "vlad", "loop candidates: vlad (a visual vocabulary of the clip's own keyframes' SIFT features, "
-        "scored over all keyframe pairs; HoloLens walk-through: 16-19 of 28 revisit pairs among the 40 best) or "
-        "global (the whole-image descriptor with threshold / nms / per_keyframe: 3 of 28); resnet18 is global")
-    words: int = param(64, "vlad: visual words (k-means on the keyframes' RootSIFT, fixed seed)", ge=1)
-    top_k: int = param(5, "vlad: candidates each keyframe proposes (its best-scoring partners)", ge=0)
-    min_ratio: float = param(0.1, "vlad: a candidate's score relative to its keyframes' similarity with their "
-                             "temporal neighbours must reach this (real revisits verified at 0.12-0.28)", ge=0)
-    window: int = param(1, "vlad: scores averaged over +-window keyframes along the path (a revisit lasts "
+    retrieval: Literal["vocabulary", "global"] = param(
+        "vocabulary", "loop candidates: vocabulary (VLAD + TF-IDF bag of words of the clip's own keyframes' SIFT "
+        "features, scored over all keyframe pairs; HoloLens walk-through: ~16-19 of 28 revisit pairs among the 40 "
+        "best) or global (the whole-image descriptor with threshold / nms / per_keyframe: 3 of 28 above the "
+        "threshold); the resnet18 backend is global")
+    words: int = param(64, "vocabulary: VLAD visual words (k-means on the keyframes' RootSIFT, fixed seed)", ge=1)
+    top_k: int = param(5, "vocabulary: candidates each keyframe proposes (its best-scoring partners)", ge=0)
+    min_ratio: float = param(0.1, "vocabulary: a candidate's similarity relative to its keyframes' similarity "
+                             "with their temporal neighbours must reach this (in VLAD or bag of words; real "
+                             "revisits verified at 0.12-0.28)", ge=0)
+    window: int = param(1, "vocabulary: scores averaged over +-window keyframes along the path (a revisit lasts "
                         "several keyframes)", ge=0)
     verify: Literal["geometric", "paper"] = param(
         "geometric", "loop verification: geometric (essential-matrix inliers and the dense flow agreeing with "

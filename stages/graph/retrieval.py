@@ -188,40 +188,107 @@ def sequence_scores(score: np.ndarray, window: int = 1) -> np.ndarray:
     return np.maximum(means[0], means[1])
 
 
-def relative_candidates(desc: np.ndarray, min_separation: int = 8, top_k: int = 5, min_ratio: float = 0.1,
-                        window: int = 1) -> list[tuple[int, int, float]]:
-    """Loop candidates over all keyframe pairs.
+def relative_candidates(descs: np.ndarray | Sequence[np.ndarray], min_separation: int = 8, top_k: int = 5,
+                        min_ratio: float = 0.1, window: int = 1) -> list[tuple[int, int, float]]:
+    """Loop candidates over all keyframe pairs from one or more descriptor kinds.
+
+    Per kind: cosine similarity averaged along the path (:func:`sequence_scores`, ``window``),
+    divided by the geometric mean of the two keyframes' :func:`neighbour_scores` (1 = as alike
+    as a keyframe and its temporal neighbour). Kinds are put on one scale by standardising that
+    relative score over the eligible pairs (mean 0, std 1) and averaged: the ranking score.
 
     Args:
-        desc: (N, D) L2-normalised descriptors in keyframe order.
+        descs: one (N, D) array or a sequence of (N, D_k) arrays of L2-normalised descriptors
+            of the same N keyframes in keyframe order (e.g. VLAD and bag of words).
         min_separation: only pairs |b - a| > min_separation are eligible.
-        top_k: each keyframe proposes its top_k best-scoring eligible partners (before or after);
-            score = cosine similarity averaged along the path (:func:`sequence_scores`, ``window``).
-        min_ratio: a proposal is kept when its score is >= min_ratio x the lower of the two
-            keyframes' :func:`neighbour_scores` (how alike a keyframe and its temporal neighbour
-            are: a textured view scores high with everything, a bland one low).
+        top_k: each keyframe proposes its top_k best-ranked eligible partners (before or after).
+        min_ratio: a proposal is kept when its relative score reaches min_ratio in at least one
+            kind (a bland view scores low with everything, a textured one high: relative to
+            the neighbours, not absolute).
         window: :func:`sequence_scores` half-window (keyframes).
     Returns:
-        [(a, b, score)] a < b keyframe positions, each pair once, sorted by decreasing score,
-        then (a, b).
+        [(a, b, score)] a < b keyframe positions, each pair once, sorted by decreasing ranking
+        score, then (a, b).
     """
-    d = np.asarray(desc, np.float64)
-    n = d.shape[0]
+    kinds = [descs] if isinstance(descs, np.ndarray) else list(descs)
+    n = int(np.asarray(kinds[0]).shape[0]) if kinds else 0
     if n == 0:
         return []
-    sim = d @ d.T
-    score = sequence_scores(sim, window)
-    ref = np.maximum(neighbour_scores(sim), 1e-6)
-    ratio = score / np.minimum(ref[:, None], ref[None, :])
     idx = np.arange(n)
     eligible = np.abs(idx[:, None] - idx[None, :]) > int(min_separation)
+    if not eligible.any():
+        return []
+    score = np.zeros((n, n))
+    best_rel = np.full((n, n), -np.inf)
+    for dd in kinds:
+        d = np.asarray(dd, np.float64)
+        if d.shape[0] != n:
+            raise ValueError(f"descriptor kinds disagree on the number of keyframes ({d.shape[0]} != {n})")
+        sim = d @ d.T
+        ref = np.maximum(neighbour_scores(sim), 1e-6)
+        rel = sequence_scores(sim, window) / np.sqrt(ref[:, None] * ref[None, :])
+        best_rel = np.maximum(best_rel, rel)
+        v = rel[eligible]
+        score += (rel - v.mean()) / max(float(v.std()), 1e-9) / len(kinds)
     masked = np.where(eligible, score, -np.inf)
     order = np.argsort(-masked, axis=1, kind="stable")[:, : max(int(top_k), 0)]
     keep = set()
     for a in range(n):
         for b in order[a]:
-            if eligible[a, b] and ratio[a, b] >= min_ratio:
+            if eligible[a, b] and best_rel[a, b] >= min_ratio:
                 keep.add((min(a, int(b)), max(a, int(b))))
     out = [(a, b, float(score[a, b])) for a, b in keep]
     out.sort(key=lambda t: (-t[2], t[0], t[1]))
     return out
+
+
+def build_tree(descs: Sequence[np.ndarray], branch: int = 32, max_samples: int = DEFAULT_MAX_SAMPLES,
+               iters: int = DEFAULT_ITERS, seed: int = 0) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Two-level vocabulary tree: ``branch`` coarse words, each split into at most ``branch``
+    fine words (k-means of its own samples). Returns (coarse (B, 128), [fine (B_c, 128) per
+    coarse word]) float32."""
+    x = np.concatenate([np.asarray(d, np.float32) for d in descs]) if len(descs) else np.zeros((0, 128), np.float32)
+    if len(x) > max_samples:
+        x = x[np.linspace(0, len(x) - 1, int(max_samples)).round().astype(np.int64)]
+    coarse = build_vocabulary([x], words=branch, max_samples=max_samples, iters=iters, seed=seed)
+    if len(coarse) == 0:
+        return coarse, []
+    lab = np.argmin(_sq_dists(x.astype(np.float64), coarse.astype(np.float64)), axis=1)
+    fine = [build_vocabulary([x[lab == c]], words=branch, max_samples=max_samples, iters=iters, seed=seed + 1 + c)
+            for c in range(len(coarse))]
+    return coarse, fine
+
+
+def quantise(des: np.ndarray, coarse: np.ndarray, fine: list[np.ndarray]) -> np.ndarray:
+    """(M,) int64 word ids (coarse id * branch + fine id, branch = len(coarse)) of RootSIFT (M, 128)."""
+    if len(des) == 0 or len(coarse) == 0:
+        return np.zeros(0, np.int64)
+    x = np.asarray(des, np.float64)
+    c = np.argmin(_sq_dists(x, coarse.astype(np.float64)), axis=1)
+    out = np.zeros(len(x), np.int64)
+    b = len(coarse)
+    for k in np.unique(c):
+        sel = c == k
+        f = fine[int(k)]
+        sub = np.argmin(_sq_dists(x[sel], f.astype(np.float64)), axis=1) if len(f) else np.zeros(int(sel.sum()), np.int64)
+        out[sel] = int(k) * b + sub
+    return out
+
+
+def bow_descriptors(descs: Sequence[np.ndarray | None], branch: int = 32, max_samples: int = DEFAULT_MAX_SAMPLES,
+                    iters: int = DEFAULT_ITERS, seed: int = 0) -> np.ndarray:
+    """(N, branch**2) float32 TF-IDF bag-of-words vectors (L2-normalised) of N keyframes' raw
+    SIFT descriptors, with a two-level vocabulary tree learned from these keyframes."""
+    roots = [rootsift(d) for d in descs]
+    coarse, fine = build_tree(roots, branch=branch, max_samples=max_samples, iters=iters, seed=seed)
+    nw = max(len(coarse), 1) ** 2
+    tf = np.zeros((len(roots), nw), np.float64)
+    for k, r in enumerate(roots):
+        w = quantise(r, coarse, fine)
+        if len(w):
+            tf[k] = np.bincount(w, minlength=nw) / len(w)
+    df = (tf > 0).sum(0)
+    idf = np.where(df > 0, np.log(max(len(roots), 1) / np.maximum(df, 1)), 0.0)
+    v = tf * idf
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    return (v / np.maximum(n, 1e-12)).astype(np.float32)
