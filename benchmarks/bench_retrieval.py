@@ -14,7 +14,8 @@ reports, over the run's keyframes (``gcvd_flow/evaluate/revisits.py`` defines th
   centres within 0.5 m, optical axes within 30 deg);
 - precision of the verified loop edges: verified pairs whose views share >= 10 % of their depth
   points (any distance in time) over all verified;
-- loop edges found / verified / used (by the pose graph).
+- loop edges found / verified / used (kept by ``association.loop_nms`` and not rejected by the
+  pose graph), and how many of the kept ones are revisit pairs.
 """
 
 from __future__ import annotations
@@ -52,11 +53,13 @@ def measure(run_dir: Path, data: Path, min_frames: int = 15, min_overlap: float 
     pose_rev = revisits.pose_revisit_pairs(kfs, lay.poses, min_frames=min_frames, min_separation=sep)
     true = revisits.revisit_pairs(kfs, lay.poses, depths, lay.K, min_frames=0, min_separation=0,
                                   min_overlap=true_overlap)
-    verified = [(e["i"], e["j"]) for e in graph.get("nonsequential_edges", [])]
+    kept = [(e["i"], e["j"]) for e in graph.get("nonsequential_edges", [])]
+    verified = kept + [(e["i"], e["j"]) for e in graph.get("suppressed", [])]
     cands = verified + [(e["i"], e["j"]) for e in graph.get("rejected", [])]
     out = {"run": str(run_dir), "keyframes": len(kfs), "retrieval": graph.get("retrieval", "global"),
            "overlap": revisits.retrieval_report(rev, cands, verified, true),
-           "pose": revisits.retrieval_report(pose_rev, cands, verified, true)}
+           "pose": revisits.retrieval_report(pose_rev, cands, verified, true),
+           "kept": len(kept), "kept_revisits": len(set(kept) & set(rev)), "kept_pose_revisits": len(set(kept) & pose_rev)}
     out.update(loop_counts(run_dir))
     return out
 
@@ -76,7 +79,8 @@ def main() -> None:
         print(f"{name:8s} revisits {r['revisits']:3d}  candidates {r['candidates']:3d}  found {r['found']:3d} "
               f"(recall {r['recall'] if r['recall'] is None else round(r['recall'], 3)})  verified {r['verified']:3d} "
               f"(of them revisits {r['verified_revisits']}, precision {r['precision']})  false {r['false_verified']}")
-    print(f"loops found / verified / used: {m['loops_found']} / {m['loops_verified']} / {m['loops_used']}")
+    print(f"loops found / verified / used: {m['loops_found']} / {m['loops_verified']} / {m['loops_used']}  "
+          f"(kept {m['kept']}: revisits {m['kept_revisits']}, pose revisits {m['kept_pose_revisits']})")
 
 
 if __name__ == "__main__":

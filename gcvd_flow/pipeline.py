@@ -558,7 +558,8 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
                               min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent,
                               verify=p.verify, min_inliers=p.min_inliers, min_epipolar=p.min_epipolar,
                               per_keyframe=p.per_keyframe, max_candidates=p.max_candidates, retrieval=p.retrieval,
-                              words=p.words, top_k=p.top_k, min_ratio=p.min_ratio, window=p.window)
+                              words=p.words, top_k=p.top_k, min_ratio=p.min_ratio, window=p.window,
+                              loop_nms=p.loop_nms, min_departure=p.min_departure)
     if p.threshold is not None:
         kw["similarity_threshold"] = p.threshold
     if p.backend == "resnet18":
