@@ -367,8 +367,8 @@ RetrievalMode = Literal["vocabulary", "global"]
 VerifyMode = Literal["geometric", "paper"]
 
 
-# Long because the docstring documents both modes and every output key; the body is the sparse
-# test (feature matches) then the dense one (pre-warped flow), each a short list of rules
+# The body is the sparse test (feature matches) then the dense one (pre-warped flow), each a
+# short list of rules; long because the docstring documents both modes and every output key
 def verify_pair(
     img_a: np.ndarray,
     img_b: np.ndarray,
