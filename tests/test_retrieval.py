@@ -70,7 +70,7 @@ def test_vocabulary_finds_a_revisit_from_another_viewpoint(revisit_clip) -> None
     assert not old_found
 
     thr = 12.0
-    graph, flows = build_graph(kfs, imgs, c.K, thr, max_candidates=40, loop_nms=0)
+    graph, flows = build_graph(kfs, imgs, c.K, thr, max_candidates=40, loop_nms=0, retrieval="vocabulary")
     assert graph["retrieval"] == "vocabulary" and graph["candidates"] >= 20
     loops = [(e["i"], e["j"]) for e in graph["nonsequential_edges"]]
     closing = [p for p in loops if p in rev]

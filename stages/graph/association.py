@@ -19,9 +19,9 @@ threshold 0.9); see ``DEFAULT_SIMILARITY_THRESHOLD`` for the calibrated value. T
 ResNet-18 descriptor (paper) is in ``stages/backends/resnet.py``; pass its descriptors to
 :func:`build_graph` via ``descriptors=`` together with ``similarity_threshold=0.9``.
 
-Default candidates (``retrieval="vocabulary"``): visual vocabularies of the clip's own keyframes'
+Opt-in candidates (``retrieval="vocabulary"``): visual vocabularies of the clip's own keyframes'
 SIFT features scored over all keyframe pairs (:mod:`stages.graph.retrieval`); the global
-descriptor below finds revisits only from nearly the same viewpoint (``retrieval="global"``).
+descriptor below (the default) finds revisits only from nearly the same viewpoint.
 
 Keyframe-pair flow: views of a revisited place can be far apart in image space, where DIS
 alone fails; so b is first pre-warped onto a with the RANSAC homography, DIS runs on the
@@ -582,7 +582,7 @@ def build_graph(
     min_epipolar: float = 0.5,
     per_keyframe: int = 0,
     max_candidates: int | None = None,
-    retrieval: RetrievalMode = "vocabulary",
+    retrieval: RetrievalMode = "global",
     words: int = retrieval_mod.DEFAULT_WORDS,
     top_k: int = 5,
     min_ratio: float = 0.1,
@@ -608,13 +608,12 @@ def build_graph(
             verification per loop candidate), e.g. on worker processes; results are the same.
         per_keyframe, max_candidates: see :func:`candidate_pairs` (max_candidates caps both
             retrievals: the best-scoring candidates are verified).
-        retrieval: "vocabulary" (default when neither ``descriptors`` nor ``descriptor_fn`` is
-            given): visual vocabularies learned (``seed``) from these keyframes' own SIFT features
+        retrieval: "vocabulary" (when neither ``descriptors`` nor ``descriptor_fn`` is given): visual vocabularies learned (``seed``) from these keyframes' own SIFT features
             (VLAD of ``words`` words and a TF-IDF bag of words), candidates over all keyframe
             pairs by :func:`stages.graph.retrieval.relative_candidates` (``top_k`` per keyframe,
             score >= ``min_ratio`` relative to the temporal neighbours', averaged over
             +-``window`` keyframes of the path, the path gone elsewhere in between by
-            ``min_departure``); "global": the whole-image descriptor with
+            ``min_departure``); "global" (default): the whole-image descriptor with
             ``similarity_threshold`` and NMS (:func:`candidate_pairs`; also whenever descriptors
             or a descriptor_fn are given, e.g. ResNet-18).
         loop_nms: :func:`suppress_loops` window over the verified loop edges (<= 1: keep all).

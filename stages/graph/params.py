@@ -36,10 +36,10 @@ class AssociationSettings:
                               "real walk-through's bundle adjustment by noise, 0.0536 -> 0.0517 m)", ge=0)
     max_candidates: int = param(40, "loop candidates verified at most (the most similar)", ge=0)
     retrieval: Literal["vocabulary", "global"] = param(
-        "vocabulary", "loop candidates: vocabulary (VLAD + TF-IDF bag of words of the clip's own keyframes' SIFT "
-        "features, scored over all keyframe pairs; HoloLens walk-through: ~16-19 of 28 revisit pairs among the 40 "
-        "best) or global (the whole-image descriptor with threshold / nms / per_keyframe: 3 of 28 above the "
-        "threshold); the resnet18 backend is global")
+        "global", "loop candidates: global (the whole-image descriptor with threshold / nms / per_keyframe; HoloLens "
+        "walk-through: 0 of its 28 revisit pairs proposed) or vocabulary (VLAD + TF-IDF bag of words of the clip's own "
+        "keyframes' SIFT features over all keyframe pairs: 20 of 28 among the 40 best, every verified edge true; "
+        "opt-in: on KITTI 07 it verifies a forward look-alike 23 m ahead, ATE 1.90 -> 3.23 m); resnet18 is global")
     words: int = param(64, "vocabulary: VLAD visual words (k-means on the keyframes' RootSIFT, fixed seed)", ge=1)
     top_k: int = param(5, "vocabulary: candidates each keyframe proposes (its best-scoring partners)", ge=0)
     min_ratio: float = param(0.1, "vocabulary: a candidate's similarity relative to its keyframes' similarity "
