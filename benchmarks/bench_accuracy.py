@@ -80,11 +80,12 @@ def loop_counts(run_dir: Path) -> dict:
     doc = json.loads((run_dir / "run.json").read_text())
     store = Store(Path(doc["cache"]), verify=False)
     graph = recorded_part(doc, store, "association", ("graph",))
-    verified = len(graph.get("nonsequential_edges", []))
+    kept = len(graph.get("nonsequential_edges", []))
+    verified = kept + len(graph.get("suppressed", []))  # suppressed: verified, not kept (association.loop_nms)
     found = verified + len(graph.get("rejected", []))
     pg_on = recorded_part(doc, store, "pose_graph", ("enabled",))
-    rejected = len(recorded_part(doc, store, "pose_graph", ("rejected_loops",))) if pg_on else verified
-    return {"loops_found": found, "loops_verified": verified, "loops_used": verified - rejected}
+    rejected = len(recorded_part(doc, store, "pose_graph", ("rejected_loops",))) if pg_on else kept
+    return {"loops_found": found, "loops_verified": verified, "loops_used": kept - rejected}
 
 
 def run_rows(name: str, inp: Path, gt: Path, work: Path, cache: str, extra: list[str], rows) -> list[dict]:
