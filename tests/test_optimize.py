@@ -226,7 +226,7 @@ def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
     assert np.isfinite(centre["depths"]).all() and centre["poses"].tobytes() != pixel["poses"].tobytes()
 
 
-def _window_solver(t: dict, pair_blocks: int, taus: tuple[int, ...] = (1, 2, 4)):
+def _window_solver(t: dict, pair_blocks: int, taus: tuple[int, ...] = (1, 2, 4), by_weight: bool = False, **stop):
     """A Solver over the tiny clip's 8 keyframes (one window, first pose fixed), seeded by 0."""
     from stages.models.depth_net import DepthNet, mesh_shape
     from stages.optimize.frames import flows_at_loss_res, loss_size, prepare_frames
@@ -244,16 +244,18 @@ def _window_solver(t: dict, pair_blocks: int, taus: tuple[int, ...] = (1, 2, 4))
     pose_train[0] = 0
     win = Window(fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, _keyframe_pairs(list(range(n)), flows, kfs),
                  torch.as_tensor(c.poses[kf]), pose_train, torch.zeros(n, *gshape), torch.ones(n))
-    return Solver(win, net, None, kfs.lr, DepthModel(), LossWeights(), kfs, pair_blocks)
+    return Solver(win, net, None, kfs.lr, DepthModel(), LossWeights(), kfs, pair_blocks, by_weight, **stop)
 
 
-def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict) -> None:
+@pytest.mark.parametrize("by_weight", [False, True])  # True: three point groups (32, 16, 8 points per pair)
+def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict, by_weight: bool) -> None:
     """A window's pairs in blocks, each block's loss differentiated on its own thread up to the
     shared depth and poses: the same loss and gradient of every trainable parameter as one block
     (up to float rounding: the sum is associated differently), and the same bits every time."""
-    one, three, three_again = (_window_solver(tiny, b) for b in (1, 3, 3))
+    one, three, three_again = (_window_solver(tiny, b, by_weight=by_weight) for b in (1, 3, 3))
     assert [len(s.blocks) for s in (one, three)] == [1, 3]
-    assert sorted(torch.cat([b.sel for b in three.blocks]).tolist()) == list(range(len(one.w.pairs)))
+    assert len(one.groups) == (3 if by_weight else 1)
+    assert sorted(torch.cat([p.sel for b in three.blocks for p in b]).tolist()) == list(range(len(one.w.pairs)))
     losses = [s.step(torch.Generator().manual_seed(0)) for s in (one, three, three_again)]
     assert losses[0] == pytest.approx(losses[1], rel=1e-5) and losses[1] == losses[2]
     params = [[p for g in s.opt.param_groups for p in g["params"]] for s in (one, three, three_again)]
@@ -266,8 +268,9 @@ def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict) -> None:
         torch.testing.assert_close(p3.grad, p1.grad, rtol=1e-4, atol=1e-6)
         assert p3.grad.numpy().tobytes() == p3b.grad.numpy().tobytes()
     # all but the head's first layer (weight, bias), whose gradient is 0 while its zero-initialised
-    # last layer is: the head's output layer, pose corrections, mesh vertices, per-frame scales
-    assert nonzero == len(params[0]) - 2
+    # last layer is: the head's output layer, pose corrections, mesh vertices, per-frame scales (the
+    # output bias's gradient cancels to ~0, and to exactly 0 on the point-group draw)
+    assert nonzero == len(params[0]) - (3 if by_weight else 2)
     # after the step the parameters moved the same way
     torch.testing.assert_close(three.poses(), one.poses(), rtol=0, atol=1e-6)
 
