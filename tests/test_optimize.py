@@ -575,3 +575,16 @@ def test_two_view_pure_rotation_recovers_rotation() -> None:
     T, corr = two_view_pose(flow, np.ones((192, 256), bool), K)
     assert corr is None and np.allclose(T[:3, 3], 0)
     np.testing.assert_allclose(T[:3, :3], R, atol=1e-3)
+
+
+def test_paper_profile_keeps_the_papers_sampling_and_step_count() -> None:
+    """``--profile paper``: every pair draws ``points`` points and every window runs all its steps
+    (the default allocates points by pair weight; the plateau stop is off in both)."""
+    from gcvd_flow.engine.config import build_config
+    from gcvd_flow.pipeline import PROFILES, GCVDConfig
+
+    paper = build_config(GCVDConfig, PROFILES, profile="paper")
+    assert paper.optimize_keyframes.points_by_weight is False and paper.optimize_keyframes.stop_rel == 0
+    assert paper.optimize_keyframes.steps == 300 and paper.optimize_segments.stop_rel == 0
+    default = build_config(GCVDConfig, PROFILES)
+    assert default.optimize_keyframes.points_by_weight is True
