@@ -194,7 +194,7 @@ def test_rigid_fit_recovers_a_rigid_motion_of_the_overlap() -> None:
 # plateau stop on the tiny clip's one 8-keyframe window, 128 points per pair: with every learning
 # rate 0 the loss changes only by the points drawn (its 5-step means by < 2 %); with the default
 # rates it falls by 2.2-7 % per 5 steps over the first 40 steps
-PLATEAU = dict(window=8, steps=40, points=128, stop_every=5, stop_rel=0.02)
+PLATEAU = dict(window=8, steps=40, points=128, stop_every=5, stop_rel=0.02, points_by_weight=True)
 FROZEN = dict(lr=0.0, pose_lr=0.0, mesh_lr_mult=0.0)
 
 
@@ -264,7 +264,8 @@ def test_points_in_proportion_to_pair_weight(tiny: dict) -> None:
     assert [tuple(t.shape) for t in idx] == [(len(m), mg) for mg, m in s.groups]
     n = len(tiny["kf"])  # 8 keyframes: 14 pairs at tau 1, 12 at tau 2, 8 at tau 4
     assert s.points_per_step == 14 * 32 + 12 * 16 + 8 * 8
-    assert _kf_run(tiny, window=n, taus=(1, 2, 4))["windows"][0]["points_per_step"] == 14 * 32 + 12 * 16 + 8 * 8
+    assert (_kf_run(tiny, window=n, taus=(1, 2, 4), points_by_weight=True)["windows"][0]["points_per_step"]
+            == 14 * 32 + 12 * 16 + 8 * 8)
     assert _kf_run(tiny, window=n, taus=(1, 2, 4), points_by_weight=False)["windows"][0]["points_per_step"] == 34 * 32
 
 
@@ -579,12 +580,12 @@ def test_two_view_pure_rotation_recovers_rotation() -> None:
 
 def test_paper_profile_keeps_the_papers_sampling_and_step_count() -> None:
     """``--profile paper``: every pair draws ``points`` points and every window runs all its steps
-    (the default allocates points by pair weight; the plateau stop is off in both)."""
+    (the allocation by pair weight and the plateau stop are opt-in, off in both)."""
     from gcvd_flow.engine.config import build_config
     from gcvd_flow.pipeline import PROFILES, GCVDConfig
 
     paper = build_config(GCVDConfig, PROFILES, profile="paper")
     assert paper.optimize_keyframes.points_by_weight is False and paper.optimize_keyframes.stop_rel == 0
     assert paper.optimize_keyframes.steps == 300 and paper.optimize_segments.stop_rel == 0
-    default = build_config(GCVDConfig, PROFILES)
-    assert default.optimize_keyframes.points_by_weight is True
+    default = build_config(GCVDConfig, PROFILES)  # both opt-in (docs/benchmarks.md: they cost accuracy)
+    assert default.optimize_keyframes.points_by_weight is False and default.optimize_keyframes.stop_rel == 0
