@@ -686,7 +686,7 @@ def _inv(T: np.ndarray) -> np.ndarray:
 # ============================================================================== optimize_keyframes
 def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """Keyframe windows -> {keyframes, poses (K,4,4) T_w_c, depths [K x (H,W)],
-    rel_poses [{a, b, tau, T_b_a = inv(T_w_b) @ T_w_a}], state}."""
+    rel_poses [{a, b, tau, T_b_a = inv(T_w_b) @ T_w_a}], state, windows}."""
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
     from stages.optimize import keyframes as opt_keyframes
 
@@ -702,7 +702,8 @@ def run_optimize_keyframes(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str
             "depths": [np.asarray(d, np.float32) for d in res["depths"]],
             "rel_poses": [{"a": int(r["a"]), "b": int(r["b"]), "tau": int(r["tau"]),
                            "T_b_a": np.asarray(r["T_b_a"], np.float64)} for r in res["rel_poses"]],
-            "state": {k: np.asarray(v) for k, v in res["state"].items()}}
+            "state": {k: np.asarray(v) for k, v in res["state"].items()},
+            "windows": res["windows"]}  # per window: pairs, points per step, steps run (plateau stop)
 
 
 OPTIMIZE_KEYFRAMES = declare(Stage("optimize_keyframes", run_optimize_keyframes,
@@ -1038,7 +1039,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "association": {"verify": "paper", "per_keyframe": 0, "retrieval": "global"},
         "ingest": {"long_side": 384},
         "flow": {"preset": "medium"},
-        "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024},
+        "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024,
+                               "points_by_weight": False, "stop_rel": 0.0},
         "optimize_edges": {"steps": 300, "lr": 1e-4},
         "optimize_segments": {"steps": 100, "lr": 1e-4, "loss_scale": 1.0},
     },

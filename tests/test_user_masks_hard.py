@@ -114,7 +114,7 @@ def _losses(sc, hard: bool = True):
     depth = torch.as_tensor(sc["depth"]).clone().requires_grad_(True)
     T = torch.as_tensor(sc["poses"]).clone().requires_grad_(True)
     idx = torch.arange(HL * WL).repeat(len(pairs), 1)
-    total = sum(solver._block_loss(b, depth, T, idx[b.sel]) for b in solver.blocks)
+    total = sum(solver._block_loss(b, depth, T, idx[b.sel]) for thread in solver.blocks for b in thread)
     grad = L.gradient_orientation_loss(depth, None, 3, win.static, prior_grads=solver.prior_grads).sum()
     (total + grad).backward()
     return total.detach(), grad.detach(), depth.grad, T.grad

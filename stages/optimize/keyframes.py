@@ -77,7 +77,11 @@ def optimize_keyframes(
     into this keyframe list). Returns dict(poses (K, 4, 4) float64 T_w_c with T_w_0 = I,
     depths (K, H, W) float32 (scale of the poses), rel_poses [dict(a, b, tau, T_b_a (4, 4)
     float64 = inv(T_w_b) @ T_w_a)] for every (k, k + tau), tau in taus, state {name: array}:
-    trained head weights ``head.*`` and the per-frame meshes ``mesh`` (K, gh, gw)).
+    trained head weights ``head.*`` and the per-frame meshes ``mesh`` (K, gh, gw)), windows
+    [dict(start, keyframes, pairs, points_per_step, steps, max_steps, loss)] per window: its
+    first keyframe and size, its ordered pairs and the points drawn per step over all of them,
+    the Adam steps it ran (fewer than max_steps = kf.steps when its loss plateaued:
+    ``kf.stop_rel``) and the mean loss of its last min(steps, kf.stop_every) steps.
 
     ``kf.schedule="independent"``: the windows are independent jobs (``_independent_windows``),
     so ``window_map(solve_keyframe_window, jobs)`` may compute them anywhere and in any order
@@ -105,16 +109,17 @@ def optimize_keyframes(
             init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
             codes = posenet.encode(fr.imgs, torch.arange(nk)) if posenet is not None else None
             flows_lr = flows_at_loss_res(flows, h, w, fr.f)
-            run = _Progress.start(init, mesh_init, checkpointer, gen)
             starts = _window_starts(nk, kf)
+            run = _Progress.start(init, mesh_init, len(starts), checkpointer, gen)
             for wi in range(run.w_start, len(starts)):
                 fr_idx = list(range(starts[wi], min(starts[wi] + kf.window, nk)))
                 win = _keyframe_window(wi, fr_idx, fr, codes, flows_lr, init, mesh_init, run, kf)
                 if win is None:
                     break
-                solver = Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks)
+                solver = _window_solver(win, net, posenet, depth, losses, kf)
                 loss = _optimise_window(solver, wi, len(starts), run, gen, kf.steps, checkpointer)
                 log.debug("keyframe window %d/%d loss %.4f", wi + 1, len(starts), loss)
+                run.stats[wi] = _window_stats(solver, kf)
                 with torch.no_grad():
                     run.g_base[fr_idx] = solver.poses().detach()
                     run.g_mesh[fr_idx] = solver.meshes().detach().clone()
@@ -122,7 +127,33 @@ def optimize_keyframes(
                     _save_boundary(checkpointer, run, gen, solver, wi + 1)
             poses = run.g_base.numpy().astype(np.float64)
             depths = full_depth(net, images, priors, run.g_mesh, depth.mesh, fr.enc)
-        return _results(poses, depths, run.g_mesh, _net_state(net, posenet), kf.taus)
+        res = _results(poses, depths, run.g_mesh, _net_state(net, posenet), kf.taus)
+        res["windows"] = _window_records(run.stats, starts, nk, kf)
+        return res
+
+
+def _window_solver(win: Window, net: DepthNet, posenet: PoseNet | None, depth: DepthModel, losses: LossWeights,
+                   kf: KeyframeSettings) -> Solver:
+    """A keyframe window's solver: the stage's lr, pair blocks, point allocation and plateau stop."""
+    return Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks, kf.points_by_weight,
+                  kf.stop_every, kf.stop_rel)
+
+
+def _window_stats(solver: Solver, kf: KeyframeSettings) -> torch.Tensor:
+    """(4,) float64: pairs, points per step, steps run, mean loss of the last min(steps, stop_every)
+    (0 without a step)."""
+    ls = solver.losses_run[-max(1, kf.stop_every):]
+    loss = math.fsum(ls) / len(ls) if ls else 0.0
+    return torch.tensor([len(solver.w.pairs), solver.points_per_step, len(solver.losses_run), loss],
+                        dtype=torch.float64)
+
+
+def _window_records(stats: torch.Tensor, starts: list[int], nk: int, kf: KeyframeSettings) -> list[dict[str, Any]]:
+    """The ``windows`` records of the output from (n_windows, 4) ``_window_stats`` rows (a window
+    that never ran, having no pair: zeros)."""
+    return [{"start": int(s), "keyframes": min(s + kf.window, nk) - s, "pairs": int(st[0]),
+             "points_per_step": int(st[1]), "steps": int(st[2]), "max_steps": int(kf.steps), "loss": float(st[3])}
+            for s, st in zip(starts, stats.tolist())]
 
 
 def _window_starts(nk: int, kf: KeyframeSettings) -> list[int]:
@@ -145,26 +176,29 @@ class _Progress:
 
     g_base: torch.Tensor  # (K, 4, 4) float64 T_w_c of finished windows
     g_mesh: torch.Tensor  # (K, gh, gw) float32 log-scale meshes
+    stats: torch.Tensor  # (n_windows, 4) float64 ``_window_stats`` of the finished windows
     w_start: int = 0  # first window to run
     s_start: int = 0  # its first step
     resume: dict[str, torch.Tensor] | None = None  # checkpointed tensors, until consumed
 
     @classmethod
-    def start(cls, init: torch.Tensor, mesh_init: torch.Tensor, checkpointer: Checkpointer | None,
+    def start(cls, init: torch.Tensor, mesh_init: torch.Tensor, n_windows: int, checkpointer: Checkpointer | None,
               gen: torch.Generator) -> "_Progress":
         """Fresh from the initial solution, or from the checkpointer's last keyframe state
         (which also restores the generator)."""
-        run = cls(init.clone(), mesh_init.clone())
+        run = cls(init.clone(), mesh_init.clone(), torch.zeros(n_windows, 4, dtype=torch.float64))
         if checkpointer is not None:
             ck = load_checkpoint(checkpointer)
             if ck is not None and ck[1].get("stage") == _STAGE:
                 t, meta = ck
-                run = cls(t["g_base"].clone(), t["g_mesh"].clone(), int(meta["window"]), int(meta["step"]), t)
+                run = cls(t["g_base"].clone(), t["g_mesh"].clone(), t["window_stats"].clone(), int(meta["window"]),
+                          int(meta["step"]), t)
                 gen.set_state(t["rng"].clone())
         return run
 
     def checkpoint(self, gen: torch.Generator) -> dict[str, torch.Tensor]:
-        return {"g_base": self.g_base.clone(), "g_mesh": self.g_mesh.clone(), "rng": gen.get_state()}
+        return {"g_base": self.g_base.clone(), "g_mesh": self.g_mesh.clone(), "window_stats": self.stats.clone(),
+                "rng": gen.get_state()}
 
 
 def _initial_solution(
@@ -324,6 +358,7 @@ class KeyframeWindowResult:
     meshes: np.ndarray  # (n, gh, gw) float32 log-scale meshes (of this window's head)
     depths: np.ndarray  # (n, H, W) float32, scale of the poses
     state: dict[str, np.ndarray]  # the window's trained weights (``_net_state``)
+    stats: np.ndarray  # (4,) float64 ``_window_stats`` (zeros: no pair, no step)
 
 
 KeyframeWindowMap = Callable[[Callable[[KeyframeJob], KeyframeWindowResult], Iterable[KeyframeJob]],
@@ -344,18 +379,20 @@ def solve_keyframe_window(job: KeyframeJob) -> KeyframeWindowResult:
         flows_lr = flows_at_loss_res(job.flows, h, w, fr.f)
         pairs = _keyframe_pairs(list(range(n)), flows_lr, kf)
         poses, meshes = torch.as_tensor(job.init).clone(), torch.as_tensor(job.mesh_init).clone()
+        stats = torch.zeros(4, dtype=torch.float64)
         if pairs:
             pose_train = torch.ones(n, dtype=torch.float64)
             pose_train[0] = 0  # gauge
             win = Window(fr.imgs, fr.enc, fr.static, fr.dyn_mesh, fr.K, pairs, poses, pose_train, meshes,
                          torch.ones(n), codes, keep=fr.keep)
-            solver = Solver(win, net, posenet, kf.lr, st.depth, st.losses, kf, kf.pair_blocks)
+            solver = _window_solver(win, net, posenet, st.depth, st.losses, kf)
             run_solver(solver, gen, kf.steps, 0, None)
+            stats = _window_stats(solver, kf)
             with torch.no_grad():
                 poses, meshes = solver.poses().detach().clone(), solver.meshes().detach().clone()
         depths = full_depth(net, job.images, job.priors, meshes, st.depth.mesh, fr.enc)
         return KeyframeWindowResult(poses.numpy().astype(np.float64), meshes.numpy(),
-                                    np.asarray(depths, np.float32), _net_state(net, posenet))
+                                    np.asarray(depths, np.float32), _net_state(net, posenet), stats.numpy())
 
 
 def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -433,7 +470,8 @@ def _independent_windows(
             p = f"win{wi:04d}/"
             res = KeyframeWindowResult(
                 t[p + "poses"].numpy(), t[p + "meshes"].numpy(), t[p + "depths"].numpy(),
-                {k[len(p) + 6:]: v.numpy() for k, v in t.items() if k.startswith(p + "state.")})
+                {k[len(p) + 6:]: v.numpy() for k, v in t.items() if k.startswith(p + "state.")},
+                t[p + "stats"].numpy())
             done.append(res)
             placed.add(wi, res)
 
@@ -448,10 +486,12 @@ def _independent_windows(
         placed.add(wi, res)
         if checkpointer is not None and wi + 1 < len(spans):
             shards = {f"win{k:04d}": {"poses": torch.as_tensor(r.poses), "meshes": torch.as_tensor(r.meshes),
-                                      "depths": torch.as_tensor(r.depths),
+                                      "depths": torch.as_tensor(r.depths), "stats": torch.as_tensor(r.stats),
                                       **{f"state.{n}": torch.as_tensor(v) for n, v in r.state.items()}}
                       for k, r in enumerate(done)}
             checkpointer.save({"windows_done": torch.tensor(wi + 1)}, {"stage": _STAGE_INDEPENDENT, "window": wi + 1},
                               shards)
-    return _results(placed.poses, np.stack(placed.depths), torch.as_tensor(np.stack(placed.meshes)), placed.state,
-                    kf.taus, placed.rel_poses(kf.taus))
+    res = _results(placed.poses, np.stack(placed.depths), torch.as_tensor(np.stack(placed.meshes)), placed.state,
+                   kf.taus, placed.rel_poses(kf.taus))
+    res["windows"] = _window_records(torch.as_tensor(np.stack([r.stats for r in done])), [a for a, _ in spans], nk, kf)
+    return res

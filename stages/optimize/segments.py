@@ -404,7 +404,8 @@ def solve_window(job: WindowJob) -> WindowResult:
             torch.as_tensor((~job.is_kf).astype(np.float64)), mesh, torch.ones(n), None, st.seg.grad_mult,
             keep=fr.keep,
         )
-        solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf)
+        solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf, 1, st.seg.points_by_weight,
+                        st.seg.stop_every, st.seg.stop_rel)
         run_solver(solver, gen, st.seg.steps, 0, None)
         with torch.no_grad():
             poses, meshes = solver.poses().numpy(), solver.meshes().clone()
