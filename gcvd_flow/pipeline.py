@@ -3,7 +3,8 @@
     ingest [map: frame] -> flow [map: pair i,i+1] -> flow_far [map: pair i,j] -> masks [map: frame]
     -> priors [map: frame] (reads flow_far) -> keyframes -> association -> optimize_keyframes
     -> optimize_edges -> pose_graph
-    -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] (reads flow_far)
+    -> bundle_adjustment -> optimize_segments -> fusion_references -> fusion_flow [map: pair i,j]
+    -> depth_fusion [map: frame] (reads flow, flow_far, fusion_flow)
     -> depth_filter [map: frame] -> depth_consensus [map: frame]
 
 Each block holds everything about one stage: its parameters (a pydantic section, ``--set
@@ -272,12 +273,14 @@ def _prior_refs(i: int, n: int, p: Any) -> list[int]:
 
 
 def _fusion_refs(i: int, n: int, p: Any) -> list[int]:
-    return references.offset_references(i, n, p.offsets) if p.enabled else []
+    """Frame i's fixed-offset fusion references (depth_fusion.references=offsets)."""
+    return references.offset_references(i, n, p.offsets) if p.enabled and p.references == "offsets" else []
 
 
 def _fusion_far_refs(i: int, n: int, p: Any) -> list[int]:
-    """Frame i's fusion references whose flow flow_far computes: the adjacent ones (+-1) are the
-    flow stage's own pairs, read from there."""
+    """Frame i's fusion references whose flow flow_far computes (references=offsets): the
+    adjacent ones (+-1) are the flow stage's own pairs, read from there. With
+    references=baseline the pairs are chosen from the poses and computed by fusion_flow."""
     return [j for j in _fusion_refs(i, n, p) if abs(j - i) != 1]
 
 
@@ -804,25 +807,84 @@ OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
 
 
 # ============================================================================== depth_fusion
+# Each frame's fusion references (depth_fusion.references): "baseline" chooses them from the final
+# poses and depths by triangulation angle and overlap (stages.graph.references.baseline_references),
+# in the fusion_references stage, so they are cached, named in its output and explained by
+# plan / why like any stage; the flows of the chosen pairs that no other stage computes are the
+# items of fusion_flow (keyed by the two images, preset and threshold only, like flow_far's).
+# "offsets" is the fixed-offset rule, its flows flow_far's items.
 DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
 
 
+def _reference_rule(p: DepthFusionParams) -> references.ReferenceRule:
+    return references.ReferenceRule(max_refs=p.max_refs, max_gap=p.max_gap, target_angle_deg=p.target_angle_deg,
+                                    min_angle_deg=p.min_ref_angle_deg, max_angle_deg=p.max_ref_angle_deg,
+                                    min_overlap=p.min_overlap, new_flow_cost=p.new_flow_cost,
+                                    max_new=p.max_new_flows)
+
+
+def run_fusion_references(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
+    """-> {refs: per frame its reference frames (list of int lists), flows: the pairs [a, b], a < b,
+    fusion_flow computes (neither adjacent nor flow_far's)}."""
+    seg = inputs["optimize_segments"]
+    poses = np.asarray(seg["poses"], np.float64)
+    n = len(poses)
+    if not p.enabled:
+        return {"refs": [[] for _ in range(n)], "flows": []}
+    if p.references == "offsets":
+        return {"refs": [_fusion_refs(i, n, p) for i in range(n)], "flows": []}
+    K = np.asarray(inputs["calibrate"]["K"], np.float64)
+    samples, size = [], (0, 0)
+    for d in seg["depths"]:  # one depth map at a time: a few hundred points of each kept
+        d = np.asarray(d, np.float32)
+        size = (d.shape[1], d.shape[0])
+        samples.append(references.view_samples(d, K))
+    free = [(a, b) for a, b, preset, fb in inputs["flow_far"].summary["pairs"]
+            if preset == p.preset and float(fb) == float(p.fb_thresh)]
+    refs, flows = references.baseline_references(poses, samples, K, size, _reference_rule(p), free)
+    return {"refs": refs, "flows": [list(pr) for pr in flows]}
+
+
+FUSION_REFERENCES = declare(Stage("fusion_references", run_fusion_references,
+                                  deps=(CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS), params="depth_fusion",
+                                  kind="fusion_references",
+                                  description="each frame's depth_fusion references, chosen by triangulation "
+                                              "angle and overlap at the final poses"))
+
+
+def _fusion_flow_items(view, p: DepthFusionParams):
+    return [{"a": ItemRef(INGEST, a), "b": ItemRef(INGEST, c), "preset": Const(p.preset),
+             "fb_thresh": Const(float(p.fb_thresh))} for a, c in view.value(FUSION_REFERENCES)["flows"]]
+
+
+# the same function as flow_far's: one DIS forward + backward per pair
+FUSION_FLOW = declare(MapStage("fusion_flow", run_flow_far, deps=(INGEST, FUSION_REFERENCES),
+                               params="depth_fusion", kind="flow_far", items=_fusion_flow_items,
+                               selection_params=("depth_fusion",),
+                               description="direct flows of the fusion reference pairs no other stage computes"))
+
+
 def _fusion_items(view, p: DepthFusionParams):
-    # the flows to the references are flow_far's items (shared with priors)
+    # a reference's flow: the flow stage's pair (adjacent), flow_far's (shared with priors) or
+    # fusion_flow's, seen from frame i ("fwd": i is the pair's first frame, "bwd": its second)
     n = view.len(INGEST)
-    index = _far_index(view) if p.enabled else {}
+    chosen = view.value(FUSION_REFERENCES)
+    far = _far_index(view) if p.enabled else {}
+    own = {tuple(pr): k for k, pr in enumerate(chosen["flows"])}
     out = []
     for i in range(n):
-        far = _fusion_far_refs(i, n, p)
-        near = [j for j in _fusion_refs(i, n, p) if abs(j - i) == 1]
-        refs = _far_refs(index, i, far, p.preset, p.fb_thresh)
-        # adjacent references: the flow stage's pair (i, i+1) seen from i (fwd) or from i+1 (bwd)
-        refs["refs"] += [ItemRef(FLOW, min(i, j)) for j in near]
-        refs["ref_dirs"] = Const(refs["ref_dirs"].value + ["fwd" if j > i else "bwd" for j in near])
+        js = [int(j) for j in chosen["refs"][i]]
+        refs: list[Any] = []
+        for j in js:
+            a, c = min(i, j), max(i, j)
+            pair = references.far_pair(i, j, p.preset, p.fb_thresh)
+            refs.append(ItemRef(FLOW, a) if c - a == 1 else ItemRef(FLOW_FAR, far[pair]) if pair in far
+                        else ItemRef(FUSION_FLOW, own[(a, c)]))
         out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
                     "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
-                    **refs, "ref_indices": Const(far + near)})
+                    "refs": refs, "ref_dirs": Const(["fwd" if i < j else "bwd" for j in js]),
+                    "ref_indices": Const(js)})
     return out
 
 
@@ -842,7 +904,8 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, OPTIMIZE_SEGMENTS),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion,
+                        deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, OPTIMIZE_SEGMENTS, FUSION_REFERENCES, FUSION_FLOW),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 

@@ -143,14 +143,20 @@ def fuse_depth_flows(
     made = np.zeros((h, w))
     agreeing = np.zeros((h, w))  # measurements within agree_log_dev
     den_agree = np.zeros((h, w))  # their summed angle^2
+
+    def add(acc: np.ndarray, v: np.ndarray, u: np.ndarray, wgt: np.ndarray | None) -> None:
+        # per-pixel sums (np.bincount: one reference measures a pixel at most once, and it is
+        # many times faster than np.add.at)
+        acc += np.bincount(v * w + u, weights=wgt, minlength=h * w).reshape(h, w)
+
     for v, u, z, wgt in meas:
         dev = np.abs(np.log(z / depth[v, u]) - shift)
         keep, agree = dev < max_log_dev, dev < agree_log_dev
-        np.add.at(num, (v[keep], u[keep]), wgt[keep] / z[keep])
-        np.add.at(den, (v[keep], u[keep]), wgt[keep])
-        np.add.at(made, (v, u), 1.0)
-        np.add.at(agreeing, (v[agree], u[agree]), 1.0)
-        np.add.at(den_agree, (v[agree], u[agree]), wgt[agree])
+        add(num, v[keep], u[keep], wgt[keep] / z[keep])
+        add(den, v[keep], u[keep], wgt[keep])
+        add(made, v, u, None)
+        add(agreeing, v[agree], u[agree], None)
+        add(den_agree, v[agree], u[agree], wgt[agree])
     have = den > 0
     fused = np.where(have, den / np.maximum(num, 1e-12), depth * np.exp(shift))
     # 3x3 median: per-pixel flow noise, and seams between measured and kept pixels

@@ -17,15 +17,43 @@ def _positive_offsets(v: tuple[int, ...]) -> tuple[int, ...]:
 
 @dataclass(frozen=True)
 class DepthFusionSettings:
-    """Optimised depth fused with multi-view triangulation (stages.depth.fusion)."""
+    """Optimised depth fused with multi-view triangulation (stages.depth.fusion).
+
+    Which frames each frame is triangulated against: ``references=baseline`` (the default since
+    2026-11-25, issue 28) chooses up to ``max_refs`` per frame from the final poses by view
+    geometry (stages.graph.references.baseline_references): frames within ``max_gap`` that see at
+    least ``min_overlap`` of it, at a median triangulation angle in [``min_ref_angle_deg``,
+    ``max_ref_angle_deg``], closest to ``target_angle_deg`` (in log), the best one on each side
+    first; a pair whose flow is computed anyway (the flow stage's +-1, the priors' flow_far pairs,
+    a pair an earlier frame chose) is preferred by ``new_flow_cost``, and a frame adds at most
+    ``max_new_flows`` new flows (the fusion_flow stage computes them). ``references=offsets`` is
+    the fixed-offset rule of 5261f0f .. a299ec5 (``offsets``). See docs/benchmarks.md for the
+    measured figures of both."""
 
     enabled: bool = True
-    offsets: tuple[int, ...] = param((-8, -4, -2, -1, 1, 2, 4, 8), "reference frames (relative index) "
-                                     "triangulated against each frame with the final poses; +-1 are the flow "
-                                     "stage's pairs and +-4 the priors' (no new flow). Was (-8, 8) until "
-                                     "2026-11-25: on a wide-baseline real walk-through frames 8 apart rarely "
-                                     "overlap (confident share 0.3 % -> 48 %, AbsRel 0.167 -> 0.143; ICL 74 % -> "
-                                     "97 %, AbsRel 0.0493 -> 0.0487)")
+    references: Literal["baseline", "offsets"] = param(
+        "baseline", "how each frame's references are chosen: 'baseline' by triangulation angle and overlap at "
+        "the final poses, 'offsets' the fixed ``offsets``")
+    offsets: tuple[int, ...] = param((-8, -4, -2, -1, 1, 2, 4, 8), "references=offsets: reference frames "
+                                     "(relative index) triangulated against each frame with the final poses; +-1 "
+                                     "are the flow stage's pairs and +-4 the priors' (no new flow). Was (-8, 8) "
+                                     "until 2026-11-25: on a wide-baseline real walk-through frames 8 apart "
+                                     "rarely overlap (confident share 0.3 % -> 48 %, AbsRel 0.167 -> 0.143; ICL "
+                                     "74 % -> 97 %, AbsRel 0.0493 -> 0.0487)")
+    max_refs: int = param(4, "references=baseline: references per frame at most", ge=1)
+    max_gap: int = param(32, "references=baseline: frames searched on each side", ge=1)
+    target_angle_deg: float = param(4.0, "references=baseline: median triangulation angle aimed at, degrees",
+                                    gt=0)
+    min_ref_angle_deg: float = param(0.5, "references=baseline: smallest usable median triangulation angle of a "
+                                     "reference, degrees", ge=0)
+    max_ref_angle_deg: float = param(20.0, "references=baseline: largest usable median triangulation angle, "
+                                     "degrees", gt=0)
+    min_overlap: float = param(0.6, "references=baseline: fraction of the frame's points a reference must see",
+                               ge=0, le=1)
+    new_flow_cost: float = param(0.69, "references=baseline: cost (in |log angle ratio|) of a pair whose flow is "
+                                 "not computed anyway", ge=0)
+    max_new_flows: int = param(2, "references=baseline: new flows (pairs no other stage computes) a frame may add",
+                               ge=0)
     preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
     min_angle_deg: float = param(0.2, "smallest usable triangulation angle", ge=0)

@@ -11,6 +11,9 @@ change when frames are appended (once the clip is long enough), except where not
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
 
 FarPair = tuple[int, int, str, float]  # (a, b) with a < b, DIS preset, forward-backward threshold px
 
@@ -62,3 +65,134 @@ def far_pairs(n: int, consumers: Sequence[tuple[Callable[[int], list[int]], str,
         for refs, preset, fb_thresh in consumers:
             pairs.update(far_pair(i, j, preset, fb_thresh) for j in refs(i))
     return sorted(pairs)
+
+
+# ------------------------------------------------------------------------------ fusion references
+# depth_fusion's references chosen from the final poses (``depth_fusion.references=baseline``)
+# instead of fixed index offsets: what a reference is good for is its triangulation angle (the
+# inverse-depth noise of a flow measurement ~ flow noise / angle) and how much of the frame it
+# sees, neither of which an index offset says on a clip whose speed varies.
+
+
+@dataclass(frozen=True)
+class ReferenceRule:
+    """How frame i's fusion references are chosen (``DepthFusionSettings`` holds the values).
+
+    max_refs: references per frame; max_gap: |j - i| searched; target_angle_deg: the median
+    triangulation angle aimed at (a candidate's cost is |log(angle / target)|);
+    min_angle_deg / max_angle_deg: the usable range of that median angle; min_overlap: the
+    fraction of frame i's sampled points that must project into frame j (in front, inside);
+    new_flow_cost: added to the cost of a pair whose flow is not computed anyway (log 2: a free
+    pair at twice or half the target angle is as good as a new one at the target);
+    max_new: new flows a frame may add (the bound on the cost)."""
+
+    max_refs: int = 4
+    max_gap: int = 32
+    target_angle_deg: float = 4.0
+    min_angle_deg: float = 0.5
+    max_angle_deg: float = 20.0
+    min_overlap: float = 0.6
+    new_flow_cost: float = 0.69
+    max_new: int = 2
+
+
+def view_samples(depth: np.ndarray, K: np.ndarray, grid: int = 16) -> np.ndarray:
+    """Points (M, 3) in camera coordinates (depth units) of a ``grid``-column lattice of pixel
+    centres (rows in proportion) of depth (H, W) with positive depth; K (3, 3). M <= grid^2."""
+    depth = np.asarray(depth, np.float64)
+    h, w = depth.shape
+    rows = max(2, int(round(grid * h / max(w, 1))))
+    us = (np.arange(grid) + 0.5) * w / grid
+    vs = (np.arange(rows) + 0.5) * h / rows
+    uu, vv = np.meshgrid(us, vs)
+    z = depth[vv.astype(int), uu.astype(int)]
+    ok = np.isfinite(z) & (z > 0)
+    pix = np.stack([uu[ok], vv[ok], np.ones(int(ok.sum()))], 1)
+    return (pix @ np.linalg.inv(np.asarray(K, np.float64)).T) * z[ok, None]
+
+
+def view_geometry(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.ndarray, size: tuple[int, int],
+                  i: int, js: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(overlap, median angle deg), each (len(js),), of frame i against frames js: overlap is
+    the fraction of frame i's sample points (``view_samples``) that land in front of camera j
+    inside its (w, h) = ``size`` image; the angle is the median, over those points, of the angle
+    between the rays from the two camera centres (0 where none lands). poses (N, 4, 4) T_w_c."""
+    w, h = size
+    pts = np.asarray(samples[i], np.float64)
+    out_ov, out_ang = np.zeros(len(js)), np.zeros(len(js))
+    if len(pts) == 0 or len(js) == 0:
+        return out_ov, out_ang
+    Ti = np.asarray(poses[i], np.float64)
+    X = pts @ Ti[:3, :3].T + Ti[:3, 3]  # (M, 3) world
+    ray_i = X - Ti[:3, 3]
+    K = np.asarray(K, np.float64)
+    for k, j in enumerate(js):
+        Tj = np.asarray(poses[j], np.float64)
+        Xj = (X - Tj[:3, 3]) @ Tj[:3, :3]  # world -> camera j (R^T (X - t))
+        z = Xj[:, 2]
+        front = z > 1e-9
+        uv = (Xj[front] @ K.T)[:, :2] / z[front, None]
+        inside = np.zeros(len(X), bool)
+        inside[front] = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        out_ov[k] = inside.mean()
+        if inside.any():
+            a, b = ray_i[inside], X[inside] - Tj[:3, 3]
+            c = np.sum(a * b, 1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+            out_ang[k] = float(np.degrees(np.median(np.arccos(np.clip(c, -1.0, 1.0)))))
+    return out_ov, out_ang
+
+
+def baseline_references(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.ndarray, size: tuple[int, int],
+                        rule: ReferenceRule, free: Iterable[tuple[int, int]] = ()
+                        ) -> tuple[list[list[int]], list[tuple[int, int]]]:
+    """Each frame's fusion references chosen by view geometry, and the new flow pairs they need.
+
+    Frame i's candidates are the frames within ``rule.max_gap`` whose overlap and median
+    triangulation angle (``view_geometry``) are usable (``ReferenceRule``); each costs
+    |log(angle / target)| plus ``new_flow_cost`` unless its pair's flow exists: adjacent pairs
+    (the flow stage's), ``free`` pairs (a, b), a < b (e.g. flow_far's for the priors) and pairs
+    an earlier frame already chose. The cheapest candidate on each side comes first (both sides
+    see the occlusions the other misses), then the cheapest others, up to ``rule.max_refs``;
+    at most ``rule.max_new`` of them new pairs. Frames are visited in order, so the choice is
+    deterministic and the new pairs number at most max_new * N.
+
+    Returns (refs: per frame the chosen frame indices, sorted; new pairs (a, b), a < b, sorted)."""
+    n = len(poses)
+    have = {(int(a), int(b)) for a, b in free}
+    new: list[tuple[int, int]] = []
+    refs: list[list[int]] = []
+    target = np.log(rule.target_angle_deg)
+    for i in range(n):
+        js = [j for j in range(max(0, i - rule.max_gap), min(n, i + rule.max_gap + 1)) if j != i]
+        ov, ang = view_geometry(poses, samples, K, size, i, js)
+        cand = []  # (cost, j)
+        for j, o, a in zip(js, ov, ang):
+            if o < rule.min_overlap or not rule.min_angle_deg <= a <= rule.max_angle_deg:
+                continue
+            pair = (min(i, j), max(i, j))
+            existing = abs(i - j) == 1 or pair in have
+            cand.append((abs(np.log(a) - target) + (0.0 if existing else rule.new_flow_cost), j, existing))
+        cand.sort()
+        chosen: list[int] = []
+        n_new = 0
+
+        def take(c: tuple[float, int, bool]) -> None:
+            nonlocal n_new
+            chosen.append(c[1])
+            if not c[2]:
+                n_new += 1
+                pair = (min(i, c[1]), max(i, c[1]))
+                have.add(pair)
+                new.append(pair)
+
+        for side in (-1, 1):  # the cheapest usable candidate on each side first
+            best = next((c for c in cand if (c[1] - i) * side > 0 and (c[2] or n_new < rule.max_new)), None)
+            if best is not None and len(chosen) < rule.max_refs:
+                take(best)
+        for c in cand:
+            if len(chosen) >= rule.max_refs:
+                break
+            if c[1] not in chosen and (c[2] or n_new < rule.max_new):
+                take(c)
+        refs.append(sorted(chosen))
+    return refs, sorted(new)
