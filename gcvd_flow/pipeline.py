@@ -852,14 +852,17 @@ FUSION_REFERENCES = declare(Stage("fusion_references", run_fusion_references,
                                               "angle and overlap at the final poses"))
 
 
-def _fusion_flow_items(view, p: DepthFusionParams):
+def _fusion_flow_items(view, b: Any):
+    p = b.depth_fusion
     return [{"a": ItemRef(INGEST, a), "b": ItemRef(INGEST, c), "preset": Const(p.preset),
              "fb_thresh": Const(float(p.fb_thresh))} for a, c in view.value(FUSION_REFERENCES)["flows"]]
 
 
 # the same function as flow_far's: one DIS forward + backward per pair
 FUSION_FLOW = declare(MapStage("fusion_flow", run_flow_far, deps=(INGEST, FUSION_REFERENCES),
-                               params="depth_fusion", kind="flow_far", items=_fusion_flow_items,
+                               params=("depth_fusion",), kind="flow_far", items=_fusion_flow_items,
+                               # the section as a bundle, left out of item keys: an item is keyed by
+                               # its two images, preset and threshold only
                                selection_params=("depth_fusion",),
                                description="direct flows of the fusion reference pairs no other stage computes"))
 
