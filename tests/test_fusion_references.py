@@ -130,8 +130,15 @@ def _run(clip: Path, tmp: Path, name: str, *sets: str) -> dict:
                              *args))
 
 
-def test_pipeline_reads_each_reference_from_its_flow(walk_clip, tmp_path):
-    st = _run(walk_clip, tmp_path, "run")
+@pytest.fixture(scope="module")
+def walk_run(walk_clip, tmp_path_factory) -> tuple[Path, dict]:
+    """One default run of the clip (its cache shared by the tests below): (folder, stage rows)."""
+    tmp = tmp_path_factory.mktemp("walk_run")
+    return tmp, _run(walk_clip, tmp, "run")
+
+
+def test_pipeline_reads_each_reference_from_its_flow(walk_run):
+    tmp_path, st = walk_run
     cache = str(tmp_path / "cache")
     chosen = api.recorded_output(tmp_path / "run", "fusion_references", cache)
     refs, new = chosen["refs"], [tuple(p) for p in chosen["flows"]]
@@ -162,8 +169,8 @@ def test_pipeline_reads_each_reference_from_its_flow(walk_clip, tmp_path):
     assert sum(c for g, c in gaps.items() if g not in (1, 2, 4, 8)) > N // 2, gaps
 
 
-def test_offsets_mode_and_what_a_change_recomputes(walk_clip, tmp_path):
-    base = _run(walk_clip, tmp_path, "run")
+def test_offsets_mode_and_what_a_change_recomputes(walk_clip, walk_run):
+    tmp_path, base = walk_run
     n_new = base["fusion_flow"]["executed"]
     # the old rule is one setting away: flow_far then computes the +-2 pairs, fusion_flow none
     old = _run(walk_clip, tmp_path, "old", "depth_fusion.references=offsets")
@@ -172,13 +179,17 @@ def test_offsets_mode_and_what_a_change_recomputes(walk_clip, tmp_path):
     assert chosen["refs"][10] == [2, 6, 8, 9, 11, 12, 14, 18]
     assert old["flow_far"]["executed"] == N - 2 and old["optimize_segments"]["executed"] == 0
     # a different target angle re-chooses; pairs already computed are not computed again
-    again = _run(walk_clip, tmp_path, "again", "depth_fusion.target_angle_deg=2.0")
+    again = _run(walk_clip, tmp_path, "again", "depth_fusion.target_angle_deg=3.0")
     assert again["fusion_references"]["executed"] == 1 and again["flow_far"]["executed"] == 0
     new2 = api.recorded_output(tmp_path / "again", "fusion_references", str(tmp_path / "cache"))["flows"]
     new1 = api.recorded_output(tmp_path / "run", "fusion_references", str(tmp_path / "cache"))["flows"]
     assert again["fusion_flow"]["cached"] == len({tuple(p) for p in new2} & {tuple(p) for p in new1}) <= n_new
-    # plan names the stage that re-chooses and the flows still to compute
-    plan = cli_json("plan", str(walk_clip), "--out", str(tmp_path / "p"), "--cache", str(tmp_path / "cache"),
+    # plan names the stage that re-chooses, the setting that changed, and what waits on it
+    plan = cli_json("plan", str(walk_clip), "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "cache"),
                     *QUICK, "--set", "depth_fusion.target_angle_deg=8.0")
     rows = {r["name"]: r for r in plan["stages"]}
-    assert rows["fusion_references"]["action"] == "run" and rows["optimize_segments"]["action"] == "cached"
+    assert rows["optimize_segments"]["action"] == "cached"
+    assert "0 of" in " ".join(rows["flow_far"]["reasons"])  # its key names the section; no item to compute
+    assert rows["fusion_references"]["action"] == "run"
+    assert any("depth_fusion.target_angle_deg changed" in r for r in rows["fusion_references"]["reasons"])
+    assert any("fusion_references" in r for r in rows["fusion_flow"]["reasons"])
