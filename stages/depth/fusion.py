@@ -8,8 +8,8 @@ path). With known poses, every pixel can be triangulated directly from the optic
 few neighbours on both sides, with no two-view pose error, at the poses' scale. This is what
 the paper's flow loss does through the network, solved in closed form per pixel.
 
-For frame i and each reference j (chosen by the pipeline: by default up to 4 frames whose median
-triangulation angle at the final poses is near 4 degrees and which see most of frame i,
+For frame i and each reference j (chosen by the pipeline: by default up to 3 frames whose median
+triangulation angle at the final poses is near 2 degrees and which see 80 % of frame i,
 stages.graph.references.baseline_references; or fixed offsets): DIS flow i -> j with a
 forward-backward check, midpoint triangulation with T_j_i = inv(T_w_j) T_w_i, triangulation angle
 as confidence. Measurements that disagree with the optimised depth by more than

@@ -40,19 +40,21 @@ class DepthFusionSettings:
                                      "until 2026-11-25: on a wide-baseline real walk-through frames 8 apart "
                                      "rarely overlap (confident share 0.3 % -> 48 %, AbsRel 0.167 -> 0.143; ICL "
                                      "74 % -> 97 %, AbsRel 0.0493 -> 0.0487)")
-    max_refs: int = param(4, "references=baseline: references per frame at most", ge=1)
+    max_refs: int = param(3, "references=baseline: references per frame at most", ge=1)
     max_gap: int = param(32, "references=baseline: frames searched on each side", ge=1)
-    target_angle_deg: float = param(4.0, "references=baseline: median triangulation angle aimed at, degrees",
+    target_angle_deg: float = param(2.0, "references=baseline: median triangulation angle aimed at, degrees",
                                     gt=0)
     min_ref_angle_deg: float = param(0.5, "references=baseline: smallest usable median triangulation angle of a "
                                      "reference, degrees", ge=0)
     max_ref_angle_deg: float = param(20.0, "references=baseline: largest usable median triangulation angle, "
                                      "degrees", gt=0)
-    min_overlap: float = param(0.6, "references=baseline: fraction of the frame's points a reference must see",
+    min_overlap: float = param(0.8, "references=baseline: fraction of the frame's points a reference must see",
                                ge=0, le=1)
+    fallback_overlap: float = param(0.4, "references=baseline: a frame with fewer than 2 references is topped up "
+                                    "to 2 from views seeing at least this fraction of it", ge=0, le=1)
     new_flow_cost: float = param(0.69, "references=baseline: cost (in |log angle ratio|) of a pair whose flow is "
                                  "not computed anyway", ge=0)
-    max_new_flows: int = param(2, "references=baseline: new flows (pairs no other stage computes) a frame may add",
+    max_new_flows: int = param(1, "references=baseline: new flows (pairs no other stage computes) a frame may add",
                                ge=0)
     preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
