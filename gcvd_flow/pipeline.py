@@ -819,8 +819,7 @@ DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
 def _reference_rule(p: DepthFusionParams) -> references.ReferenceRule:
     return references.ReferenceRule(max_refs=p.max_refs, max_gap=p.max_gap, target_angle_deg=p.target_angle_deg,
                                     min_angle_deg=p.min_ref_angle_deg, max_angle_deg=p.max_ref_angle_deg,
-                                    min_overlap=p.min_overlap, fallback_overlap=p.fallback_overlap,
-                                    new_flow_cost=p.new_flow_cost,
+                                    min_overlap=p.min_overlap, new_flow_cost=p.new_flow_cost,
                                     max_new=p.max_new_flows)
 
 

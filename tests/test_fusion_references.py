@@ -62,9 +62,7 @@ def test_a_pause_gets_references_outside_it_not_fixed_offsets():
         assert 0 < len(js) <= rule.max_refs, (i, js)
         for j in js:
             ov, ang = _geometry(poses, i, j)
-            assert ov >= rule.fallback_overlap and rule.min_angle_deg <= ang <= rule.max_angle_deg, (i, j, ov, ang)
-        if len(js) > 2:  # beyond two, only views that see min_overlap of the frame
-            assert sum(_geometry(poses, i, j)[0] >= rule.min_overlap for j in js) >= len(js) - 2
+            assert ov >= rule.min_overlap and rule.min_angle_deg <= ang <= rule.max_angle_deg, (i, j, ov, ang)
     # inside the pause, every frame 1..8 apart has no baseline: the references lie outside it
     mid = 20
     assert all(xs[j] != xs[mid] for j in refs[mid]) and all(abs(j - mid) > 8 for j in refs[mid])

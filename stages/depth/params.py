@@ -50,8 +50,6 @@ class DepthFusionSettings:
                                      "degrees", gt=0)
     min_overlap: float = param(0.8, "references=baseline: fraction of the frame's points a reference must see",
                                ge=0, le=1)
-    fallback_overlap: float = param(0.4, "references=baseline: a frame with fewer than 2 references is topped up "
-                                    "to 2 from views seeing at least this fraction of it", ge=0, le=1)
     new_flow_cost: float = param(0.69, "references=baseline: cost (in |log angle ratio|) of a pair whose flow is "
                                  "not computed anyway", ge=0)
     max_new_flows: int = param(1, "references=baseline: new flows (pairs no other stage computes) a frame may add",
