@@ -816,16 +816,20 @@ OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
 DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
 
 
-def _reference_rule(p: DepthFusionParams) -> references.ReferenceRule:
-    return references.ReferenceRule(max_refs=p.max_refs, max_gap=p.max_gap, target_angle_deg=p.target_angle_deg,
-                                    min_angle_deg=p.min_ref_angle_deg, max_angle_deg=p.max_ref_angle_deg,
-                                    min_overlap=p.min_overlap, new_flow_cost=p.new_flow_cost,
-                                    max_new=p.max_new_flows)
+FusionReferencesParams = section("fusion_references", depth_params.FusionReferencesSettings)
 
 
-def run_fusion_references(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
+def _reference_rule(q: FusionReferencesParams) -> references.ReferenceRule:
+    return references.ReferenceRule(max_refs=q.max_refs, max_gap=q.max_gap, target_angle_deg=q.target_angle_deg,
+                                    min_angle_deg=q.min_angle_deg, max_angle_deg=q.max_angle_deg,
+                                    min_overlap=q.min_overlap, new_flow_cost=q.new_flow_cost,
+                                    max_new=q.max_new_flows)
+
+
+def run_fusion_references(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
     """-> {refs: per frame its reference frames (list of int lists), flows: the pairs [a, b], a < b,
     fusion_flow computes (neither adjacent nor flow_far's)}."""
+    p = b.depth_fusion
     seg = inputs["optimize_segments"]
     poses = np.asarray(seg["poses"], np.float64)
     n = len(poses)
@@ -839,14 +843,15 @@ def run_fusion_references(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any
         d = np.asarray(d, np.float32)
         size = (d.shape[1], d.shape[0])
         samples.append(references.view_samples(d, K))
-    free = [(a, b) for a, b, preset, fb in inputs["flow_far"].summary["pairs"]
+    free = [(a, c) for a, c, preset, fb in inputs["flow_far"].summary["pairs"]
             if preset == p.preset and float(fb) == float(p.fb_thresh)]
-    refs, flows = references.baseline_references(poses, samples, K, size, _reference_rule(p), free)
+    refs, flows = references.baseline_references(poses, samples, K, size, _reference_rule(b.fusion_references), free)
     return {"refs": refs, "flows": [list(pr) for pr in flows]}
 
 
 FUSION_REFERENCES = declare(Stage("fusion_references", run_fusion_references,
-                                  deps=(CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS), params="depth_fusion",
+                                  deps=(CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS),
+                                  params=("depth_fusion", "fusion_references"),
                                   kind="fusion_references",
                                   description="each frame's depth_fusion references, chosen by triangulation "
                                               "angle and overlap at the final poses"))
