@@ -142,6 +142,18 @@ def view_geometry(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.ndarra
     return out_ov, out_ang
 
 
+def _take(i: int, c: tuple[float, int, bool], chosen: list[int], have: set[tuple[int, int]],
+          new: list[tuple[int, int]]) -> int:
+    """Frame i takes candidate c = (cost, j, flow exists); a new pair is recorded. -> 1 if new."""
+    chosen.append(c[1])
+    if c[2]:
+        return 0
+    pair = (min(i, c[1]), max(i, c[1]))
+    have.add(pair)
+    new.append(pair)
+    return 1
+
+
 def baseline_references(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.ndarray, size: tuple[int, int],
                         rule: ReferenceRule, free: Iterable[tuple[int, int]] = ()
                         ) -> tuple[list[list[int]], list[tuple[int, int]]]:
@@ -179,25 +191,15 @@ def baseline_references(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.
         cand = sorted((c + (0.0 if exists(i, j) else rule.new_flow_cost), j, exists(i, j)) for c, j in full)
         chosen: list[int] = []
         n_new = 0
-
-        def take(c: tuple[float, int, bool]) -> None:
-            nonlocal n_new
-            chosen.append(c[1])
-            if not c[2]:
-                n_new += 1
-                pair = (min(i, c[1]), max(i, c[1]))
-                have.add(pair)
-                new.append(pair)
-
         for side in (-1, 1):  # the cheapest usable candidate on each side first
             best = next((c for c in cand if (c[1] - i) * side > 0 and (c[2] or n_new < rule.max_new)), None)
             if best is not None and len(chosen) < rule.max_refs:
-                take(best)
+                n_new += _take(i, best, chosen, have, new)
         for c in cand:
             if len(chosen) >= rule.max_refs:
                 break
             if c[1] not in chosen and (c[2] or n_new < rule.max_new):
-                take(c)
+                n_new += _take(i, c, chosen, have, new)
         refs.append(chosen)
     # pass 2: the pairs later frames added are there for earlier frames too; each frame keeps
     # its own choice and fills its free places from them (a side it has none on first)
