@@ -57,14 +57,15 @@ class FusionReferencesSettings:
     anyway (the flow stage's +-1, the priors' flow_far pairs, a pair an earlier frame chose) is
     preferred by ``new_flow_cost``, and a frame adds at most ``max_new_flows`` new flows (the
     fusion_flow stage computes them). Against a299ec5's fixed +-1, 2, 4, 8: synthetic loop
-    AbsRel 0.0407 -> 0.0363, ICL 0.0487 -> 0.0478, HoloLens 0.1430 -> 0.1465 (confident share 48.3
-    -> 44.5 %), with 0.3-0.9 instead of 1 new flow and at most 3 instead of 8 references per frame
-    (docs/benchmarks.md, "Fusion references chosen from the poses"). The defaults (2 deg, overlap
-    0.8, 3 references, 1 new flow) were chosen there from 4 deg / 0.6 / 4 / 2 (HoloLens confident
-    share 31 %) and neighbours."""
+    AbsRel 0.0407 -> 0.0373, ICL 0.0487 -> 0.0479, 300-frame walk 0.0768 -> 0.0788, HoloLens
+    0.1430 -> 0.1465 (confident share 48.3 -> 44.5 %), with 0.3-0.7 instead of 1 new flow and at
+    most 3 instead of 8 references per frame (docs/benchmarks.md, "Fusion references chosen from
+    the poses"). The defaults (2 deg, overlap 0.8, 3 references, 1 new flow, +-12 frames) were
+    chosen there from 4 deg / 0.6 / 4 / 2 / 32 (HoloLens confident share 31 %) and neighbours."""
 
     max_refs: int = param(3, "references per frame at most", ge=1)
-    max_gap: int = param(32, "frames searched on each side", ge=1)
+    max_gap: int = param(12, "frames searched on each side (32: synthetic walk AbsRel 0.0877 against 0.0788, "
+                         "loop 0.0363 against 0.0373)", ge=1)
     target_angle_deg: float = param(2.0, "median triangulation angle aimed at, degrees",
                                     gt=0)
     min_angle_deg: float = param(0.5, "smallest usable median triangulation angle of a "

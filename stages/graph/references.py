@@ -87,7 +87,7 @@ class ReferenceRule:
     max_new: new flows a frame may add (the bound on the cost)."""
 
     max_refs: int = 3
-    max_gap: int = 32
+    max_gap: int = 12
     target_angle_deg: float = 2.0
     min_angle_deg: float = 0.5
     max_angle_deg: float = 20.0
