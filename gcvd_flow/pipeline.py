@@ -3,7 +3,8 @@
     ingest [map: frame] -> flow [map: pair i,i+1] -> flow_far [map: pair i,j] -> masks [map: frame]
     -> priors [map: frame] (reads flow_far) -> keyframes -> association -> optimize_keyframes
     -> optimize_edges -> pose_graph
-    -> bundle_adjustment -> optimize_segments -> fusion_references -> fusion_flow [map: pair i,j]
+    -> bundle_adjustment -> optimize_segments -> fusion_samples [map: frame]
+    -> fusion_references [map: one item] -> fusion_flow [map: pair i,j]
     -> depth_fusion [map: frame] (reads flow, flow_far, fusion_flow)
     -> depth_filter [map: frame] -> depth_consensus [map: frame]
 
@@ -808,8 +809,9 @@ OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
 
 # ============================================================================== depth_fusion
 # Each frame's fusion references (depth_fusion.references): "baseline" chooses them from the final
-# poses and depths by triangulation angle and overlap (stages.graph.references.baseline_references),
-# in the fusion_references stage, so they are cached, named in its output and explained by
+# poses and a grid of each frame's depth (fusion_samples) by triangulation angle and overlap
+# (stages.graph.references.baseline_references), in the fusion_references stage (a map stage of
+# one item, so it reads parts, never a whole clip's depth maps), so they are cached, named in its output and explained by
 # plan / why like any stage; the flows of the chosen pairs that no other stage computes are the
 # items of fusion_flow (keyed by the two images, preset and threshold only, like flow_far's).
 # "offsets" is the fixed-offset rule, its flows flow_far's items.
@@ -826,41 +828,70 @@ def _reference_rule(q: FusionReferencesParams) -> references.ReferenceRule:
                                     max_new=q.max_new_flows)
 
 
-def run_fusion_references(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
-    """-> {refs: per frame its reference frames (list of int lists), flows: the pairs [a, b], a < b,
-    fusion_flow computes (neither adjacent nor flow_far's)}."""
+def _fusion_samples_items(view, p: DepthFusionParams):
+    baseline = p.enabled and p.references == "baseline"
+    return [{"K": PartRef(CALIBRATE, ("K",)), "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i))}
+            for i in range(view.len(INGEST) if baseline else 0)]
+
+
+def run_fusion_samples(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
+    """Frame i's optimised depth -> {points float32 (M, 3): a grid of its pixels in camera
+    coordinates (pose scale), size int [w, h]}: what fusion_references projects, a few KB per frame
+    (the whole clip's depth maps are never held at once)."""
+    d = np.asarray(inputs["depth"], np.float32)
+    return {"points": references.view_samples(d, np.asarray(inputs["K"], np.float64)).astype(np.float32),
+            "size": np.asarray([d.shape[1], d.shape[0]], np.int64)}
+
+
+FUSION_SAMPLES = declare(MapStage("fusion_samples", run_fusion_samples, deps=(INGEST, CALIBRATE, OPTIMIZE_SEGMENTS),
+                                  params="depth_fusion", kind="fusion_samples", items=_fusion_samples_items,
+                                  description="a grid of each frame's optimised depth, for choosing its "
+                                              "fusion references"))
+
+
+def _fusion_references_items(view, b: Any):
+    # one item: the clip's poses, its frames' samples and flow_far's pairs, each read as a part
+    # (no stage's whole output is decoded: the clip's depth maps are never held at once)
     p = b.depth_fusion
-    seg = inputs["optimize_segments"]
-    poses = np.asarray(seg["poses"], np.float64)
-    n = len(poses)
+    baseline = p.enabled and p.references == "baseline"
+    return [{"n": Const(view.len(INGEST)), "K": PartRef(CALIBRATE, ("K",)),
+             "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
+             "samples": [ItemRef(FUSION_SAMPLES, i) for i in range(view.len(FUSION_SAMPLES))] if baseline else [],
+             "far_pairs": PartRef(FLOW_FAR, ("pairs",), summary=True) if baseline else Const([])}]
+
+
+def run_fusion_references(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """The clip (one item) -> {refs: per frame its reference frames (list of int lists), flows:
+    the pairs [a, b], a < b, fusion_flow computes (neither adjacent nor flow_far's)}."""
+    p = b.depth_fusion
+    n = int(inputs["n"])
     if not p.enabled:
         return {"refs": [[] for _ in range(n)], "flows": []}
     if p.references == "offsets":
         return {"refs": [_fusion_refs(i, n, p) for i in range(n)], "flows": []}
-    K = np.asarray(inputs["calibrate"]["K"], np.float64)
-    samples, size = [], (0, 0)
-    for d in seg["depths"]:  # one depth map at a time: a few hundred points of each kept
-        d = np.asarray(d, np.float32)
-        size = (d.shape[1], d.shape[0])
-        samples.append(references.view_samples(d, K))
-    free = [(a, c) for a, c, preset, fb in inputs["flow_far"].summary["pairs"]
+    poses = np.asarray(inputs["poses"], np.float64)
+    K = np.asarray(inputs["K"], np.float64)
+    samples = [np.asarray(it["points"], np.float64) for it in inputs["samples"]]
+    w, h = (int(v) for v in np.asarray(inputs["samples"][0]["size"]))
+    free = [(a, c) for a, c, preset, fb in inputs["far_pairs"]
             if preset == p.preset and float(fb) == float(p.fb_thresh)]
-    refs, flows = references.baseline_references(poses, samples, K, size, _reference_rule(b.fusion_references), free)
+    refs, flows = references.baseline_references(poses, samples, K, (w, h), _reference_rule(b.fusion_references),
+                                                 free)
     return {"refs": refs, "flows": [list(pr) for pr in flows]}
 
 
-FUSION_REFERENCES = declare(Stage("fusion_references", run_fusion_references,
-                                  deps=(CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS),
-                                  params=("depth_fusion", "fusion_references"),
-                                  kind="fusion_references",
-                                  description="each frame's depth_fusion references, chosen by triangulation "
-                                              "angle and overlap at the final poses"))
+FUSION_REFERENCES = declare(MapStage("fusion_references", run_fusion_references,
+                                     deps=(INGEST, CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS, FUSION_SAMPLES),
+                                     params=("depth_fusion", "fusion_references"), kind="fusion_references",
+                                     items=_fusion_references_items,
+                                     description="each frame's depth_fusion references, chosen by triangulation "
+                                                 "angle and overlap at the final poses (one item: the clip)"))
 
 
 def _fusion_flow_items(view, b: Any):
     p = b.depth_fusion
     return [{"a": ItemRef(INGEST, a), "b": ItemRef(INGEST, c), "preset": Const(p.preset),
-             "fb_thresh": Const(float(p.fb_thresh))} for a, c in view.value(FUSION_REFERENCES)["flows"]]
+             "fb_thresh": Const(float(p.fb_thresh))} for a, c in view.value(FUSION_REFERENCES)[0]["flows"]]
 
 
 # the same function as flow_far's: one DIS forward + backward per pair
@@ -876,7 +907,7 @@ def _fusion_items(view, p: DepthFusionParams):
     # a reference's flow: the flow stage's pair (adjacent), flow_far's (shared with priors) or
     # fusion_flow's, seen from frame i ("fwd": i is the pair's first frame, "bwd": its second)
     n = view.len(INGEST)
-    chosen = view.value(FUSION_REFERENCES)
+    chosen = view.value(FUSION_REFERENCES)[0]
     far = _far_index(view) if p.enabled else {}
     own = {tuple(pr): k for k, pr in enumerate(chosen["flows"])}
     out = []

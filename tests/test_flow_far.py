@@ -138,7 +138,7 @@ def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
     st = {s["name"]: s for s in res["stages"]}
     # references=baseline (the default): flow_far the priors' pairs, fusion_flow the new ones
     far = _pairs(N, depth_fusion={"references": "baseline"})
-    new = api.recorded_output(tmp_path / "run", "fusion_references", str(tmp_path / "cache"))["flows"]
+    new = api.recorded_output(tmp_path / "run", "fusion_references", str(tmp_path / "cache"))[0]["flows"]
     assert st["depth_fusion"]["executed"] == N and st["flow_far"]["executed"] == len(far)
     assert st["fusion_flow"]["executed"] == len(new) and not {(a, b) for a, b, *_ in far} & {tuple(p) for p in new}
     # adjacent pairs (flow) + far pairs (flow_far) + fusion's own (fusion_flow), each once, none

@@ -140,7 +140,7 @@ def walk_run(walk_clip, tmp_path_factory) -> tuple[Path, dict]:
 def test_pipeline_reads_each_reference_from_its_flow(walk_run):
     tmp_path, st = walk_run
     cache = str(tmp_path / "cache")
-    chosen = api.recorded_output(tmp_path / "run", "fusion_references", cache)
+    chosen = api.recorded_output(tmp_path / "run", "fusion_references", cache)[0]
     refs, new = chosen["refs"], [tuple(p) for p in chosen["flows"]]
     far = {tuple(p[:2]) for p in api.recorded_output(tmp_path / "run", "flow_far", cache).summary["pairs"]}
     # fusion_flow computes exactly the chosen pairs no other stage has, each once
@@ -184,15 +184,15 @@ def test_offsets_mode_and_what_a_change_recomputes(walk_clip, walk_run):
     n_new = base["fusion_flow"]["executed"]
     # the old rule is one setting away: flow_far then computes the +-2 pairs, fusion_flow none
     old = _run(walk_clip, tmp_path, "old", "depth_fusion.references=offsets")
-    chosen = api.recorded_output(tmp_path / "old", "fusion_references", str(tmp_path / "cache"))
+    chosen = api.recorded_output(tmp_path / "old", "fusion_references", str(tmp_path / "cache"))[0]
     assert chosen["flows"] == [] and old["fusion_flow"]["executed"] == old["fusion_flow"]["cached"] == 0
     assert chosen["refs"][10] == [2, 6, 8, 9, 11, 12, 14, 18]
     assert old["flow_far"]["executed"] == N - 2 and old["optimize_segments"]["executed"] == 0
     # a different target angle re-chooses; pairs already computed are not computed again
     again = _run(walk_clip, tmp_path, "again", "fusion_references.target_angle_deg=3.0")
     assert again["fusion_references"]["executed"] == 1 and again["flow_far"]["executed"] == 0
-    new2 = api.recorded_output(tmp_path / "again", "fusion_references", str(tmp_path / "cache"))["flows"]
-    new1 = api.recorded_output(tmp_path / "run", "fusion_references", str(tmp_path / "cache"))["flows"]
+    new2 = api.recorded_output(tmp_path / "again", "fusion_references", str(tmp_path / "cache"))[0]["flows"]
+    new1 = api.recorded_output(tmp_path / "run", "fusion_references", str(tmp_path / "cache"))[0]["flows"]
     assert again["fusion_flow"]["cached"] == len({tuple(p) for p in new2} & {tuple(p) for p in new1}) <= n_new
     # plan names the stage that re-chooses, the setting that changed, and what waits on it
     plan = cli_json("plan", str(walk_clip), "--out", str(tmp_path / "run"), "--cache", str(tmp_path / "cache"),
