@@ -3,7 +3,9 @@
     ingest [map: frame] -> flow [map: pair i,i+1] -> flow_far [map: pair i,j] -> masks [map: frame]
     -> priors [map: frame] (reads flow_far) -> keyframes -> association -> optimize_keyframes
     -> optimize_edges -> pose_graph
-    -> bundle_adjustment -> optimize_segments -> depth_fusion [map: frame] (reads flow_far)
+    -> bundle_adjustment -> optimize_segments -> fusion_samples [map: frame]
+    -> fusion_references [map: one item] -> fusion_flow [map: pair i,j]
+    -> depth_fusion [map: frame] (reads flow, flow_far, fusion_flow)
     -> depth_filter [map: frame] -> depth_consensus [map: frame]
 
 Each block holds everything about one stage: its parameters (a pydantic section, ``--set
@@ -275,12 +277,14 @@ def _prior_refs(i: int, n: int, p: Any) -> list[int]:
 
 
 def _fusion_refs(i: int, n: int, p: Any) -> list[int]:
-    return references.offset_references(i, n, p.offsets) if p.enabled else []
+    """Frame i's fixed-offset fusion references (depth_fusion.references=offsets)."""
+    return references.offset_references(i, n, p.offsets) if p.enabled and p.references == "offsets" else []
 
 
 def _fusion_far_refs(i: int, n: int, p: Any) -> list[int]:
-    """Frame i's fusion references whose flow flow_far computes: the adjacent ones (+-1) are the
-    flow stage's own pairs, read from there."""
+    """Frame i's fusion references whose flow flow_far computes (references=offsets): the
+    adjacent ones (+-1) are the flow stage's own pairs, read from there. With
+    references=baseline the pairs are chosen from the poses and computed by fusion_flow."""
     return [j for j in _fusion_refs(i, n, p) if abs(j - i) != 1]
 
 
@@ -887,26 +891,123 @@ OPTIMIZE_SEGMENTS = declare(Stage("optimize_segments", run_optimize_segments,
 
 
 # ============================================================================== depth_fusion
+# Each frame's fusion references (depth_fusion.references): "baseline" chooses them from the final
+# poses and a grid of each frame's depth (fusion_samples) by triangulation angle and overlap
+# (stages.graph.references.baseline_references), in the fusion_references stage (a map stage of
+# one item, so it reads parts, never a whole clip's depth maps), so they are cached, named in its output and explained by
+# plan / why like any stage; the flows of the chosen pairs that no other stage computes are the
+# items of fusion_flow (keyed by the two images, preset and threshold only, like flow_far's).
+# "offsets" is the fixed-offset rule, its flows flow_far's items.
 DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
 
 
+FusionReferencesParams = section("fusion_references", depth_params.FusionReferencesSettings)
+
+
+def _reference_rule(q: FusionReferencesParams) -> references.ReferenceRule:
+    return references.ReferenceRule(max_refs=q.max_refs, max_gap=q.max_gap, target_angle_deg=q.target_angle_deg,
+                                    min_angle_deg=q.min_angle_deg, max_angle_deg=q.max_angle_deg,
+                                    min_overlap=q.min_overlap, new_flow_cost=q.new_flow_cost,
+                                    max_new=q.max_new_flows)
+
+
+def _fusion_samples_items(view, p: DepthFusionParams):
+    baseline = p.enabled and p.references == "baseline"
+    return [{"K": PartRef(CALIBRATE, ("K",)), "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i))}
+            for i in range(view.len(INGEST) if baseline else 0)]
+
+
+def run_fusion_samples(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> dict[str, Any]:
+    """Frame i's optimised depth -> {points float32 (M, 3): a grid of its pixels in camera
+    coordinates (pose scale), size int [w, h]}: what fusion_references projects, a few KB per frame
+    (the whole clip's depth maps are never held at once)."""
+    d = np.asarray(inputs["depth"], np.float32)
+    return {"points": references.view_samples(d, np.asarray(inputs["K"], np.float64)).astype(np.float32),
+            "size": np.asarray([d.shape[1], d.shape[0]], np.int64)}
+
+
+FUSION_SAMPLES = declare(MapStage("fusion_samples", run_fusion_samples, deps=(INGEST, CALIBRATE, OPTIMIZE_SEGMENTS),
+                                  params="depth_fusion", kind="fusion_samples", items=_fusion_samples_items,
+                                  description="a grid of each frame's optimised depth, for choosing its "
+                                              "fusion references"))
+
+
+def _fusion_references_items(view, b: Any):
+    # one item: the clip's poses, its frames' samples and flow_far's pairs, each read as a part
+    # (no stage's whole output is decoded: the clip's depth maps are never held at once)
+    p = b.depth_fusion
+    baseline = p.enabled and p.references == "baseline"
+    return [{"n": Const(view.len(INGEST)), "K": PartRef(CALIBRATE, ("K",)),
+             "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
+             "samples": [ItemRef(FUSION_SAMPLES, i) for i in range(view.len(FUSION_SAMPLES))] if baseline else [],
+             "far_pairs": PartRef(FLOW_FAR, ("pairs",), summary=True) if baseline else Const([])}]
+
+
+def run_fusion_references(inputs: dict[str, Any], b: Any, ctx: Any) -> dict[str, Any]:
+    """The clip (one item) -> {refs: per frame its reference frames (list of int lists), flows:
+    the pairs [a, b], a < b, fusion_flow computes (neither adjacent nor flow_far's)}."""
+    p = b.depth_fusion
+    n = int(inputs["n"])
+    if not p.enabled:
+        return {"refs": [[] for _ in range(n)], "flows": []}
+    if p.references == "offsets":
+        return {"refs": [_fusion_refs(i, n, p) for i in range(n)], "flows": []}
+    poses = np.asarray(inputs["poses"], np.float64)
+    K = np.asarray(inputs["K"], np.float64)
+    samples = [np.asarray(it["points"], np.float64) for it in inputs["samples"]]
+    w, h = (int(v) for v in np.asarray(inputs["samples"][0]["size"]))
+    free = [(a, c) for a, c, preset, fb in inputs["far_pairs"]
+            if preset == p.preset and float(fb) == float(p.fb_thresh)]
+    refs, flows = references.baseline_references(poses, samples, K, (w, h), _reference_rule(b.fusion_references),
+                                                 free)
+    return {"refs": refs, "flows": [list(pr) for pr in flows]}
+
+
+FUSION_REFERENCES = declare(MapStage("fusion_references", run_fusion_references,
+                                     deps=(INGEST, CALIBRATE, FLOW_FAR, OPTIMIZE_SEGMENTS, FUSION_SAMPLES),
+                                     params=("depth_fusion", "fusion_references"), kind="fusion_references",
+                                     items=_fusion_references_items,
+                                     description="each frame's depth_fusion references, chosen by triangulation "
+                                                 "angle and overlap at the final poses (one item: the clip)"))
+
+
+def _fusion_flow_items(view, b: Any):
+    p = b.depth_fusion
+    return [{"a": ItemRef(INGEST, a), "b": ItemRef(INGEST, c), "preset": Const(p.preset),
+             "fb_thresh": Const(float(p.fb_thresh))} for a, c in view.value(FUSION_REFERENCES)[0]["flows"]]
+
+
+# the same function as flow_far's: one DIS forward + backward per pair
+FUSION_FLOW = declare(MapStage("fusion_flow", run_flow_far, deps=(INGEST, FUSION_REFERENCES),
+                               params=("depth_fusion",), kind="flow_far", items=_fusion_flow_items,
+                               # the section as a bundle, left out of item keys: an item is keyed by
+                               # its two images, preset and threshold only
+                               selection_params=("depth_fusion",),
+                               description="direct flows of the fusion reference pairs no other stage computes"))
+
+
 def _fusion_items(view, p: DepthFusionParams):
-    # the flows to the references are flow_far's items (shared with priors)
+    # a reference's flow: the flow stage's pair (adjacent), flow_far's (shared with priors) or
+    # fusion_flow's, seen from frame i ("fwd": i is the pair's first frame, "bwd": its second)
     n = view.len(INGEST)
-    index = _far_index(view) if p.enabled else {}
+    chosen = view.value(FUSION_REFERENCES)[0]
+    far = _far_index(view) if p.enabled else {}
+    own = {tuple(pr): k for k, pr in enumerate(chosen["flows"])}
     user = p.enabled and _has_user_masks(view)
     out = []
     for i in range(n):
-        far = _fusion_far_refs(i, n, p)
-        near = [j for j in _fusion_refs(i, n, p) if abs(j - i) == 1]
-        refs = _far_refs(index, i, far, p.preset, p.fb_thresh)
-        # adjacent references: the flow stage's pair (i, i+1) seen from i (fwd) or from i+1 (bwd)
-        refs["refs"] += [ItemRef(FLOW, min(i, j)) for j in near]
-        refs["ref_dirs"] = Const(refs["ref_dirs"].value + ["fwd" if j > i else "bwd" for j in near])
+        js = [int(j) for j in chosen["refs"][i]]
+        refs: list[Any] = []
+        for j in js:
+            a, c = min(i, j), max(i, j)
+            pair = references.far_pair(i, j, p.preset, p.fb_thresh)
+            refs.append(ItemRef(FLOW, a) if c - a == 1 else ItemRef(FLOW_FAR, far[pair]) if pair in far
+                        else ItemRef(FUSION_FLOW, own[(a, c)]))
         out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)),
                     "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i)),
-                    **refs, "ref_indices": Const(far + near), **_user_mask_refs(user, [i, *far, *near])})
+                    "refs": refs, "ref_dirs": Const(["fwd" if i < j else "bwd" for j in js]),
+                    "ref_indices": Const(js), **_user_mask_refs(user, [i, *js])})
     return out
 
 
@@ -929,7 +1030,9 @@ def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: Any) -> 
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 
-DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion, deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, MASKS, OPTIMIZE_SEGMENTS),
+DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion,
+                        deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, MASKS, OPTIMIZE_SEGMENTS, FUSION_REFERENCES,
+                              FUSION_FLOW),
                         params="depth_fusion", kind="depth", items=_fusion_items,
                         description="optimised depth fused with multi-view triangulation at the final poses"))
 

@@ -30,6 +30,10 @@ def clip(tmp_path_factory) -> Path:
 
 
 def _pairs(n: int, **sections) -> list[tuple]:
+    """flow_far's pairs; depth_fusion's fixed-offset references unless a test says otherwise
+    (with the default references=baseline fusion's pairs are chosen from the poses, in
+    fusion_flow: tests/test_fusion_references.py)."""
+    sections["depth_fusion"] = {"references": "offsets", **sections.get("depth_fusion", {})}
     cfg = gp.GCVDConfig(**sections)
     return gp._far_pairs(n, type("B", (), {"priors": cfg.priors, "depth_fusion": cfg.depth_fusion}))
 
@@ -42,7 +46,7 @@ def test_graph_priors_and_fusion_read_flow_far():
 
 
 def test_pairs_are_the_union_of_both_consumers():
-    two = {"offsets": (-8, 8)}  # fusion's references until 2026-11-25
+    two = {"offsets": (-8, 8), "references": "offsets"}  # fusion's references until 2026-11-25
     pairs = _pairs(N, depth_fusion=two)
     assert len(pairs) == len(set(pairs)) and all(a < b for a, b, _, _ in pairs)
     spans = Counter(b - a for a, b, _, _ in pairs)
@@ -55,6 +59,8 @@ def test_pairs_are_the_union_of_both_consumers():
     # the default references (+-1, 2, 4, 8): +-8 and +-4 shared with the priors, +-1 the flow
     # stage's own pairs; only the +-2 pairs are new
     assert Counter(b - a for a, b, _, _ in _pairs(N)) == {8: N - 8, 4: N - 4, 2: N - 2}
+    # references=baseline (the default): flow_far holds the priors' pairs only
+    assert _pairs(N, depth_fusion={"references": "baseline"}) == _pairs(N, depth_fusion={"enabled": False})
     pairs = _pairs(N, depth_fusion=two)
     # sections disagreeing on the DIS settings get separate pairs, nothing shared by mistake
     apart = _pairs(N, depth_fusion={"preset": "medium", **two})
@@ -74,7 +80,7 @@ def test_a_reversed_pair_is_the_direct_flow_of_the_other_frame():
 
 
 def _run(clip: Path, tmp: Path, *sets: str, until: str = "priors") -> dict:
-    args = [a for s in sets for a in ("--set", s)]
+    args = [a for s in ("depth_fusion.references=offsets", *sets) for a in ("--set", s)]
     return by_stage(cli_json("run", str(clip), "--out", str(tmp / "run"), "--cache", str(tmp / "cache"),
                              "--until", until, *args))
 
@@ -112,7 +118,8 @@ def test_each_pair_once_and_offsets_do_not_invalidate_priors(clip, tmp_path):
     adj = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -1, 1, 8]")
     assert adj["flow_far"]["executed"] == 0
     assert all(abs(a - b) != 1 for a, b, *_ in gp._far_pairs(N, type("B", (), {
-        "priors": gp.PriorsParams(), "depth_fusion": gp.DepthFusionParams(offsets=(-8, -1, 1, 8))})))
+        "priors": gp.PriorsParams(),
+        "depth_fusion": gp.DepthFusionParams(offsets=(-8, -1, 1, 8), references="offsets")})))
 
 
 def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
@@ -129,7 +136,17 @@ def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
     res = api.run(api.Invocation(input=str(clip), out=str(tmp_path / "run"), cache=str(tmp_path / "cache"),
                                  sets=quick, json_mode=True), log=lambda m: None)
     st = {s["name"]: s for s in res["stages"]}
-    assert st["depth_fusion"]["executed"] == N and st["flow_far"]["executed"] == len(_pairs(N))
-    # adjacent pairs (flow) + far pairs (flow_far), each once, none also in reverse
-    assert sum(calls.values()) == (N - 1) + len(_pairs(N))
-    assert max(calls.values()) == 1 and not any((b, a) in calls for a, b in calls)
+    # references=baseline (the default): flow_far the priors' pairs, fusion_flow the new ones
+    far = _pairs(N, depth_fusion={"references": "baseline"})
+    new = api.recorded_output(tmp_path / "run", "fusion_references", str(tmp_path / "cache"))[0]["flows"]
+    assert st["depth_fusion"]["executed"] == N and st["flow_far"]["executed"] == len(far)
+    assert st["fusion_flow"]["executed"] == len(new) and not {(a, b) for a, b, *_ in far} & {tuple(p) for p in new}
+    # adjacent pairs (flow) + far pairs (flow_far) + fusion's own (fusion_flow), each once, none
+    # also in reverse
+    assert sum(calls.values()) == (N - 1) + len(far) + len(new)
+    # (the loop clip's last frame repeats its first: a pair through it may equal another reversed)
+    frames = api.recorded_output(tmp_path / "run", "ingest", str(tmp_path / "cache"))
+    seen = Counter(frames[i]["image"].tobytes() for i in range(N))
+    dup = {img for img, k in seen.items() if k > 1}
+    assert max(calls.values()) == 1
+    assert not any((b, a) in calls for a, b in calls if a not in dup and b not in dup)

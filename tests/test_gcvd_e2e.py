@@ -52,7 +52,8 @@ def test_outputs_and_metrics(reference_run, loop_clip):
     rj = json.loads((run / "run.json").read_text())
     assert rj["stage_order"] == ["ingest", "calibrate", "flow", "flow_far", "masks", "priors", "keyframes", "association",
                                   "optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment",
-                                  "optimize_segments", "depth_fusion", "depth_filter", "depth_consensus"]
+                                  "optimize_segments", "fusion_samples", "fusion_references", "fusion_flow", "depth_fusion", "depth_filter",
+                                  "depth_consensus"]
     m = cli_json("eval", str(run), "--gt", str(loop_clip))
     # loose bounds for a 40-step CPU run at 128x96 (the full-size figures are in docs/benchmarks.md)
     assert m["ate_percent_of_path"] < 5.0, m  # measured 1.8%

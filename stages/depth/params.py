@@ -17,15 +17,24 @@ def _positive_offsets(v: tuple[int, ...]) -> tuple[int, ...]:
 
 @dataclass(frozen=True)
 class DepthFusionSettings:
-    """Optimised depth fused with multi-view triangulation (stages.depth.fusion)."""
+    """Optimised depth fused with multi-view triangulation (stages.depth.fusion).
+
+    ``references``: which frames each frame is triangulated against. ``baseline`` (the default
+    since 2026-11-25, issue 28): chosen from the final poses by view geometry, the
+    fusion_references stage (its settings: ``FusionReferencesSettings``, section
+    ``fusion_references``). ``offsets``: the fixed-offset rule of 5261f0f .. a299ec5
+    (``offsets``)."""
 
     enabled: bool = True
-    offsets: tuple[int, ...] = param((-8, -4, -2, -1, 1, 2, 4, 8), "reference frames (relative index) "
-                                     "triangulated against each frame with the final poses; +-1 are the flow "
-                                     "stage's pairs and +-4 the priors' (no new flow). Was (-8, 8) until "
-                                     "2026-11-25: on a wide-baseline real walk-through frames 8 apart rarely "
-                                     "overlap (confident share 0.3 % -> 48 %, AbsRel 0.167 -> 0.143; ICL 74 % -> "
-                                     "97 %, AbsRel 0.0493 -> 0.0487)")
+    references: Literal["baseline", "offsets"] = param(
+        "baseline", "how each frame's references are chosen: 'baseline' by triangulation angle and overlap at "
+        "the final poses, 'offsets' the fixed ``offsets``")
+    offsets: tuple[int, ...] = param((-8, -4, -2, -1, 1, 2, 4, 8), "references=offsets: reference frames "
+                                     "(relative index) triangulated against each frame with the final poses; +-1 "
+                                     "are the flow stage's pairs and +-4 the priors' (no new flow). Was (-8, 8) "
+                                     "until 2026-11-25: on a wide-baseline real walk-through frames 8 apart "
+                                     "rarely overlap (confident share 0.3 % -> 48 %, AbsRel 0.167 -> 0.143; ICL "
+                                     "74 % -> 97 %, AbsRel 0.0493 -> 0.0487)")
     preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
     min_angle_deg: float = param(0.2, "smallest usable triangulation angle", ge=0)
@@ -36,6 +45,39 @@ class DepthFusionSettings:
                                  "the confidence", gt=0)
     coverage_refs: int = param(2, "agreeing references that give a pixel full coverage in the confidence (with "
                                "two offsets: agreeing / references)", ge=1)
+
+
+@dataclass(frozen=True)
+class FusionReferencesSettings:
+    """depth_fusion's references chosen from the final poses (the fusion_references stage, with
+    depth_fusion.references=baseline; stages.graph.references.baseline_references): up to
+    ``max_refs`` frames within ``max_gap`` that see at least ``min_overlap`` of the frame's depth
+    samples at a median triangulation angle in [``min_angle_deg``, ``max_angle_deg``], closest to
+    ``target_angle_deg`` (in log), the best one on each side first; a pair whose flow is computed
+    anyway (the flow stage's +-1, the priors' flow_far pairs, a pair an earlier frame chose) is
+    preferred by ``new_flow_cost``, and a frame adds at most ``max_new_flows`` new flows (the
+    fusion_flow stage computes them). Against a299ec5's fixed +-1, 2, 4, 8: synthetic loop
+    AbsRel 0.0407 -> 0.0373, ICL 0.0487 -> 0.0479, 300-frame walk 0.0768 -> 0.0788, HoloLens
+    0.1430 -> 0.1465 (confident share 48.3 -> 44.5 %), with 0.3-0.7 instead of 1 new flow and at
+    most 3 instead of 8 references per frame (docs/benchmarks.md, "Fusion references chosen from
+    the poses"). The defaults (2 deg, overlap 0.8, 3 references, 1 new flow, +-12 frames) were
+    chosen there from 4 deg / 0.6 / 4 / 2 / 32 (HoloLens confident share 31 %) and neighbours."""
+
+    max_refs: int = param(3, "references per frame at most", ge=1)
+    max_gap: int = param(12, "frames searched on each side (32: synthetic walk AbsRel 0.0877 against 0.0788, "
+                         "loop 0.0363 against 0.0373)", ge=1)
+    target_angle_deg: float = param(2.0, "median triangulation angle aimed at, degrees",
+                                    gt=0)
+    min_angle_deg: float = param(0.5, "smallest usable median triangulation angle of a "
+                                     "reference, degrees", ge=0)
+    max_angle_deg: float = param(20.0, "largest usable median triangulation angle, "
+                                     "degrees", gt=0)
+    min_overlap: float = param(0.8, "fraction of the frame's points a reference must see",
+                               ge=0, le=1)
+    new_flow_cost: float = param(0.69, "cost (in |log angle ratio|) of a pair whose flow is "
+                                 "not computed anyway", ge=0)
+    max_new_flows: int = param(1, "new flows (pairs no other stage computes) a frame may add",
+                               ge=0)
 
 
 @dataclass(frozen=True)
