@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 
 RANSAC_SEED = 1234
 SIFT_RATIO = 0.8
+# The user's mask (--masks) grows by this many px before keypoints are kept off it: a SIFT keypoint's
+# rounded location and the centre of its descriptor's support stay off the masked pixels.
+MASK_DILATE_PX = 4
 TRACK_KEY = 1_000_000  # point key = model * TRACK_KEY + track index (several reconstructions)
 
 
@@ -71,11 +74,30 @@ class PairGeometry:
 # ------------------------------------------------------------------------------ matches
 
 
-def _features(img: np.ndarray, n_features: int) -> tuple[np.ndarray, np.ndarray | None]:
+def usable(keep: np.ndarray, dilate_px: int = MASK_DILATE_PX) -> np.ndarray:
+    """The user's kept mask (H, W), 1 = not masked -> uint8 (H, W), 1 = a keypoint may sit here:
+    kept and more than ``dilate_px`` px (Chebyshev) from any masked pixel, so that neither a
+    keypoint's rounded location nor the core of its descriptor's support is on the mask."""
+    k = (np.asarray(keep) > 0).astype(np.uint8)
+    return cv2.erode(k, np.ones((2 * dilate_px + 1,) * 2, np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+
+
+def _features(img: np.ndarray, n_features: int, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """SIFT keypoints (M, 2) px and descriptors (M, 128) of an image; with ``keep`` (the user's kept
+    mask (H, W), 1 = not masked) none on or within MASK_DILATE_PX of a masked pixel (the detector
+    searches the rest, and a keypoint whose rounded location is not :func:`usable` is dropped)."""
     gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY)
     sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
-    kp, des = sift.detectAndCompute(gray, None)
-    return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
+    ok = None if keep is None else usable(keep)
+    kp, des = sift.detectAndCompute(gray, ok)
+    pts = np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2)
+    if ok is not None and len(pts):
+        h, w = ok.shape
+        xi = np.clip(np.round(pts[:, 0]).astype(np.int64), 0, w - 1)
+        yi = np.clip(np.round(pts[:, 1]).astype(np.int64), 0, h - 1)
+        sel = ok[yi, xi] > 0
+        pts, des = pts[sel], (des[sel] if des is not None and sel.any() else None)
+    return pts, des
 
 
 class _Knn:
@@ -658,19 +680,21 @@ def _sample(n: int, max_frames: int) -> list[int]:
 
 
 def _select_by_motion(images: Sequence[np.ndarray], max_frames: int, n_features: int, target_frac: float,
-                      min_frames: int = 20, knn: _Knn | None = None) -> tuple[list[int], list]:
+                      min_frames: int = 20, knn: _Knn | None = None,
+                      keep: Sequence[np.ndarray] | None = None) -> tuple[list[int], list]:
     """Frames spaced by image motion rather than by index: from each chosen frame, the next is the
     last one whose matches moved less than ``target_frac`` x the long side (median) while still
     sharing enough matches. A slow clip is thinned, a fast one (wide baseline) keeps every frame.
     Candidates: at most 4 x ``max_frames`` frames, evenly; at most ``max_frames`` are kept
     (evenly among the chosen); fewer than ``min_frames``: the spacing is halved (up to 3 times).
+    ``keep``: the user's kept masks of ``images`` (:func:`_features`), None without.
     Returns (indices into ``images``, their features)."""
     cand = _sample(len(images), 4 * max_frames)
     feats: dict[int, Any] = {}
 
     def feat(i: int):
         if i not in feats:
-            feats[i] = _features(np.asarray(images[cand[i]]), n_features)
+            feats[i] = _features(np.asarray(images[cand[i]]), n_features, None if keep is None else keep[cand[i]])
         return feats[i]
 
     target = target_frac * max(np.asarray(images[cand[0]]).shape[:2])
@@ -704,7 +728,8 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
                    n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
                    robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    passes: int = 4, motion_frac: float = 0.05, tracks_per_frame: int = 150,
-                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8) -> dict[str, Any]:
+                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8,
+                   keep: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f: the spread over leave-one-block-out re-estimates, :func:`_jackknife`),
@@ -720,11 +745,15 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
     homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
     structure from motion at the guess followed by a bundle adjustment with the focal length free
     (repeated from its result, at most ``passes`` times, while that moves by more than 1 %), on at
-    most about ``tracks_per_frame`` tracks per frame (:func:`select_tracks`)."""
+    most about ``tracks_per_frame`` tracks per frame (:func:`select_tracks`).
+
+    ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
+    no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle
+    adjustment sees one (:func:`_features`)."""
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
     knn = _Knn()
-    sel, feats = _select_by_motion(images, max_frames, n_features, motion_frac, knn=knn)
+    sel, feats = _select_by_motion(images, max_frames, n_features, motion_frac, knn=knn, keep=keep)
     pairs = []
     for p in range(len(sel)):
         for off in (1, 2):
