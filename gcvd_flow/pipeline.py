@@ -198,7 +198,7 @@ def run_user_masks(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
 USER_MASKS = declare(MapStage("user_masks", run_user_masks, deps=(INGEST,), params="masks", kind="user_mask",
                               items=_user_mask_items,
-                              selection_params=tuple(n for n in frontend_params.MasksSettings.model_fields if n != "user_dir"),
+                              selection_params=tuple(f.name for f in dataclasses.fields(frontend_params.MasksSettings) if f.name != "user_dir"),
                               description="the user's --masks at working resolution (no item without --masks)"))
 
 
