@@ -54,6 +54,10 @@ SIFT_RATIO = 0.8
 # The user's mask (--masks) grows by this many px before keypoints are kept off it: a SIFT keypoint's
 # rounded location and the centre of its descriptor's support stay off the masked pixels.
 MASK_DILATE_PX = 4
+# ... and a keypoint whose blob (MASK_SUPPORT x its SIFT size, the diameter OpenCV reports) reaches a
+# masked pixel is dropped too: a large-scale keypoint next to the mask describes the masked content
+# (an image-fixed patch's edge then makes an image-fixed track).
+MASK_SUPPORT = 1.0
 TRACK_KEY = 1_000_000  # point key = model * TRACK_KEY + track index (several reconstructions)
 
 
@@ -83,21 +87,34 @@ def usable(keep: np.ndarray, dilate_px: int = MASK_DILATE_PX) -> np.ndarray:
 
 
 def _features(img: np.ndarray, n_features: int, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """SIFT keypoints (M, 2) px and descriptors (M, 128) of an image; with ``keep`` (the user's kept
-    mask (H, W), 1 = not masked) none on or within MASK_DILATE_PX of a masked pixel (the detector
-    searches the rest, and a keypoint whose rounded location is not :func:`usable` is dropped)."""
+    """SIFT keypoints (M, 2) px and descriptors (M, 128) of an image: the ``n_features`` strongest.
+    With ``keep`` (the user's kept mask (H, W), 1 = not masked) the strongest among those not
+    on or within MASK_DILATE_PX of a masked pixel and whose blob (MASK_SUPPORT x size) reaches
+    none: OpenCV keeps its n strongest *before* it applies a detection mask, so a textured masked
+    area would otherwise take the budget; here the cap comes after the mask."""
     gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY)
-    sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
-    ok = None if keep is None else usable(keep)
-    kp, des = sift.detectAndCompute(gray, ok)
-    pts = np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2)
-    if ok is not None and len(pts):
+    if keep is None:
+        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
+        kp, des = sift.detectAndCompute(gray, None)
+        return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)
+    ok = usable(keep)
+    kp = sift.detect(gray, ok)
+    if kp:
         h, w = ok.shape
+        pts = np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2)
         xi = np.clip(np.round(pts[:, 0]).astype(np.int64), 0, w - 1)
         yi = np.clip(np.round(pts[:, 1]).astype(np.int64), 0, h - 1)
-        sel = ok[yi, xi] > 0
-        pts, des = pts[sel], (des[sel] if des is not None and sel.any() else None)
-    return pts, des
+        # px from each pixel to the nearest masked one (L2; large where nothing is masked)
+        dist = cv2.distanceTransform((np.asarray(keep) > 0).astype(np.uint8), cv2.DIST_L2, 5)
+        size = np.asarray([k.size for k in kp], np.float64)
+        sel = np.flatnonzero((ok[yi, xi] > 0) & (dist[yi, xi] > MASK_SUPPORT * size))
+        order = sel[np.argsort(-np.asarray([kp[i].response for i in sel]), kind="stable")][:n_features]
+        kp = [kp[i] for i in order]
+    if not kp:
+        return np.zeros((0, 2), np.float64), None
+    kp, des = sift.compute(gray, kp)
+    return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
 
 
 class _Knn:
