@@ -207,16 +207,18 @@ CalibrateParams = section("calibrate", frontend_params.CalibrateSettings)
 
 
 class _SampledImages:
-    """images[i] -> ingest item i's image, decoded only when asked (the estimate samples frames)."""
+    """images[i] -> item i's ``key`` (ingest's image, user_masks' user_keep), decoded only when
+    asked (the estimate samples frames)."""
 
-    def __init__(self, frames: Any):
+    def __init__(self, frames: Any, key: str = "image"):
         self._frames = frames
+        self._key = key
 
     def __len__(self) -> int:
         return len(self._frames)
 
     def __getitem__(self, i: int) -> np.ndarray:
-        return np.asarray(self._frames[i]["image"])
+        return np.asarray(self._frames[i][self._key])
 
 
 def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[str, Any]:
@@ -238,7 +240,7 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
         user = inputs.get(USER_MASKS.name) or []  # --masks: no feature on the user's pixels; else no item
-        keep = [np.asarray(user[i]["user_keep"]) for i in range(len(user))] if len(user) else None
+        keep = _SampledImages(user, "user_keep") if len(user) else None
         res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
                                            n_features=p.features, max_rel_sigma=p.max_rel_sigma,
                                            tracks_per_frame=p.tracks_per_frame, pp_frac=p.pp_frac, keep=keep)
