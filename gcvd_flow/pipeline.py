@@ -176,21 +176,51 @@ INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", 
                   description="frames at working resolution + camera"))
 
 
+# ============================================================================== user masks
+def _user_mask_items(view, p: Any):
+    # Only with --masks (masks.user_dir): the user's mask of each frame, by its content (an
+    # ExternalRef), for the stages that run before the masks stage (calibrate). Without: no item.
+    if not p.user_dir:
+        return []
+    from gcvd_flow.engine.keys import digest_file
+
+    cam = view.summary(INGEST)
+    und = [cam["distortion_intrinsics"], cam["distortion"]] if "distortion" in cam else None
+    files = _user_mask_files(view.source, p, list(cam["frame_indices"]))
+    return [{"user_mask": ExternalRef(digest_file(f), _MaskFile(f)), "source_size": Const(list(view.source.size)),
+             "size": Const([cam["width"], cam["height"]]), **({"undistort": Const(und)} if und else {})} for f in files]
+
+
+def run_user_masks(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
+    """Frame i's --masks PNG -> {user_keep: uint8 (h, w) at working resolution, 1 = not masked}
+    (what the masks stage's items carry as user_keep: _user_keep)."""
+    w, h = inputs["size"]
+    return {"user_keep": _user_keep(inputs, (h, w))}
+
+
+USER_MASKS = declare(MapStage("user_masks", run_user_masks, deps=(INGEST,), params="masks", kind="user_mask",
+                              items=_user_mask_items,
+                              selection_params=tuple(f.name for f in dataclasses.fields(frontend_params.MasksSettings) if f.name != "user_dir"),
+                              description="the user's --masks at working resolution (no item without --masks)"))
+
+
 # ============================================================================== calibrate
 CalibrateParams = section("calibrate", frontend_params.CalibrateSettings)
 
 
 class _SampledImages:
-    """images[i] -> ingest item i's image, decoded only when asked (the estimate samples frames)."""
+    """images[i] -> item i's ``key`` (ingest's image, user_masks' user_keep), decoded only when
+    asked (the estimate samples frames)."""
 
-    def __init__(self, frames: Any):
+    def __init__(self, frames: Any, key: str = "image"):
         self._frames = frames
+        self._key = key
 
     def __len__(self) -> int:
         return len(self._frames)
 
     def __getitem__(self, i: int) -> np.ndarray:
-        return np.asarray(self._frames[i]["image"])
+        return np.asarray(self._frames[i][self._key])
 
 
 def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[str, Any]:
@@ -211,9 +241,11 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
     from stages.frontend import calibrate as calibrate_mod
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
+        user = inputs.get(USER_MASKS.name) or []  # --masks: no feature on the user's pixels; else no item
+        keep = _SampledImages(user, "user_keep") if len(user) else None
         res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
                                            n_features=p.features, max_rel_sigma=p.max_rel_sigma,
-                                           tracks_per_frame=p.tracks_per_frame, pp_frac=p.pp_frac)
+                                           tracks_per_frame=p.tracks_per_frame, pp_frac=p.pp_frac, keep=keep)
     out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]), method=res["method"],
                median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]),
                iterations=int(res["iterations"]))
@@ -236,7 +268,7 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
     return out
 
 
-CALIBRATE = declare(Stage("calibrate", run_calibrate, deps=(INGEST,), params="calibrate", kind="calibration",
+CALIBRATE = declare(Stage("calibrate", run_calibrate, deps=(INGEST, USER_MASKS), params="calibrate", kind="calibration",
                           description="one focal length estimated from the video when no intrinsics are given"))
 
 

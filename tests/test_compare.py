@@ -34,7 +34,7 @@ def runs(tmp_path_factory) -> dict[str, Path]:
 def test_identical_runs_compare_equal(runs):
     doc = cli_json("compare", str(runs["a"]), str(runs["a2"]))  # caches from run.json
     assert doc["identical"] is True and all(r["equal"] for r in doc["stages"])
-    assert [r["stage"] for r in doc["stages"]][:4] == ["ingest", "calibrate", "flow", "flow_far"]
+    assert [r["stage"] for r in doc["stages"]][:5] == ["ingest", "user_masks", "calibrate", "flow", "flow_far"]
     assert doc["outputs"]["poses"]["ate_rmse"] < 1e-12 and doc["outputs"]["depth"]["median_abs_log_ratio"] == 0
     p = cli("compare", str(runs["a"]), str(runs["a2"]), "--check")
     assert p.returncode == 0 and "identical" in p.stdout

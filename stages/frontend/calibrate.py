@@ -51,6 +51,13 @@ log = logging.getLogger(__name__)
 
 RANSAC_SEED = 1234
 SIFT_RATIO = 0.8
+# The user's mask (--masks) grows by this many px before keypoints are kept off it: a SIFT keypoint's
+# rounded location and the centre of its descriptor's support stay off the masked pixels.
+MASK_DILATE_PX = 4
+# ... and a keypoint whose blob (MASK_SUPPORT x its SIFT size, the diameter OpenCV reports) reaches a
+# masked pixel is dropped too: a large-scale keypoint next to the mask describes the masked content
+# (an image-fixed patch's edge then makes an image-fixed track).
+MASK_SUPPORT = 1.0
 TRACK_KEY = 1_000_000  # point key = model * TRACK_KEY + track index (several reconstructions)
 
 
@@ -71,10 +78,42 @@ class PairGeometry:
 # ------------------------------------------------------------------------------ matches
 
 
-def _features(img: np.ndarray, n_features: int) -> tuple[np.ndarray, np.ndarray | None]:
+def usable(keep: np.ndarray, dilate_px: int = MASK_DILATE_PX) -> np.ndarray:
+    """The user's kept mask (H, W), 1 = not masked -> uint8 (H, W), 1 = a keypoint may sit here:
+    kept and more than ``dilate_px`` px (Chebyshev) from any masked pixel, so that neither a
+    keypoint's rounded location nor the core of its descriptor's support is on the mask."""
+    k = (np.asarray(keep) > 0).astype(np.uint8)
+    return cv2.erode(k, np.ones((2 * dilate_px + 1,) * 2, np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+
+
+def _features(img: np.ndarray, n_features: int, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """SIFT keypoints (M, 2) px and descriptors (M, 128) of an image: the ``n_features`` strongest.
+    With ``keep`` (the user's kept mask (H, W), 1 = not masked) the strongest among those not
+    on or within MASK_DILATE_PX of a masked pixel and whose blob (MASK_SUPPORT x size) reaches
+    none: OpenCV keeps its n strongest *before* it applies a detection mask, so a textured masked
+    area would otherwise take the budget; here the cap comes after the mask."""
     gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY)
-    sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
-    kp, des = sift.detectAndCompute(gray, None)
+    if keep is None:
+        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
+        kp, des = sift.detectAndCompute(gray, None)
+        return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)
+    ok = usable(keep)
+    kp = sift.detect(gray, ok)
+    if kp:
+        h, w = ok.shape
+        pts = np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2)
+        xi = np.clip(np.round(pts[:, 0]).astype(np.int64), 0, w - 1)
+        yi = np.clip(np.round(pts[:, 1]).astype(np.int64), 0, h - 1)
+        # px from each pixel to the nearest masked one (L2; large where nothing is masked)
+        dist = cv2.distanceTransform((np.asarray(keep) > 0).astype(np.uint8), cv2.DIST_L2, 5)
+        size = np.asarray([k.size for k in kp], np.float64)
+        sel = np.flatnonzero((ok[yi, xi] > 0) & (dist[yi, xi] > MASK_SUPPORT * size))
+        order = sel[np.argsort(-np.asarray([kp[i].response for i in sel]), kind="stable")][:n_features]
+        kp = [kp[i] for i in order]
+    if not kp:
+        return np.zeros((0, 2), np.float64), None
+    kp, des = sift.compute(gray, kp)
     return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
 
 
@@ -658,19 +697,21 @@ def _sample(n: int, max_frames: int) -> list[int]:
 
 
 def _select_by_motion(images: Sequence[np.ndarray], max_frames: int, n_features: int, target_frac: float,
-                      min_frames: int = 20, knn: _Knn | None = None) -> tuple[list[int], list]:
+                      min_frames: int = 20, knn: _Knn | None = None,
+                      keep: Sequence[np.ndarray] | None = None) -> tuple[list[int], list]:
     """Frames spaced by image motion rather than by index: from each chosen frame, the next is the
     last one whose matches moved less than ``target_frac`` x the long side (median) while still
     sharing enough matches. A slow clip is thinned, a fast one (wide baseline) keeps every frame.
     Candidates: at most 4 x ``max_frames`` frames, evenly; at most ``max_frames`` are kept
     (evenly among the chosen); fewer than ``min_frames``: the spacing is halved (up to 3 times).
+    ``keep``: the user's kept masks of ``images`` (:func:`_features`), None without.
     Returns (indices into ``images``, their features)."""
     cand = _sample(len(images), 4 * max_frames)
     feats: dict[int, Any] = {}
 
     def feat(i: int):
         if i not in feats:
-            feats[i] = _features(np.asarray(images[cand[i]]), n_features)
+            feats[i] = _features(np.asarray(images[cand[i]]), n_features, None if keep is None else keep[cand[i]])
         return feats[i]
 
     target = target_frac * max(np.asarray(images[cand[0]]).shape[:2])
@@ -704,7 +745,8 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
                    n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
                    robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    passes: int = 4, motion_frac: float = 0.05, tracks_per_frame: int = 150,
-                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8) -> dict[str, Any]:
+                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8,
+                   keep: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f: the spread over leave-one-block-out re-estimates, :func:`_jackknife`),
@@ -720,11 +762,15 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
     homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
     structure from motion at the guess followed by a bundle adjustment with the focal length free
     (repeated from its result, at most ``passes`` times, while that moves by more than 1 %), on at
-    most about ``tracks_per_frame`` tracks per frame (:func:`select_tracks`)."""
+    most about ``tracks_per_frame`` tracks per frame (:func:`select_tracks`).
+
+    ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
+    no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle
+    adjustment sees one (:func:`_features`)."""
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
     knn = _Knn()
-    sel, feats = _select_by_motion(images, max_frames, n_features, motion_frac, knn=knn)
+    sel, feats = _select_by_motion(images, max_frames, n_features, motion_frac, knn=knn, keep=keep)
     pairs = []
     for p in range(len(sel)):
         for off in (1, 2):
