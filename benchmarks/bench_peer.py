@@ -1,12 +1,14 @@
 """Peer comparison: gcvd-flow vs COLMAP (incremental SfM, CPU) on the ICL-NUIM living-room frames.
 
 Both run cold on the same frames (the first ``--frames N`` of ../shared/data/icl_livingroom1_micro,
-640x480, intrinsics 525, 525, 319.5, 239.5) and are scored with the project's own metrics
+640x480, intrinsics 525, 525, 319.5, 239.5; or, with ``--data DIR``, of a folder in the generic
+layout: ``frames/``, ``intrinsics.txt`` (fx fy cx cy, no distortion) and ``gt/poses.txt``, e.g.
+../shared/data/hololens_walk_100_199 or kitti07_first100) and are scored with the project's own metrics
 (``gcvd_flow/evaluate/metrics.py``: ATE after Sim(3) Umeyama alignment, RPE over one frame) against the
 dataset's ground truth, the same ``*.log`` file ``gcvd-flow eval`` reads.
 
-* gcvd-flow: ``gcvd-flow run DATA --intrinsics ... --cache FRESH --json`` (default profile), then
-  ``gcvd-flow eval``.
+* gcvd-flow: ``gcvd-flow run DATA --intrinsics ... --cache FRESH --json`` (default profile; for the
+  generic layout without ``--intrinsics``: it reads ``intrinsics.txt``), then ``gcvd-flow eval``.
 * COLMAP: ``feature_extractor`` (one shared PINHOLE camera with the known intrinsics),
   ``sequential_matcher`` (video order, default overlap 10, loop detection off: it needs a
   vocabulary-tree file), ``mapper`` with the intrinsics fixed, ``model_converter`` of the largest
@@ -42,7 +44,8 @@ sys.path.insert(0, str(ROOT))
 
 from gcvd_flow.evaluate.run_eval import load_gt as load_eval_gt, trajectory_metrics  # noqa: E402
 from gcvd_flow.exports.colmap import colmap_to_c2w  # noqa: E402
-from gcvd_flow.io.formats import read_tum_poses, write_tum_poses  # noqa: E402
+from gcvd_flow.io.formats import (read_distortion_txt, read_intrinsics_txt, read_tum_poses,  # noqa: E402
+                                  write_tum_poses)
 from gcvd_flow.io.sources import natural_key  # noqa: E402
 
 ICL = ROOT.parent / "shared" / "data" / "icl_livingroom1_micro"
@@ -72,6 +75,27 @@ def timed(cmd: list[str], log_file: Path, what: str, cwd: Path | None = None) ->
     return secs, p.stdout
 
 
+# ------------------------------------------------------------------------------ input
+
+
+def data_layout(data: Path) -> tuple[Path, str, bool]:
+    """(image folder, COLMAP PINHOLE params "fx,fy,cx,cy", generic?) of an ICL folder (``color/``,
+    the fixed INTRINSICS) or a generic-layout one (``frames/`` + ``intrinsics.txt``, read by
+    gcvd-flow's own reader; lens distortion is refused: COLMAP gets a PINHOLE camera)."""
+    if (data / "color").is_dir():
+        return data / "color", INTRINSICS, False
+    if (data / "frames").is_dir() and (data / "intrinsics.txt").exists():
+        try:
+            K = read_intrinsics_txt(data / "intrinsics.txt")
+            dist = read_distortion_txt(data / "intrinsics.txt")
+        except ValueError as exc:  # DatasetError: one line naming the file
+            raise BenchError(str(exc)) from None
+        if dist is not None:
+            raise BenchError(f"{data / 'intrinsics.txt'}: has lens distortion; this benchmark needs undistorted frames")
+        return data / "frames", ",".join(f"{v:.12g}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])), True
+    raise BenchError(f"{data}: no color/ folder (ICL-NUIM) and no frames/ + intrinsics.txt (generic layout)")
+
+
 # ------------------------------------------------------------------------------ evaluation
 
 
@@ -91,10 +115,11 @@ def score(frame_idx: list[int], est: np.ndarray, gt_all: np.ndarray) -> dict:
 # ------------------------------------------------------------------------------ gcvd-flow
 
 
-def run_gcvd(data: Path, frames: int, total: int, work: Path, gt_all: np.ndarray) -> dict:
+def run_gcvd(data: Path, frames: int, total: int, work: Path, gt_all: np.ndarray, intrinsics: str | None) -> dict:
+    """intrinsics: "fx,fy,cx,cy" for --intrinsics, or None (the folder's intrinsics.txt)."""
     run_dir, cache = work / "gcvd-run", work / "gcvd-cache"
     cmd = [sys.executable, "-m", "gcvd_flow", "run", str(data), "--out", str(run_dir), "--cache", str(cache),
-           "--intrinsics", INTRINSICS, "--json"]
+           "--json"] + (["--intrinsics", intrinsics] if intrinsics else [])
     if frames < total:
         cmd += ["--set", f"ingest.end={frames}"]
     log(f"gcvd-flow: run on {frames} frames (cold cache {cache})")
@@ -117,7 +142,7 @@ def run_gcvd(data: Path, frames: int, total: int, work: Path, gt_all: np.ndarray
             "delta1": m.get("delta1"), "seconds": secs, "seconds_per_frame": secs / frames,
             "stage_seconds": {s["name"]: s["seconds"] for s in run_doc.get("stages", [])},
             "settings": "default profile, 256 px long side, DIS flow, weight-free priors; "
-                        f"--intrinsics {INTRINSICS}, fresh cache",
+                        + (f"--intrinsics {intrinsics}" if intrinsics else "intrinsics.txt") + ", fresh cache",
             "poses": str(run_dir / "poses.txt")}
 
 
@@ -154,20 +179,20 @@ def colmap_version(colmap: str) -> str:
     return first[0] if first else "unknown"
 
 
-def run_colmap(colmap: str, data: Path, names: list[str], work: Path, overlap: int) -> dict:
+def run_colmap(colmap: str, image_dir: Path, intrinsics: str, names: list[str], work: Path, overlap: int) -> dict:
+    """COLMAP's four commands on ``names`` in image_dir, one PINHOLE camera "fx,fy,cx,cy" = intrinsics."""
     cw = work / "colmap"
     cw.mkdir()
     db, sparse, txt = cw / "database.db", cw / "sparse", cw / "txt"
     sparse.mkdir()
     image_list = cw / "images.list"
     image_list.write_text("\n".join(names) + "\n")
-    image_dir = data / "color"
     steps: dict[str, float] = {}
     log(f"colmap: feature_extractor on {len(names)} frames")
     steps["feature_extractor"], _ = timed(
         [colmap, "feature_extractor", "--database_path", str(db), "--image_path", str(image_dir),
          "--image_list_path", str(image_list), "--ImageReader.single_camera", "1",
-         "--ImageReader.camera_model", "PINHOLE", "--ImageReader.camera_params", INTRINSICS,
+         "--ImageReader.camera_model", "PINHOLE", "--ImageReader.camera_params", intrinsics,
          "--SiftExtraction.use_gpu", "0", "--SiftExtraction.num_threads", THREADS],
         cw / "feature_extractor.log", "colmap feature_extractor")
     log(f"colmap: sequential_matcher (overlap {overlap}) [{steps['feature_extractor']:.0f} s so far]")
@@ -204,7 +229,7 @@ def run_colmap(colmap: str, data: Path, names: list[str], work: Path, overlap: i
             "seconds": secs, "seconds_per_frame": secs / len(names), "step_seconds": steps,
             "models": sizes, "gaps_in_registered": gaps, "version": colmap_version(colmap),
             "settings": "SIFT (CPU, max 8192 features, 3200 px), single PINHOLE camera "
-                        f"{INTRINSICS}, sequential_matcher overlap {overlap} (quadratic), no loop detection, "
+                        f"{intrinsics}, sequential_matcher overlap {overlap} (quadratic), no loop detection, "
                         "mapper with focal length / principal point / extra params fixed, 2 threads",
             "poses": str(poses_txt)}
 
@@ -219,7 +244,8 @@ def fmt(v, spec: str) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=None, help="first N frames (default: all)")
-    ap.add_argument("--data", type=Path, default=ICL, help="ICL-NUIM/Redwood folder (color/, *.log)")
+    ap.add_argument("--data", type=Path, default=ICL, help="ICL-NUIM/Redwood folder (color/, *.log) or "
+                    "generic layout (frames/, intrinsics.txt, gt/poses.txt)")
     ap.add_argument("--overlap", type=int, default=10, help="COLMAP SequentialMatching.overlap (default 10)")
     ap.add_argument("--colmap", default="colmap", help="COLMAP executable (default: colmap on PATH)")
     ap.add_argument("--out", type=Path, help="keep the work folder (runs, COLMAP model, logs, rows.json) here "
@@ -231,9 +257,8 @@ def main() -> int:
     if colmap is None:
         raise BenchError(f"{a.colmap}: not found on PATH; `make bench-peer` installs it (Debian package colmap)")
     data = a.data.resolve()
-    if not (data / "color").is_dir():
-        raise BenchError(f"{data}: no color/ folder (expected the ICL-NUIM frames of ../shared/data)")
-    names = sorted((p.name for p in (data / "color").iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")),
+    image_dir, intrinsics, generic = data_layout(data)
+    names = sorted((p.name for p in image_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")),
                    key=natural_key)
     total = len(names)
     frames = total if a.frames is None else a.frames
@@ -254,8 +279,8 @@ def main() -> int:
         tmp = tempfile.TemporaryDirectory(prefix="bench-peer-")
         work = Path(tmp.name)
     try:
-        g = run_gcvd(data, frames, total, work, gt_all)
-        c = run_colmap(colmap, data, names, work, a.overlap)
+        g = run_gcvd(data, frames, total, work, gt_all, None if generic else intrinsics)
+        c = run_colmap(colmap, image_dir, intrinsics, names, work, a.overlap)
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -273,7 +298,7 @@ def main() -> int:
     if a.json:
         print(json.dumps(rows, indent=1))
         return 0
-    print(f"\nICL-NUIM living room, {frames} frames at 640x480, 2 CPU cores "
+    print(f"\n{data.name}, {frames} frames, 2 CPU cores "
           f"(ATE after Sim(3) alignment over the registered frames)\n")
     print(f"{'method':<10} {'registered':>10} {'ATE[m]':>8} {'ATE%path':>9} {'RPEt[m]':>8} {'RPEr[deg]':>9} "
           f"{'wall[s]':>8} {'s/frame':>8} {'time/gcvd':>9}")
