@@ -44,8 +44,7 @@ sys.path.insert(0, str(ROOT))
 
 from gcvd_flow.evaluate.run_eval import load_gt as load_eval_gt, trajectory_metrics  # noqa: E402
 from gcvd_flow.exports.colmap import colmap_to_c2w  # noqa: E402
-from gcvd_flow.io.formats import (read_distortion_txt, read_intrinsics_txt, read_tum_poses,  # noqa: E402
-                                  write_tum_poses)
+from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt, read_tum_poses, write_tum_poses  # noqa: E402
 from gcvd_flow.io.sources import natural_key  # noqa: E402
 
 ICL = ROOT.parent / "shared" / "data" / "icl_livingroom1_micro"
