@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 from gcvd_flow.engine.artifacts import register_schema_dir
 from gcvd_flow.engine.config import build_config
-from gcvd_flow.engine.dag import Pipeline
+from gcvd_flow.engine.dag import Pipeline, PipelineError
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import ENGINE_LIBRARIES
 from gcvd_flow.engine.names import ENTRY_POINT_GROUP, TOOL
@@ -47,6 +47,38 @@ class PipelineSpec:
     def __post_init__(self) -> None:
         if self.schema_dir is not None:
             register_schema_dir(self.schema_dir)
+            self._check_schemas()
+        self._check_selection_params()
+
+    def _check_schemas(self) -> None:
+        """Every artifact kind the stages write has its schema (else its manifests would never
+        be validated): a declaration error, not a silent skip."""
+        assert self.schema_dir is not None
+        for s in self.pipeline.stages:
+            for kind in (s.kind, getattr(s, "summary_kind", None)):
+                if kind is not None and not (Path(self.schema_dir) / f"{kind}.json").is_file():
+                    raise PipelineError(f"stage {s.name!r} writes artifacts of kind {kind!r}, which has no schema "
+                                        f"{Path(self.schema_dir) / (kind + '.json')}")
+
+    def _check_selection_params(self) -> None:
+        """A map stage's selection_params must name what its key's params hold: parameters of its
+        one config section, or sections of its several (a misspelt name would silently stay in
+        every item key)."""
+        fields = getattr(self.config_model, "model_fields", None)
+        if fields is None:
+            return
+        for s in self.pipeline.stages:
+            sel = getattr(s, "selection_params", ())
+            if not sel:
+                continue
+            if isinstance(s.params, str) and s.params in fields:
+                known = set(getattr(fields[s.params].annotation, "model_fields", {}))
+            else:
+                known = set(s.params or ())
+            bad = [n for n in sel if n not in known]
+            if bad:
+                raise PipelineError(f"stage {s.name!r}: selection_params {bad} are not among its parameters "
+                                    f"({', '.join(sorted(known)) or 'none'})")
 
     def watched_paths(self) -> dict[str, list[str]]:
         """What the no-op fast path stats: source folders of the fingerprinted packages, of

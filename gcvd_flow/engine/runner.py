@@ -18,7 +18,7 @@ from typing import Any, Callable, Iterable, Iterator, Mapping
 
 from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
-from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, Stage, stage_name
+from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, PipelineError, Stage, stage_name
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, closing, make_executor, open_resource
 from gcvd_flow.engine.store import Store
@@ -230,20 +230,49 @@ class ParamBundle:
 
 
 class _View:
-    """The DepsView handed to ``items`` and ``summary`` functions."""
+    """The DepsView handed to ``items`` and ``summary`` functions of ``stage``: it reads only the
+    stages ``stage`` declares in ``deps=`` (an undeclared read would be missing from its key)."""
 
-    def __init__(self, runner: "Runner"):
+    def __init__(self, runner: "Runner", stage: Stage):
         self._r = runner
+        self._stage = stage
         self.source = runner.source
 
+    def _dep(self, stage: str | Stage) -> str:
+        name = stage_name(stage)
+        if name not in self._stage.deps:
+            raise PipelineError(f"stage {self._stage.name!r} reads {name!r} in its items or summary function "
+                                f"but does not declare it in deps=")
+        return name
+
     def len(self, stage: str | Stage) -> int:
-        return len(self._r._items[stage_name(stage)])
+        return len(self._r._items[self._dep(stage)])
 
     def value(self, stage: str | Stage) -> Any:
-        return self._r.value(stage)
+        return self._r.value(self._dep(stage))
 
     def summary(self, stage: str | Stage) -> Any:
-        return decode_tree(self._r.store, self._r._manifest(stage_name(stage)).get("summary"))
+        return decode_tree(self._r.store, self._r._manifest(self._dep(stage)).get("summary"))
+
+
+def check_item_refs(stage: Stage, items: list[dict[str, Any]]) -> None:
+    """Every item / part reference an items function built names a declared dependency: the
+    stage's key holds only its deps' outputs, so an undeclared one would leave it stale."""
+    bad: set[str] = set()
+
+    def walk(r: Any) -> None:
+        if isinstance(r, list):
+            for x in r:
+                walk(x)
+        elif isinstance(r, (ItemRef, PartRef)) and r.stage not in stage.deps:
+            bad.add(r.stage)
+
+    for it in items:
+        for r in it.values():
+            walk(r)
+    if bad:
+        raise PipelineError(f"stage {stage.name!r}: its items reference {', '.join(sorted(bad))}, "
+                            f"not declared in deps= ({', '.join(stage.deps) or 'none'})")
 
 
 class Runner:
@@ -416,7 +445,8 @@ class Runner:
                 rep.reasons.append("no previous run of this stage")
             if isinstance(stage, MapStage):
                 try:
-                    items = stage.items(_View(self), self.stage_params(stage))
+                    items = stage.items(_View(self, stage), self.stage_params(stage))
+                    check_item_refs(stage, items)
                     item_params = self._item_params(stage, f)
                     missing = 0
                     for it in items:
@@ -512,8 +542,9 @@ class Runner:
                  executor) -> None:
         t0 = time.perf_counter()
         params = self.stage_params(stage)
-        view = _View(self)
+        view = _View(self, stage)
         items = stage.items(view, params)
+        check_item_refs(stage, items)
         summary = stage.summary(view, params) if stage.summary is not None else None
         item_params = self._item_params(stage, f)
         tasks = []

@@ -5,8 +5,9 @@ through one DAG definition, one cache and one item executor.
 ``DIR/keyframes.delta=0.05`` ... with ``--set keyframes.delta=V`` each. What makes it cheaper
 than separate runs is the cache: a stage whose key does not depend on the swept parameters has
 the same key in every combination, so it is computed once and found cached by the others.
-With an executor (``--jobs`` > 1 or Dask) the map stages before the first whole stage (for GCVD:
-ingest, flow, flow_far, masks, priors) run first, in waves, one wave per stage: in each wave one
+With an executor (``--jobs`` > 1 or Dask) the pre-processing map stages (for GCVD: ingest,
+user_masks, flow, flow_far, masks, priors; and ``calibrate``, the small whole stage between them,
+see :func:`prefix_stages`) run first, in waves, one wave per stage: in each wave one
 run per *distinct* setting of the sections that stage (and its ancestors) reads, side by side
 on the shared workers, so the items of combinations that differ there interleave and the items
 they share are computed once. Then every combination runs to the end, one after the other
@@ -163,12 +164,24 @@ def _sections(stage: Any) -> set[str]:
 
 
 def prefix_stages(pipeline: Any) -> list[Any]:
-    """The map stages before the first whole stage (all their deps are such map stages)."""
-    prefix: list[Any] = []
+    """The pre-processing prefix that runs in waves: the map stages whose dependencies are map
+    stages of the prefix or *bridges*, and those bridges: whole stages that read only map stages
+    of the prefix and are read by a later map stage of it (for GCVD: ``calibrate``, between
+    ingest and masks / priors). A bridge runs one representative at a time (whole stages set
+    process-wide thread counts); without bridges one small whole stage early in the DAG would
+    cut every map stage after it out of the waves."""
+    maps: set[str] = set()
+    bridges: set[str] = set()
+    candidates: list[Any] = []
     for s in pipeline.stages:
-        if s.is_map and all(d in {p.name for p in prefix} for d in s.deps):
-            prefix.append(s)
-    return prefix
+        if s.is_map and all(d in maps or d in bridges for d in s.deps):
+            maps.add(s.name)
+            candidates.append(s)
+        elif not s.is_map and all(d in maps for d in s.deps):
+            bridges.add(s.name)
+            candidates.append(s)
+    read_by_maps = {d for s in candidates if s.is_map for d in s.deps}
+    return [s for s in candidates if s.is_map or s.name in read_by_maps]
 
 
 def _wave_groups(pipeline: Any, stage: Any, combos: list[Combo]) -> list[Combo]:
@@ -229,9 +242,10 @@ def _prefix_waves(combos: list[Combo], invs: dict[str, Any], spec: Any, executor
     try:
         for stage in prefix_stages(spec.pipeline):
             reps = [c for c in _wave_groups(spec.pipeline, stage, combos) if c.name not in failed]
-            for i in range(0, len(reps), WAVE_THREADS):
+            side_by_side = WAVE_THREADS if stage.is_map else 1  # a bridge: one at a time
+            for i in range(0, len(reps), side_by_side):
                 threads = [threading.Thread(target=one, args=(c, stage.name), daemon=True,
-                                            name=f"sweep-wave-{c.name}") for c in reps[i:i + WAVE_THREADS]]
+                                            name=f"sweep-wave-{c.name}") for c in reps[i:i + side_by_side]]
                 for t in threads:
                     t.start()
                 for t in threads:

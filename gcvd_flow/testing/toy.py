@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, Field
 
-import artifacts_schema
 from gcvd_flow.engine.api import PipelineSpec
 from gcvd_flow.engine.config import Section
 from gcvd_flow.engine.dag import ExternalRef, ItemRef, MapStage, Pipeline, Stage
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import digest_file, key_of
+
+SCHEMA_DIR = Path(__file__).resolve().parent / "schemas"  # toy.json: the toy pipeline's one artifact kind
 
 # ------------------------------------------------------------------------------ stage functions
 
@@ -172,4 +173,4 @@ def export(out: Path, runner, config) -> dict[str, Any]:
 
 
 SPEC = PipelineSpec("toy", PIPELINE, ToyConfig, profiles={"fast": {"transform": {"scale": 1.0}}},
-                    open_source=open_source, export=export, schema_dir=artifacts_schema.SCHEMA_DIR)
+                    open_source=open_source, export=export, schema_dir=SCHEMA_DIR)
