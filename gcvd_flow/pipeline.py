@@ -1253,7 +1253,8 @@ def open_source(path: str, config: GCVDConfig) -> Source:
 
 # What RUN_DIR is written from (and what its readers look up in the cache): the final frames,
 # keyframes, poses and depth of the DAG above.
-RUN_DIR_SOURCES = run_dir.RunSources(frames=INGEST, keyframes=KEYFRAMES, poses=OPTIMIZE_SEGMENTS, depth=DEPTH_CONSENSUS)
+RUN_DIR_SOURCES = run_dir.RunSources(frames=INGEST, keyframes=KEYFRAMES, poses=OPTIMIZE_SEGMENTS, depth=DEPTH_CONSENSUS,
+                                     calibration=CALIBRATE)
 
 SPEC = PipelineSpec("gcvd", PIPELINE, GCVDConfig, PROFILES, open_source=open_source,
                     export=functools.partial(run_dir.write_run_dir, sources=RUN_DIR_SOURCES),

@@ -129,3 +129,32 @@ def test_prefix_bridges_are_whole_stages_read_by_a_later_prefix_map_stage():
     p = Pipeline([m("a"), w("b", ("a",)), m("c", ("a", "b")), w("d", ("c",)), w("e", ("d",)), m("f", ("e",)),
                   w("g", ("c",))])
     assert [s.name for s in prefix_stages(p)] == ["a", "b", "c"]  # d, g: no later map stage reads them
+
+
+# (d) readers name stages through their declarations ----------------------------------------------
+
+
+def test_readers_do_not_spell_stage_names():
+    """A stage name written as a string in a reader (report, run dir, exports, eval, CLI) would
+    silently read nothing after a rename; they go through the declarations (``G.X.name``,
+    ``RUN_DIR_SOURCES``)."""
+    import ast
+
+    from conftest import ROOT
+
+    from gcvd_flow import pipeline
+
+    names = set(pipeline.STAGE_NAMES)
+    # the calls that read a stage's recorded output by its name
+    stage_readers = {"recorded_part", "recorded_output", "_map_output", "value", "stage_value", "get_stage"}
+    readers = [p for d in ("report", "io", "exports", "evaluate") for p in (ROOT / "gcvd_flow" / d).rglob("*.py")]
+    readers.append(ROOT / "gcvd_flow" / "cli.py")
+    found = []
+    for path in readers:
+        for node in ast.walk(ast.parse(path.read_text())):
+            f = getattr(node, "func", None)
+            if isinstance(node, ast.Call) and (getattr(f, "id", None) or getattr(f, "attr", None)) in stage_readers:
+                for a in [*node.args, *(k.value for k in node.keywords)]:
+                    if isinstance(a, ast.Constant) and a.value in names:
+                        found.append(f"{path.relative_to(ROOT)}:{a.lineno} {a.value!r}")
+    assert found == []

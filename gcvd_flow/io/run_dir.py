@@ -40,16 +40,21 @@ class RunSources:
     """The stages RUN_DIR is written from, given by their declarations (or names; held by name):
     ``frames`` a map stage, summary = the camera (K, width, height, source size, frame_indices,
     fps, layout, guessed, origin); ``keyframes`` {indices: keyframe positions}; ``poses`` {poses:
-    (N, 4, 4) T_w_c}; ``depth`` a map stage of {depth float32 (H, W), confidence float32 (H, W)}."""
+    (N, 4, 4) T_w_c}; ``depth`` a map stage of {depth float32 (H, W), confidence float32 (H, W)};
+    ``calibration`` (optional) {K (3, 3) every stage used, estimated, guessed, origin, warning,
+    rel_sigma}: without it, the frames' camera."""
 
     frames: str
     keyframes: str
     poses: str
     depth: str
+    calibration: str | None
 
-    def __init__(self, frames: str | Stage, keyframes: str | Stage, poses: str | Stage, depth: str | Stage) -> None:
+    def __init__(self, frames: str | Stage, keyframes: str | Stage, poses: str | Stage, depth: str | Stage,
+                 calibration: str | Stage | None = None) -> None:
         for k, v in (("frames", frames), ("keyframes", keyframes), ("poses", poses), ("depth", depth)):
             object.__setattr__(self, k, stage_name(v))
+        object.__setattr__(self, "calibration", None if calibration is None else stage_name(calibration))
 
 
 def frame_timestamps(source: Any, idx: list[int]) -> tuple[list[float], str]:
@@ -86,7 +91,7 @@ def write_run_dir(out: Path, runner: Any, config: Any, sources: RunSources) -> d
         np.save(depth_dir / f"{i:06d}.npy", np.asarray(item["depth"], np.float32), allow_pickle=False)
         if "confidence" in item:  # float32 (H, W) in [0, 1], 0 = unmeasured (stages/depth/fusion.py)
             np.save(conf_dir / f"{i:06d}.npy", np.asarray(item["confidence"], np.float32), allow_pickle=False)
-    calib = _calibration(runner, cam)
+    calib = _calibration(runner, cam, sources.calibration)
     K = np.asarray(calib["K"])
     doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
@@ -100,14 +105,13 @@ def write_run_dir(out: Path, runner: Any, config: Any, sources: RunSources) -> d
             "cameras": str(out / "cameras.json")}
 
 
-def _calibration(runner: Any, cam: dict[str, Any]) -> dict[str, Any]:
-    """The calibrate stage's output (the K every stage used), or ingest's camera for a pipeline
-    without that stage."""
-    try:
-        return runner.value("calibrate")
-    except (KeyError, LookupError):
-        return {"K": cam["K"], "estimated": False, "guessed": cam["guessed"], "origin": cam["origin"],
-                "warning": "", "rel_sigma": None}
+def _calibration(runner: Any, cam: dict[str, Any], stage: str | None) -> dict[str, Any]:
+    """The calibration stage's output (the K every stage used), or the frames' camera for a
+    pipeline without such a stage."""
+    if stage is not None:
+        return runner.value(stage)
+    return {"K": cam["K"], "estimated": False, "guessed": cam["guessed"], "origin": cam["origin"],
+            "warning": "", "rel_sigma": None}
 
 
 def _distortion_doc(cam: dict[str, Any]) -> dict[str, Any]:

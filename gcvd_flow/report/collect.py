@@ -190,10 +190,12 @@ def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
 
 def _ba_signals(data: ReportData, store: Any) -> None:
     """Bundle adjustment: tracks and median reprojection error; the depth-scale spread."""
+    from gcvd_flow import pipeline as G  # the stage names as the pipeline declares them
+
     try:
-        ba = {k: recorded_part(data.doc, store, "bundle_adjustment", (k,)) for k in ("enabled",)}
+        ba = {k: recorded_part(data.doc, store, G.BUNDLE_ADJUSTMENT.name, (k,)) for k in ("enabled",)}
         if ba["enabled"]:
-            ba.update({k: recorded_part(data.doc, store, "bundle_adjustment", (k,))
+            ba.update({k: recorded_part(data.doc, store, G.BUNDLE_ADJUSTMENT.name, (k,))
                        for k in ("landmarks", "initial_median_px", "final_median_px", "depth_scale")})
     except CACHE_ERRORS + (IndexError,) as exc:
         data.notes.append(f"bundle adjustment: not readable from the cache ({exc})")
