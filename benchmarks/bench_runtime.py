@@ -34,9 +34,10 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PRE = ("ingest", "flow", "flow_far", "masks", "priors", "keyframes", "association")
-MAIN = ("optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment", "optimize_segments")
-POST = ("depth_fusion", "depth_filter", "depth_consensus")
+sys.path.insert(0, str(ROOT))
+from gcvd_flow.pipeline import STAGE_GROUPS  # noqa: E402 - the checkout's pipeline, not an installed one
+
+PRE, MAIN, POST = STAGE_GROUPS["pre"], STAGE_GROUPS["main"], STAGE_GROUPS["post"]
 
 
 class TreeMemory:
@@ -266,9 +267,9 @@ def main() -> None:
             peak_kb = usage.ru_maxrss
             doc = json.loads(out_f.read_text())
             secs = {s["name"]: s["seconds"] for s in doc["stages"]}
-            row = {"frames": n, "pre_s_per_frame": sum(secs[k] for k in PRE) / n,
-                   "main_s_per_frame": sum(secs[k] for k in MAIN) / n,
-                   "post_s_per_frame": sum(secs[k] for k in POST) / n,
+            row = {"frames": n, "pre_s_per_frame": sum(secs.get(k, 0.0) for k in PRE) / n,
+                   "main_s_per_frame": sum(secs.get(k, 0.0) for k in MAIN) / n,
+                   "post_s_per_frame": sum(secs.get(k, 0.0) for k in POST) / n,
                    "total_s_per_frame": doc["seconds"] / n,
                    "peak_rss_mb": peak_kb / 1024, "peak_tree_pss_mb": tree_mb,
                    "stages": secs}

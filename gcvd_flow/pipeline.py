@@ -1251,6 +1251,12 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     return src
 
 
+# The run's three parts as benchmarks report them: pre-processing (up to the keyframe optimisation),
+# the paper's optimisation (keyframes .. segments) and the depth post-processing, from the order above
+# (a stage added anywhere lands in exactly one of them).
+_A, _B = STAGE_NAMES.index(OPTIMIZE_KEYFRAMES.name), STAGE_NAMES.index(OPTIMIZE_SEGMENTS.name)
+STAGE_GROUPS = {"pre": tuple(STAGE_NAMES[:_A]), "main": tuple(STAGE_NAMES[_A:_B + 1]), "post": tuple(STAGE_NAMES[_B + 1:])}
+
 # What RUN_DIR is written from (and what its readers look up in the cache): the final frames,
 # keyframes, poses and depth of the DAG above.
 RUN_DIR_SOURCES = run_dir.RunSources(frames=INGEST, keyframes=KEYFRAMES, poses=OPTIMIZE_SEGMENTS, depth=DEPTH_CONSENSUS,

@@ -158,3 +158,22 @@ def test_readers_do_not_spell_stage_names():
                     if isinstance(a, ast.Constant) and a.value in names:
                         found.append(f"{path.relative_to(ROOT)}:{a.lineno} {a.value!r}")
     assert found == []
+
+
+# (b) the benchmarks' stage groups come from the pipeline ------------------------------------------
+
+
+def test_stage_groups_cover_every_stage_once():
+    import importlib.util
+
+    from conftest import ROOT
+
+    from gcvd_flow import pipeline
+
+    g = pipeline.STAGE_GROUPS
+    assert [n for k in ("pre", "main", "post") for n in g[k]] == pipeline.STAGE_NAMES
+    assert "calibrate" in g["pre"] and "fusion_samples" in g["post"] and "bundle_adjustment" in g["main"]
+    spec = importlib.util.spec_from_file_location("bench_runtime", ROOT / "benchmarks" / "bench_runtime.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert (bench.PRE, bench.MAIN, bench.POST) == (g["pre"], g["main"], g["post"])
