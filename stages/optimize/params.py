@@ -36,7 +36,7 @@ class DepthModel:
 
     layer_norm: bool = _f(True, "per-frame non-affine LayerNorm of the log inverse depth")
     mesh: bool = _f(True, "per-frame log-scale deformation mesh")
-    mesh_vertices: int = _f(17, "mesh vertices on the long side", ge=2)
+    mesh_vertices: int = _f(17, "mesh vertices on the long side", ge=2, le=4096)
 
 
 @dataclass(frozen=True)
