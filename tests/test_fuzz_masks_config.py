@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 import pytest
 from conftest import cli
-from PIL import Image
 
 from gcvd_flow import pipeline
 from gcvd_flow.engine.errors import UsageError
@@ -195,7 +194,7 @@ def test_fuzz_mask_names_map_by_name_or_order_or_exit_2(clip, tmp_path):
         sel = sorted(rng.sample(range(len(frames)), rng.randrange(2, len(frames) + 1)))
         if expect.startswith("missing"):
             expect = "error" if int(expect.split()[1]) in sel else "name"
-        view = SimpleNamespace(source=src, len=lambda s, n=len(sel): n, summary=lambda s, sel=sel: {"frame_indices": sel})
+        view = SimpleNamespace(source=src, len=lambda s, sel=sel: len(sel), summary=lambda s, sel=sel: {"frame_indices": sel})
         p = pipeline.MasksParams(backend="none", user_dir=str(d))
         try:
             files = [Path(it["user_mask"].loader.path).name for it in pipeline._mask_items(view, p)]
