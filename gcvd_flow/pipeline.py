@@ -43,7 +43,15 @@ from gcvd_flow.io import run_dir
 from gcvd_flow.io.sources import Source, open_source as _open_source
 from gcvd_flow.io.weights import open_model
 from stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion, params as depth_params
-from stages.frontend import flow, ingest as ingest_mod, masks as masks_mod, params as frontend_params, priors as priors_mod, user_masks
+from stages.frontend import (
+    flow,
+    ingest as ingest_mod,
+    masks as masks_mod,
+    params as frontend_params,
+    priors as priors_mod,
+    solvable,
+    user_masks,
+)
 from stages.graph import keyframes as keyframes_mod, params as graph_params, references
 from stages.optimize import params as opt_params
 
@@ -227,22 +235,25 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
     """ingest's camera -> {K (3, 3) at working resolution: the given intrinsics, or one focal length
     estimated from the frames, or the guess; estimated, guessed (bool), origin, focal_source (fx, fy at
     source resolution), rel_sigma (std / f of the estimate, None when not estimated), warning (str,
-    '' when none), pairs, rotation_pairs, median_px}. Given intrinsics: nothing is computed."""
+    '' when none), pairs, rotation_pairs, median_px, unsolvable: [[k, why]] the frames that leave
+    nothing to solve (stages.frontend.solvable; the run dir marks their depth invalid)}. Given
+    intrinsics: no estimate. Fewer than two solvable frames: FrameError (exit 2)."""
     frames = inputs[INGEST.name]
     cam = frames.summary
     K = np.asarray(cam["K"], np.float64)
     sx, sy = cam["width"] / cam["source_width"], cam["height"] / cam["source_height"]
+    user = inputs.get(USER_MASKS.name) or []  # --masks: no feature on the user's pixels; else no item
+    keep = _SampledImages(user, "user_keep") if len(user) else None
     out = {"K": K, "estimated": False, "guessed": bool(cam["guessed"]), "origin": cam["origin"],
            "focal_source": [float(K[0, 0] / sx), float(K[1, 1] / sy)], "rel_sigma": None, "warning": "",
-           "pairs": 0, "rotation_pairs": 0, "median_px": None}
+           "pairs": 0, "rotation_pairs": 0, "median_px": None,
+           "unsolvable": _unsolvable(_SampledImages(frames), keep, list(cam["frame_indices"]))}
     if not cam["guessed"] or p.mode == "off":
         return out
     from gcvd_flow.io.native_output import native_stdout_silenced
     from stages.frontend import calibrate as calibrate_mod
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
-        user = inputs.get(USER_MASKS.name) or []  # --masks: no feature on the user's pixels; else no item
-        keep = _SampledImages(user, "user_keep") if len(user) else None
         res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
                                            n_features=p.features, max_rel_sigma=p.max_rel_sigma,
                                            tracks_per_frame=p.tracks_per_frame, pp_frac=p.pp_frac, keep=keep)
@@ -266,6 +277,18 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: Any) -> dict[
             f"{res['rotation_pairs']} "
             f"rotation-only, median residual {res['median_px']:.2f} px)")
     return out
+
+
+def _unsolvable(images: Any, keep: Any, indices: list[int]) -> list[list[Any]]:
+    """[[k, why]] of the frames that leave nothing to solve (masked almost entirely, no texture);
+    FrameError (exit 2) when fewer than two frames are left to solve."""
+    bad = solvable.unsolvable_frames(images, keep)
+    if len(images) - len(bad) < 2:
+        k, why = bad[0]
+        raise ingest_mod.FrameError(
+            f"nothing to solve: {len(bad)} of {len(images)} frames are masked almost entirely or have no texture "
+            f"(source frames {run_dir.frame_ranges([indices[j] for j, _ in bad])}; frame {indices[k]}: {why})")
+    return [[int(k), why] for k, why in bad]
 
 
 CALIBRATE = declare(Stage("calibrate", run_calibrate, deps=(INGEST, USER_MASKS), params="calibrate", kind="calibration",
@@ -378,8 +401,10 @@ def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
 
 
 def _user_mask_files(src: Source, p: MasksParams, sel: list[int]) -> list[str]:
-    """The --masks PNG of each selected source frame: DIR/<frame stem>.png, else the k-th PNG of DIR
-    (natural order) when DIR holds one per source frame. A missing one: one line, exit 2."""
+    """The --masks PNG of each selected source frame: DIR/<frame stem>.png when any PNG of DIR is
+    named as a frame (then every PNG must be: one that matches no frame is one line, exit 2, not a
+    silent fall-back to frame order), else the k-th PNG of DIR (natural order) when DIR holds one
+    per source frame. A missing one: one line, exit 2."""
     from pathlib import Path
 
     from gcvd_flow.io.sources import natural_key
@@ -387,10 +412,17 @@ def _user_mask_files(src: Source, p: MasksParams, sel: list[int]) -> list[str]:
     d = Path(p.user_dir).expanduser()
     pngs = sorted((f for f in d.iterdir() if f.suffix.lower() == ".png" and f.is_file()), key=lambda f: natural_key(f.name))
     by_stem = {f.stem: f for f in pngs}
-    names = [Path(src.names[i]).stem if src.names else str(i) for i in sel]
-    if all(nm in by_stem for nm in names):
-        return [str(by_stem[nm]) for nm in names]
-    if len(pngs) == len(src.items):
+    stems = [Path(nm).stem for nm in src.names] if src.names else [str(i) for i in range(len(src.items))]
+    names = [stems[i] for i in sel]
+    known = set(stems)
+    if any(f.stem in known for f in pngs):
+        stray = next((f for f in pngs if f.stem not in known), None)
+        if stray is not None:
+            raise UsageError(f"{stray}: --masks: this mask's name matches no frame (the other masks are named as "
+                             f"the frames, e.g. {stems[0]}.png)")
+        if all(nm in by_stem for nm in names):
+            return [str(by_stem[nm]) for nm in names]
+    elif len(pngs) == len(src.items):
         return [str(pngs[i]) for i in sel]
     missing = next(nm for nm in names if nm not in by_stem)
     raise UsageError(f"{d}: no mask for frame {missing} (expected {missing}.png, or one PNG per frame in frame "
@@ -431,14 +463,15 @@ def _open_maskrcnn(p: MasksParams) -> Any:
 
 @dataclasses.dataclass(frozen=True)
 class _MaskFile:
-    """Picklable loader: a --masks PNG -> bool (H, W), True = leave out (any non-zero channel)."""
+    """Picklable loader: a --masks PNG -> bool (H, W), True = leave out (non-zero on the decoded
+    8/16-bit grey, RGB or RGBA values; alpha: gcvd_flow.io.formats.read_user_mask_png)."""
 
     path: str
 
     def __call__(self) -> np.ndarray:
-        from gcvd_flow.io.formats import read_rgb
+        from gcvd_flow.io.formats import read_user_mask_png
 
-        return np.asarray(read_rgb(self.path)).max(axis=2) > 0
+        return read_user_mask_png(self.path)
 
 
 def _user_keep(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:

@@ -89,7 +89,8 @@ class _Frames:
         self._images = images
         h, w = images[0].shape[:2]
         self.summary = {"K": K.tolist(), "width": w, "height": h, "source_width": 2 * w, "source_height": 2 * h,
-                        "guessed": guessed, "origin": "guess" if guessed else "user (--intrinsics)"}
+                        "guessed": guessed, "origin": "guess" if guessed else "user (--intrinsics)",
+                        "frame_indices": list(range(len(images)))}
 
     def __len__(self):
         return len(self._images)
@@ -126,11 +127,11 @@ def test_calibrate_stage_with_given_intrinsics_does_nothing():
     K = default_intrinsics(SIZE)
     K[0, 0] = K[1, 1] = 111.0
     ctx = _Ctx()
-    out = pipeline.run_calibrate({"ingest": _Frames([np.zeros((120, 160, 3), np.uint8)] * 3, K, False)},
-                                 pipeline.CalibrateParams(), ctx)
+    frames = list(render_clip(3, "orbit", size=SIZE, seed=0).frames)  # textured (black ones: nothing to solve)
+    out = pipeline.run_calibrate({"ingest": _Frames(frames, K, False)}, pipeline.CalibrateParams(), ctx)
     assert not out["estimated"] and not out["guessed"] and not out["warning"] and not ctx.lines
     np.testing.assert_array_equal(out["K"], K)
-    assert out["focal_source"] == [222.0, 222.0]
+    assert out["focal_source"] == [222.0, 222.0] and out["unsolvable"] == []
 
 
 def test_select_tracks_caps_each_frame_and_keeps_the_image_covered():

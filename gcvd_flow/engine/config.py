@@ -19,7 +19,8 @@ from gcvd_flow.engine.keys import digest_file, key_of
 
 
 class Section(BaseModel):
-    """Base of a stage's parameter model: unknown keys are errors; paths enter keys by content.
+    """Base of a stage's parameter model: unknown keys are errors; paths enter keys by content;
+    ``inf`` / ``nan`` are no parameter value (a float field rejects them, naming the key).
 
     Fields whose ``json_schema_extra`` has ``{"file": True}`` name local files (model weights):
     their *content digest*, not their path, goes into the cache key, so that a teammate with
@@ -27,7 +28,7 @@ class Section(BaseModel):
     user's masks): the names and content digests of its files.
     """
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     def key_dict(self) -> dict[str, Any]:
         out = self.model_dump(mode="python")

@@ -47,6 +47,9 @@ def check_out_dir(out: str | Path) -> Path:
         raise UsageError(f"{p}: exists and is not a directory (--out needs a directory)")
     anc = p
     while not anc.exists():
+        if anc.is_symlink():  # a dangling link: mkdir would say "File exists"
+            raise UsageError(f"{anc}: a symbolic link to {os.readlink(anc)}, which does not exist, so {p} "
+                             "cannot be created")
         anc = anc.parent
     if not anc.is_dir():
         raise UsageError(f"{anc}: is not a directory, so {p} cannot be created")

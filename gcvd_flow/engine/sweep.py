@@ -103,6 +103,20 @@ def _safe(text: str) -> str:
     return s if s and not s.startswith(".") else "_" + s
 
 
+MAX_NAME_BYTES = 120  # a run directory name longer than this is cut and given a digest of the whole
+
+
+def _dir_name(name: str) -> str:
+    """A combination's run directory name; one past MAX_NAME_BYTES (file systems take 255) is
+    cut there and ends with ``~`` and 12 hex digits of the full name's digest (still unique)."""
+    if len(name.encode("utf-8")) <= MAX_NAME_BYTES:
+        return name
+    from gcvd_flow.engine.keys import digest_bytes
+
+    head = name.encode("utf-8")[:MAX_NAME_BYTES - 13].decode("utf-8", "ignore")
+    return f"{head}~{digest_bytes(name.encode('utf-8'))[:12]}"
+
+
 @dataclass(frozen=True)
 class Combo:
     name: str  # run directory name, e.g. "keyframes.delta=0.15" or "a.x=1,b.y=fast"
@@ -121,7 +135,7 @@ def combinations(grids: list[Grid], max_runs: int = MAX_RUNS_DEFAULT) -> list[Co
     out = []
     for pick in itertools.product(*(range(len(g.values)) for g in grids)):
         parts = [(g.key, g.texts[i], g.values[i]) for g, i in zip(grids, pick)]
-        out.append(Combo(",".join(f"{k}={_safe(t)}" for k, t, _ in parts),
+        out.append(Combo(_dir_name(",".join(f"{k}={_safe(t)}" for k, t, _ in parts)),
                          tuple(f"{k}={t}" for k, t, _ in parts), {k: v for k, _, v in parts}))
     names = [c.name for c in out]
     clash = next((n for n in names if names.count(n) > 1), None)
@@ -313,6 +327,8 @@ def prepare(input_: str, out_root: str, base: Any, grid_texts: list[str], gt: st
             raise UsageError("--gt: this program has no evaluation")
         if not Path(gt).exists():
             raise UsageError(f"--gt {gt}: no such file or directory")
+    if not os.path.lexists(input_):  # before the sweep folder is made
+        raise UsageError(f"{input_}: no such file or directory")
     root = api.check_out_dir(out_root)
     if (root / "run.json").is_file():
         raise UsageError(f"{root}: is a run directory; give a new or sweep directory to --out")

@@ -74,11 +74,13 @@ class Options:
         """UsageError naming the flag for any out-of-range option (before anything is written)."""
         if self.every < 1:
             raise UsageError(f"--every {self.every}: must be >= 1")
-        if self.voxel < 0 or (self.tsdf_voxel is not None and self.tsdf_voxel <= 0):
-            raise UsageError("--voxel must be >= 0 and --tsdf-voxel > 0")
+        if not (math.isfinite(self.voxel) and self.voxel >= 0):
+            raise UsageError(f"--voxel {self.voxel}: must be a finite number >= 0 (0 = no downsampling)")
+        if self.tsdf_voxel is not None and not (math.isfinite(self.tsdf_voxel) and self.tsdf_voxel > 0):
+            raise UsageError(f"--tsdf-voxel {self.tsdf_voxel}: must be a finite number > 0")
         if not (self.depth_scale > 0 and math.isfinite(self.depth_scale)):
             raise UsageError(f"--depth-scale {self.depth_scale}: must be a positive number")
-        if self.fps is not None and not self.fps > 0:
+        if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
             raise UsageError(f"--fps {self.fps}: must be > 0")
         if self.max_points < 0:
             raise UsageError(f"--max-points {self.max_points}: must be >= 0")

@@ -306,6 +306,42 @@ def read_mask_png(path: PathLike) -> np.ndarray:
     return m > 0
 
 
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def read_user_mask_png(path: PathLike) -> np.ndarray:
+    """A ``--masks`` PNG -> bool (H, W), True = leave the pixel out, on the *decoded* values of an
+    8- or 16-bit grey, grey + alpha, RGB, RGBA or palette PNG (a 16-bit 0/1 mask masks):
+
+    * no alpha channel: out where any channel is non-zero;
+    * an alpha channel that varies over the image is the mask: out where alpha is non-zero, whatever
+      the colour (a cut-out, a brush layer on a transparent canvas, a mask kept only in alpha);
+    * an alpha channel with one value everywhere carries no mask: fully transparent (0) leaves
+      nothing out, any other (an opaque export) leaves the colour to decide as without alpha.
+
+    Not a PNG, or not decodable: DatasetError (one line, exit 2)."""
+    try:
+        with open(os.fspath(path), "rb") as f:
+            head = f.read(8)
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read ({exc.strerror or exc})") from None
+    if head != _PNG_MAGIC:
+        raise DatasetError(path, "not a PNG (--masks takes PNG files)")
+    m = _imread(path, cv2.IMREAD_UNCHANGED)
+    if m is None or m.ndim not in (2, 3) or (m.ndim == 3 and m.shape[2] not in (1, 2, 3, 4)):
+        raise DatasetError(path, "not a readable grey, RGB or RGBA PNG")
+    if m.ndim == 2:
+        return m > 0
+    colour = m[..., : 1 if m.shape[2] <= 2 else 3].max(axis=2) > 0
+    if m.shape[2] not in (2, 4):
+        return colour
+    alpha = m[..., -1]
+    lo, hi = int(alpha.min()), int(alpha.max())
+    if lo != hi:
+        return alpha > 0
+    return colour if hi > 0 else np.zeros(alpha.shape, bool)
+
+
 def depth_to_png16(depth: np.ndarray, scale: float = 1000.0) -> tuple[np.ndarray, int]:
     """float depth (H, W) -> (uint16 (H, W) of depth * scale, rounded; count of clipped pixels).
 

@@ -86,12 +86,19 @@ def write_run_dir(out: Path, runner: Any, config: Any, sources: RunSources) -> d
         for old in d.glob("*.npy"):
             old.unlink()
     final = runner.value(sources.depth)
+    calib = _calibration(runner, cam, sources.calibration)
+    unsolvable = {int(k): str(why) for k, why in calib.get("unsolvable") or []}
     for k, i in enumerate(idx):
         item = final[k]
-        np.save(depth_dir / f"{i:06d}.npy", np.asarray(item["depth"], np.float32), allow_pickle=False)
+        depth = np.asarray(item["depth"], np.float32)
+        if k in unsolvable:  # nothing measured this frame's depth: invalid, never the optimiser's guess
+            depth = np.zeros_like(depth)
+        np.save(depth_dir / f"{i:06d}.npy", depth, allow_pickle=False)
         if "confidence" in item:  # float32 (H, W) in [0, 1], 0 = unmeasured (stages/depth/fusion.py)
-            np.save(conf_dir / f"{i:06d}.npy", np.asarray(item["confidence"], np.float32), allow_pickle=False)
-    calib = _calibration(runner, cam, sources.calibration)
+            conf = np.asarray(item["confidence"], np.float32)
+            np.save(conf_dir / f"{i:06d}.npy", np.zeros_like(conf) if k in unsolvable else conf, allow_pickle=False)
+    if unsolvable:
+        _warn_unsolvable(unsolvable, idx)
     K = np.asarray(calib["K"])
     doc = {"width": cam["width"], "height": cam["height"], "fx": K[0, 0], "fy": K[1, 1],
            "cx": K[0, 2], "cy": K[1, 2], "K": K.tolist(), "source_width": cam["source_width"],
@@ -99,7 +106,9 @@ def write_run_dir(out: Path, runner: Any, config: Any, sources: RunSources) -> d
            "intrinsics_origin": "estimated" if calib["estimated"] else calib["origin"],
            **_calibration_doc(calib, K, cam), **_distortion_doc(cam), "frame_indices": idx, "fps": cam.get("fps"),
            "timestamps": stamps, "timestamp_kind": stamp_kind, "layout": cam.get("layout"),
-           "keyframes": [idx[k] for k in runner.value(sources.keyframes)["indices"]]}
+           "keyframes": [idx[k] for k in runner.value(sources.keyframes)["indices"]],
+           **({"unsolvable_frames": [{"frame": idx[k], "why": why} for k, why in sorted(unsolvable.items())]}
+              if unsolvable else {})}
     (out / "cameras.json").write_text(json.dumps(doc, indent=1))
     return {"poses": str(out / "poses.txt"), "depth": str(depth_dir), "confidence": str(conf_dir),
             "cameras": str(out / "cameras.json")}
@@ -112,6 +121,28 @@ def _calibration(runner: Any, cam: dict[str, Any], stage: str | None) -> dict[st
         return runner.value(stage)
     return {"K": cam["K"], "estimated": False, "guessed": cam["guessed"], "origin": cam["origin"],
             "warning": "", "rel_sigma": None}
+
+
+def frame_ranges(frames: Sequence[int], limit: int = 12) -> str:
+    """[3, 4, 5, 9] -> "3-5, 9" (at most ``limit`` ranges, then "... (N frames)")."""
+    runs: list[list[int]] = []
+    for f in sorted(frames):
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    parts = [str(a) if a == b else f"{a}-{b}" for a, b in runs]
+    return ", ".join(parts[:limit]) + (f", ... ({len(frames)} frames)" if len(parts) > limit else "")
+
+
+def _warn_unsolvable(unsolvable: dict[int, str], idx: list[int]) -> None:
+    """One ``warning:`` line naming the frames whose depth the run marked invalid."""
+    import sys
+
+    k, why = next(iter(sorted(unsolvable.items())))
+    print(f"warning: {len(unsolvable)} of {len(idx)} frames leave nothing to solve, their depth is marked invalid "
+          f"(depth 0, confidence 0): source frames {frame_ranges([idx[j] for j in unsolvable])} (frame {idx[k]}: {why})",
+          file=sys.stderr)
 
 
 def _distortion_doc(cam: dict[str, Any]) -> dict[str, Any]:

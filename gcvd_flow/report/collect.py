@@ -265,6 +265,13 @@ def _frame_signals(data: ReportData, store: Any) -> None:
     v = float(np.mean(valid))
     data.signals.insert(0, Signal("valid depth", f"{100 * v:.1f} % of pixels", "ok" if v >= 0.5 else "warn",
                                   "pixels of depth/*.npy with a depth (> 0) after filtering"))
+    bad = data.cams.get("unsolvable_frames")
+    if isinstance(bad, list) and bad:  # frames the run marked invalid (masked almost entirely, no texture)
+        first = bad[0] if isinstance(bad[0], dict) else {}
+        data.signals.insert(1, Signal(
+            "frames with nothing to solve", f"{len(bad)} of {len(run)}", "warn",
+            "masked almost entirely (--masks) or without texture (black / blank): no depth or flow is "
+            f"measured there, their depth is marked invalid (e.g. frame {first.get('frame')}: {first.get('why')})"))
     agree = depth_agreement(run, data.keyframes)
     if agree is not None:
         data.signals.insert(1, Signal(

@@ -86,7 +86,7 @@ class DepthFilterSettings:
 
     enabled: bool = True
     radius: int = param(4, ge=0)
-    border: int = 4
+    border: int = param(4, ge=0)
     fill_from: float = param(0.7, "depth confidence of the pixels an edge-aware fill of uncertain depth is "
                              "made from", ge=0, le=1)
     fill_below: float = param(0.0, "pixels less confident than this are pulled towards that fill (in "

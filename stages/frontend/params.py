@@ -25,7 +25,7 @@ class IngestSettings:
     start: int = param(0, "first source frame", ge=0)
     end: int | None = param(None, "one past the last source frame (None: all)")
     stride: int = param(1, "take every stride-th frame", ge=1)
-    long_side: int = param(256, "working resolution, px of the long side (paper: 384)", ge=16)
+    long_side: int = param(256, "working resolution, px of the long side (paper: 384)", ge=16, le=16384)
     intrinsics: str | None = param(None, "fx,fy,cx,cy at the source resolution, optionally followed by the lens "
                                    "distortion k1,k2,p1,p2 (OpenCV order): frames are undistorted at ingest",
                                    validator=_valid_intrinsics)

@@ -26,10 +26,10 @@ class AssociationSettings:
     backend: Literal["default", "resnet18"] = "default"
     weights: str | None = param(None, "ResNet-18 weights file", json_schema_extra=WEIGHTS_FILE)
     threshold: float | None = param(None, "descriptor similarity threshold (None: backend default)")
-    nms: int = 8
-    min_separation: int = 8
-    min_inlier_ratio: float = 0.5
-    min_consistent: float = 0.1
+    nms: int = param(8, ge=0)
+    min_separation: int = param(8, ge=0)
+    min_inlier_ratio: float = param(0.5, ge=0, le=1)
+    min_consistent: float = param(0.1, ge=0, le=1)
     per_keyframe: int = param(0, "candidates also: each keyframe's most similar eligible partners (a revisit "
                               "lasting several keyframes gives several loop edges); 0: NMS only (default: the "
                               "extra, wider edges moved the synthetic loop's pose graph 1.00 -> 1.28 mm and the "

@@ -19,6 +19,13 @@ from typing import Literal
 
 from stages.params import param as _f
 
+
+def _frame_distances(v: tuple[int, ...]) -> tuple[int, ...]:
+    if not v or any(k < 1 for k in v):
+        raise ValueError("frame distances tau >= 1 (at least one)")
+    return v
+
+
 __all__ = ["DepthModel", "LossWeights", "KeyframeSettings", "EdgeSettings", "SegmentSettings",
            "PoseGraphSettings", "BundleAdjustmentSettings"]
 
@@ -29,7 +36,7 @@ class DepthModel:
 
     layer_norm: bool = _f(True, "per-frame non-affine LayerNorm of the log inverse depth")
     mesh: bool = _f(True, "per-frame log-scale deformation mesh")
-    mesh_vertices: int = _f(17, "mesh vertices on the long side")
+    mesh_vertices: int = _f(17, "mesh vertices on the long side", ge=2, le=4096)
 
 
 @dataclass(frozen=True)
@@ -37,11 +44,11 @@ class LossWeights:
     """Loss weights of all three optimisations (stages.optimize.losses)."""
 
     grad: bool = _f(True, "use the depth-gradient orientation loss")
-    w_photo: float = 1.0
-    w_flow: float = 10.0
-    w_depth: float = 0.5
-    w_grad: float = 0.1
-    w_mesh: float = 0.5
+    w_photo: float = _f(1.0, ge=0)
+    w_flow: float = _f(10.0, ge=0)
+    w_depth: float = _f(0.5, ge=0)
+    w_grad: float = _f(0.1, ge=0)
+    w_mesh: float = _f(0.5, ge=0)
 
 
 @dataclass(frozen=True)
@@ -51,18 +58,18 @@ class KeyframeSettings:
     for the keyframe windows; the edge optimisation also uses loss_scale; edges and segments
     have their own ``threads``)."""
 
-    window: int = _f(40, "keyframes per optimisation window")
-    overlap: int = _f(8, "keyframes shared by consecutive windows (their poses are held fixed)")
-    steps: int = _f(150, "Adam steps per window")
-    lr: float = _f(2e-4, "depth head lr (paper); mesh lr = lr * mesh_lr_mult")
-    pose_lr: float = _f(5e-4, "lr of the pose corrections (5e-4 holds, 3e-3 drifts)")
-    mesh_lr_mult: float = _f(100.0, "per-frame log-scale lr = lr * mesh_lr_mult")
-    loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution (also edges)")
-    points: int = _f(128, "sampled points per ordered pair per step")
+    window: int = _f(40, "keyframes per optimisation window", ge=2)
+    overlap: int = _f(8, "keyframes shared by consecutive windows (their poses are held fixed)", ge=1)
+    steps: int = _f(150, "Adam steps per window", ge=1)
+    lr: float = _f(2e-4, "depth head lr (paper); mesh lr = lr * mesh_lr_mult", ge=0)
+    pose_lr: float = _f(5e-4, "lr of the pose corrections (5e-4 holds, 3e-3 drifts)", ge=0)
+    mesh_lr_mult: float = _f(100.0, "per-frame log-scale lr = lr * mesh_lr_mult", ge=0)
+    loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution (also edges)", gt=0, le=1)
+    points: int = _f(128, "sampled points per ordered pair per step", ge=1)
     pose_param: Literal["direct", "net"] = _f("direct", "per-frame pose corrections or a pose network")
     init: Literal["essential", "identity"] = _f("essential", "initial keyframe poses: essential-matrix "
                                                 "chain or identity")
-    checkpoint_every: int = _f(50, "steps between checkpoints")
+    checkpoint_every: int = _f(50, "steps between checkpoints", ge=1)
     schedule: Literal["chained", "independent"] = _f(
         "chained", "chained (the authors'): each window starts from the previous one's optimised, "
         "fixed overlap, one after the other; independent: every window starts from the initial "
@@ -78,15 +85,17 @@ class KeyframeSettings:
                           "each step, then summed in block order (1 = one block, the sum unsplit; results are "
                           "bit-identical only for the same count; 2 since 2026-11-25: a 40-keyframe step "
                           "57 -> 39 ms on two cores)", ge=1)
-    taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)")
+    taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)",
+                              validator=_frame_distances)
     flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
-                                    "from the tau = 1 flows (the authors use tau = 1 only)")
+                                    "from the tau = 1 flows (the authors use tau = 1 only)",
+                                    validator=_frame_distances)
     photo_warp: Literal["pixel", "centre"] = _f("pixel", "photometric 3x3 patches: every pixel warped with its own "
                                                 "depth (paper), or the centre warped and the patch shifted "
                                                 "with it (a ninth of the geometry per step)")
     mesh_shape_lr_frac: float = _f(0.1, "spatial mesh vertex lr = lr * mesh_lr_mult * this: on point-sampled "
                                    "losses a fast spatial mesh bends the depth along flow noise, while poses "
-                                   "need a fast per-frame scale")
+                                   "need a fast per-frame scale", ge=0)
     points_by_weight: bool = _f(False, "keyframe windows: a pair's points per step in proportion to its weight "
                                 "1/tau (points * weight / max weight, at least 8): the least variance of the "
                                 "window's loss for the points drawn; with taus 1,2,4,8 half the points of "
@@ -96,13 +105,18 @@ class KeyframeSettings:
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "
                          "less than this fraction below that of the stop_every steps before (0: never)", ge=0)
 
+    def check(self) -> None:
+        if self.overlap >= self.window:
+            raise ValueError(f"optimize_keyframes.overlap ({self.overlap}) must be less than optimize_keyframes.window "
+                             f"({self.window})")
+
 
 @dataclass(frozen=True)
 class EdgeSettings:
     """Non-sequential (loop) edge optimisation."""
 
-    steps: int = _f(100, "Adam steps per edge")
-    lr: float = _f(1e-4, "depth head lr")
+    steps: int = _f(100, "Adam steps per edge", ge=1)
+    lr: float = _f(1e-4, "depth head lr", ge=0)
     essential_init: bool = _f(True, "re-estimate the edge's rotation / translation direction by two-view "
                               "geometry on its flow (the keyframe-chain init carries the chain's drift); "
                               "|t| is kept")
@@ -114,12 +128,12 @@ class EdgeSettings:
 class SegmentSettings:
     """Segment optimisation: all frames, keyframe poses frozen."""
 
-    steps: int = _f(60, "Adam steps per window")
-    lr: float = _f(1e-4, "depth head lr")
-    loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution")
-    pair_power: float = _f(0.5, "pair weight tau ** pair_power")
-    grad_mult: float = _f(5.0, "multiplier of the gradient loss weight")
-    window: int = _f(40, "frames per window (windows are cut at keyframes)")
+    steps: int = _f(60, "Adam steps per window", ge=1)
+    lr: float = _f(1e-4, "depth head lr", ge=0)
+    loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution", gt=0, le=1)
+    pair_power: float = _f(0.5, "pair weight tau ** pair_power", ge=0)
+    grad_mult: float = _f(5.0, "multiplier of the gradient loss weight", ge=0)
+    window: int = _f(40, "frames per window (windows are cut at keyframes)", ge=2)
     init: Literal["pnp", "interp"] = _f("pnp", "non-keyframe pose init: keyframe depth + flow tracks + PnP, "
                                         "or geodesic interpolation")
     prior: Literal["transfer", "prior"] = _f("transfer", "depth model input: keyframe depths reprojected "
@@ -140,8 +154,8 @@ class PoseGraphSettings:
 
     enabled: bool = True
     kind: Literal["se3", "sim3"] = "se3"
-    max_iterations: int = 100
-    loop_weight: float = 1.0
+    max_iterations: int = _f(100, ge=1)
+    loop_weight: float = _f(1.0, ge=0)
     max_loop_rotation_deg: float = _f(30.0, "loop edges disagreeing more with odometry are ignored", gt=0)
 
 
