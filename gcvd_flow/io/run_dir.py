@@ -304,11 +304,15 @@ def check_confidence(run: RunData) -> None:
 
 def recorded_cache(run_dir: str | Path) -> str | None:
     """The cache directory run.json records (``"cache"``) if it still exists, else None."""
+    from gcvd_flow.engine import jsonio
+    from gcvd_flow.engine.paths import is_cache_dir
+
     try:
-        rec = json.loads((Path(run_dir) / "run.json").read_text()).get("cache")
-    except (OSError, ValueError, AttributeError):
+        doc = jsonio.load_optional(Path(run_dir) / "run.json", "run record")
+    except UsageError:
         return None
-    return rec if isinstance(rec, str) and Path(rec).is_dir() else None
+    rec = doc.get("cache") if isinstance(doc, dict) else None
+    return rec if isinstance(rec, str) and is_cache_dir(rec) else None
 
 
 def attach_images(run: RunData, cache: str | None, verify: bool = True, *, frames_stage: str | Stage) -> None:
