@@ -26,7 +26,7 @@ import pytest
 from conftest import ROOT, cli, make_toy_input
 
 TOY = ("--pipeline", "toy")
-TIMEOUT = 60  # seconds for one command that must not hang (each takes ~1-3 s)
+TIMEOUT = float(os.environ.get("GCVD_HANG_TIMEOUT", "60"))  # s for a command that must not hang (~1-3 s)
 MEMORY = 3 << 30  # address space of a command under test: enough for numpy + matplotlib
 SEED = int(os.environ.get("GCVD_FUZZ_SEED", "36"))
 SCALE = int(os.environ.get("GCVD_FUZZ_SCALE", "1"))
