@@ -184,7 +184,8 @@ def read_run_dir(out: str | Path) -> dict[str, Any]:
     """RUN_DIR/run.json, checked for the shape the engine writes (``check_run_doc``); every
     problem is a one-line UsageError naming the file and the key."""
     p = Path(out) / "run.json"
-    doc = jsonio.load_file(p, "run record", missing=f"no run recorded in this directory (run `{TOOL} run` first)")
+    doc = jsonio.load_file(p, "run record", missing=f"no run recorded in this directory (run `{TOOL} run` first)",
+                           limit=jsonio.RUN_FILE_BYTES)
     return check_run_doc(doc, str(p))
 
 

@@ -219,7 +219,8 @@ def read_cameras(run: Path) -> dict[str, Any]:
     from gcvd_flow.engine import jsonio
 
     p = run / "cameras.json"
-    cams = jsonio.load_file(p, "cameras file", missing=f"missing (is {run} a finished `gcvd-flow run` directory?)")
+    cams = jsonio.load_file(p, "cameras file", missing=f"missing (is {run} a finished `gcvd-flow run` directory?)",
+                            limit=jsonio.RUN_FILE_BYTES)
     if not isinstance(cams, dict):
         raise UsageError(f"{p}: not an object of camera fields")
     return cams

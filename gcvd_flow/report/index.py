@@ -81,6 +81,8 @@ def plot_png(doc: dict[str, Any], param: str, metrics: list[tuple[str, str]], dp
             if y is None:
                 continue
             xv = _num(x) if numeric else float(cats.index(json.dumps(x, sort_keys=True)))
+            if xv is None:
+                continue
             g = _tex_safe(", ".join(f"{k}={r['params'].get(k)}" for k in others))
             groups.setdefault(g, []).append((xv, y))
         for g, pts in sorted(groups.items()):
@@ -157,7 +159,7 @@ def _sweep_line(folder: Path) -> str:
         return ""
     grid = "; ".join(f"{_fmt(g.get('key'))} = {', '.join(_fmt(v) for v in g['values'])}"
                      for g in doc["grid"] if isinstance(g, dict) and isinstance(g.get("values"), list))
-    sets = doc.get("sets") if isinstance(doc.get("sets"), list) else []
+    sets: list[Any] = doc["sets"] if isinstance(doc.get("sets"), list) else []
     profile = doc.get("profile") if isinstance(doc.get("profile"), str) else None
     return (f"<p id='sweep'>Sweep of <code>{_e(_fmt(doc.get('input')))}</code>: {_e(grid)}; shared --set "
             f"{_e(' '.join(_fmt(x) for x in sets) or 'none')}; profile {_e(profile or 'none')}.</p>")
