@@ -13,7 +13,6 @@ results loaded back.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +22,7 @@ import numpy as np
 
 from gcvd_flow.engine import api as _engine
 from gcvd_flow.engine.api import fsck, gc, open_store, plan, read_run_dir, recorded_output, run, status, why
+from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.runtime import quiet_openmp
 
 quiet_openmp()  # the Python API is an entry point of the product (gcvd_flow/runtime.py)
@@ -61,19 +61,18 @@ class Result:
 
 def load(run_dir: str | Path) -> Result:
     """Load a finished run (poses, lazy depth, cameras); one-line UsageError naming a bad file."""
+    from gcvd_flow.engine import jsonio
     from gcvd_flow.io.formats import read_tum_poses
-    from gcvd_flow.io.run_dir import load_run
+    from gcvd_flow.io.run_dir import load_run, read_cameras
 
     data = load_run(run_dir)
     root = Path(run_dir)
-    cams = json.loads((root / "cameras.json").read_text())
+    cams = read_cameras(root)  # checked by load_run
     stamps, _ = read_tum_poses(root / "poses.txt")
-    metrics = None
-    if (root / "metrics.json").is_file():
-        try:
-            metrics = json.loads((root / "metrics.json").read_text())
-        except ValueError:
-            metrics = None
+    try:
+        metrics = jsonio.load_optional(root / "metrics.json", "metrics file")
+    except UsageError:  # unreadable: as if not evaluated
+        metrics = None
     conf = None
     if all((root / "confidence" / f"{data.name(k)}.npy").is_file() for k in range(len(data))):
         from gcvd_flow.engine.dag import MapValue

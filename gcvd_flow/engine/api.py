@@ -28,6 +28,7 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import ENGINE_LIBRARIES
 from gcvd_flow.engine.names import ENTRY_POINT_GROUP, TOOL
 from gcvd_flow.engine.outputs import check_out_dir, check_run_doc, digest_outputs, outputs_of, read_run_dir, run_dir_lock  # noqa: F401
+from gcvd_flow.engine.paths import is_cache_dir
 from gcvd_flow.engine.runner import Runner, StageReport, diff_fields
 from gcvd_flow.engine.store import CorruptObject, MissingObject, Store, StoreError, default_cache_dir
 
@@ -346,8 +347,9 @@ def _invocation_from_run(out: str, extra: Invocation | None) -> Invocation:
         if extra.profile:
             inv.profile = extra.profile
         inv.sets += list(extra.sets)
-    if inv.cache is None and isinstance(doc.get("cache"), str) and Path(doc["cache"]).is_dir():
-        inv.cache = doc["cache"]  # the cache the run recorded, when no --cache is given
+    if inv.cache is None and isinstance(doc.get("cache"), str) and is_cache_dir(doc["cache"]):
+        inv.cache = doc["cache"]  # the cache the run recorded, when no --cache is given (never a
+        # folder it merely names: `status` / `why` must not create a cache wherever run.json points)
     return inv
 
 

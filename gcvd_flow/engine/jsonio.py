@@ -7,9 +7,17 @@ on deep nesting, accepts ``NaN`` and numbers of any size, and any *shape*; the c
 with a ``TypeError`` or ``KeyError`` far from the file. Here:
 
 * ``loads`` parses with a nesting limit (``MAX_DEPTH``) checked without recursion, and turns
-  every parse problem (syntax, bad UTF-8, recursion, a 5000-digit integer) into ``ValueError``;
-* ``load_file`` reads a file (regular files only: never a FIFO, which would block) and raises
-  ``UsageError("<path>: <what> is not valid JSON (...)")``;
+  every parse problem (syntax, bad UTF-8, recursion) into ``ValueError``; so are numbers no
+  float can hold (an integer of more than ``MAX_INT_DIGITS`` digits such as ``10**400`` or a
+  5000-digit one, a literal such as ``1e999`` that overflows to infinity): every number read
+  converts to a float. ``NaN`` / ``Infinity``, which Python's own ``json.dumps`` writes (a
+  metric of an empty set), stay accepted: readers must handle non-finite floats anyway;
+* ``read_regular`` reads the bytes of a regular file only (never a FIFO, which would block, nor
+  a device such as ``/dev/zero``, which never ends; a symlink counts as what it points to) up
+  to a size limit;
+* ``load_file`` reads a file that way and raises
+  ``UsageError("<path>: <what> is not valid JSON (...)")``; ``load_optional`` is the same but
+  None for an absent file;
 * ``field`` / ``mapping`` / ``sequence`` check a value's type and raise
   ``UsageError("<path>: <key> must be <type>")``.
 
@@ -29,6 +37,24 @@ from gcvd_flow.engine.errors import UsageError
 
 MAX_DEPTH = 64  # deeper than anything the tool writes (run.json: 6), far below the interpreter's limit
 MAX_FILE_BYTES = 256 << 20
+# run.json, metrics.json, sweep.json of a run folder (any user may hand one over): the largest the
+# tool writes is run.json's file digests, ~100 bytes per output file
+RUN_FILE_BYTES = 32 << 20
+MAX_INT_DIGITS = 300  # |n| < 10**300: converts to a float (1.8e308) without OverflowError
+
+
+def _parse_int(text: str) -> int:
+    digits = len(text) - text.startswith("-")
+    if digits > MAX_INT_DIGITS:
+        raise ValueError(f"an integer of {digits} digits (at most {MAX_INT_DIGITS})")
+    return int(text)
+
+
+def _parse_float(text: str) -> float:
+    v = float(text)
+    if v in (float("inf"), float("-inf")):  # 1e999: a literal that overflows (Infinity is a constant)
+        raise ValueError(f"number {text[:20]}{'...' if len(text) > 20 else ''} is out of range")
+    return v
 
 
 def check_depth(doc: Any, max_depth: int = MAX_DEPTH) -> None:
@@ -50,7 +76,7 @@ def loads(data: str | bytes, max_depth: int = MAX_DEPTH) -> Any:
     """Parse JSON; ValueError for anything that is not a JSON document nested at most
     ``max_depth`` deep (syntax, encoding, recursion, oversized integers)."""
     try:
-        doc = json.loads(data)
+        doc = json.loads(data, parse_int=_parse_int, parse_float=_parse_float)
     except RecursionError:
         raise ValueError(f"nested deeper than {max_depth} levels") from None
     except (ValueError, UnicodeDecodeError, TypeError) as exc:
@@ -81,14 +107,30 @@ def read_regular(path: str | Path, limit: int = MAX_FILE_BYTES) -> bytes:
         os.close(fd)
 
 
-def load_file(path: str | Path, what: str = "file", missing: str | None = None) -> Any:
+def load_file(path: str | Path, what: str = "file", missing: str | None = None,
+              limit: int = MAX_FILE_BYTES) -> Any:
     """A JSON file as a value; one-line UsageError naming ``path`` for an absent (``missing``
-    says what to do), unreadable or invalid file."""
-    p = Path(path)
+    says what to do), unreadable (not a regular file, larger than ``limit``) or invalid file."""
+    doc = _load(Path(path), what, limit)
+    if doc is _ABSENT:
+        raise UsageError(f"{path}: {missing or what + ' not found'}")
+    return doc
+
+
+def load_optional(path: str | Path, what: str = "file", limit: int = RUN_FILE_BYTES) -> Any:
+    """``load_file`` for a file that may be absent: None then (also for a dangling symlink)."""
+    doc = _load(Path(path), what, limit)
+    return None if doc is _ABSENT else doc
+
+
+_ABSENT = object()
+
+
+def _load(p: Path, what: str, limit: int) -> Any:
     try:
-        raw = read_regular(p)
+        raw = read_regular(p, limit)
     except FileNotFoundError:
-        raise UsageError(f"{p}: {missing or what + ' not found'}") from None
+        return _ABSENT
     except OSError as exc:
         raise UsageError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
     try:

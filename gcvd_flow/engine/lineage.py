@@ -97,13 +97,25 @@ def trace(store: Store, roots: list[str], known: dict[str, str] | None = None) -
     return nodes
 
 
+def open_cache(root: Path, given: bool) -> Store:
+    """The cache at ``root`` for reading: never created (`lineage` only reads); one line naming
+    it when it is not a cache directory (``given``: it came from --cache)."""
+    from gcvd_flow.engine.paths import is_cache_dir
+
+    if not is_cache_dir(root):
+        what = "--cache " if given else "the cache "
+        state = "does not exist" if not root.exists() else "is not a cache directory (no objects/ and records/)"
+        raise UsageError(f"{what}{root}: {state}")
+    return Store(root)
+
+
 def _run_dir_cache(out: Path, cache: str | None) -> Store:
-    from gcvd_flow.engine.paths import default_cache_dir
+    from gcvd_flow.engine.paths import default_cache_dir, is_cache_dir
 
     if cache:
-        return Store(Path(cache).expanduser())
+        return open_cache(Path(cache).expanduser(), True)
     root = read_run_dir(out).get("cache")
-    return Store(Path(root) if root and Path(root, "records").is_dir() else default_cache_dir())
+    return open_cache(Path(root) if root and is_cache_dir(root) else default_cache_dir(), False)
 
 
 def lineage(target: str, stage: str | None = None, cache: str | None = None) -> dict[str, Any]:
@@ -130,7 +142,7 @@ def lineage(target: str, stage: str | None = None, cache: str | None = None) -> 
         raise UsageError(f"{target}: neither a run directory nor a 64-hex digest")
     from gcvd_flow.engine.paths import default_cache_dir
 
-    store = Store(Path(cache).expanduser() if cache else default_cache_dir())
+    store = open_cache(Path(cache).expanduser() if cache else default_cache_dir(), bool(cache))
     index = _Index(store)
     root = target if store.read_record(target) is not None else index.producer(target)
     note = None

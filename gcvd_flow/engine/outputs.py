@@ -59,9 +59,10 @@ def check_out_dir(out: str | Path) -> Path:
 
 
 @contextlib.contextmanager
-def run_dir_lock(out: str | Path) -> Iterator[None]:
+def run_dir_lock(out: str | Path, busy: str | None = None) -> Iterator[None]:
     """Hold RUN_DIR's writer lock (creating RUN_DIR); UsageError at once when another process
-    holds it. Reentrant in one process (the CLI holds it around api.run, which takes it too)."""
+    holds it (``busy``: what to say after the path). Reentrant in one process (the CLI holds it
+    around api.run, which takes it too). A sweep folder is locked the same way."""
     key = os.path.abspath(out)
     with _held_lock:
         if key in _held:
@@ -77,8 +78,8 @@ def run_dir_lock(out: str | Path) -> Iterator[None]:
                 os.close(fd)
                 _remove_if_empty(key, created)
                 if exc.errno in (errno.EAGAIN, errno.EACCES):
-                    raise UsageError(f"{out}: another run is writing this run directory; wait for it to "
-                                     f"finish or use another --out") from None
+                    raise UsageError(f"{out}: " + (busy or "another run is writing this run directory; wait "
+                                                   "for it to finish or use another --out")) from None
                 raise
             _held[key] = (fd, 1, created)
     try:
@@ -186,7 +187,8 @@ def read_run_dir(out: str | Path) -> dict[str, Any]:
     """RUN_DIR/run.json, checked for the shape the engine writes (``check_run_doc``); every
     problem is a one-line UsageError naming the file and the key."""
     p = Path(out) / "run.json"
-    doc = jsonio.load_file(p, "run record", missing=f"no run recorded in this directory (run `{TOOL} run` first)")
+    doc = jsonio.load_file(p, "run record", missing=f"no run recorded in this directory (run `{TOOL} run` first)",
+                           limit=jsonio.RUN_FILE_BYTES)
     return check_run_doc(doc, str(p))
 
 

@@ -16,3 +16,10 @@ def default_cache_dir() -> Path:
     import platformdirs
 
     return Path(platformdirs.user_cache_dir(TOOL))
+
+
+def is_cache_dir(path: str | Path) -> bool:
+    """Whether ``path`` is a cache directory (has objects/ and records/): a path some run.json
+    names is used as a cache only then, never created or filled in."""
+    p = Path(path).expanduser()
+    return (p / "objects").is_dir() and (p / "records").is_dir()

@@ -6,8 +6,11 @@ does not descend into a run directory, nor into hidden folders): its name, when 
 them with ``--all-params``), the numbers of its ``metrics.json``, and how many stage results it
 reused vs computed (from the sweep that made it, else from its ``run.json``).
 
-Everything read is treated as untrusted: a ``run.json`` or ``metrics.json`` of the wrong shape is
-one line naming the file (exit 2), never a traceback.
+Everything read is treated as untrusted (a folder someone handed over): files are read through
+``jsonio`` (regular files only, never a FIFO or a device; size, nesting and numbers bounded), and a
+``run.json`` / ``metrics.json`` / ``sweep.json`` of the wrong shape is one line naming the file
+(exit 2), never a traceback nor a hang. ``collect(..., keep_broken=True)`` (the `report DIR`
+index) lists such a run with its error instead, so one broken run does not hide the others.
 """
 
 from __future__ import annotations
@@ -19,8 +22,9 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+from gcvd_flow.engine import jsonio
 from gcvd_flow.engine.errors import UsageError
 
 RUN_FILE = "run.json"
@@ -61,12 +65,9 @@ def find_run_dirs(paths: list[str]) -> list[Path]:
 
 
 def _read_json(path: Path, what: str) -> Any:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        return None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise UsageError(f"{path}: not a readable {what} ({type(exc).__name__})") from None
+    """The JSON document at ``path`` (None when absent); one-line UsageError naming it when it is
+    not a regular file, too large, too deep, holds an out-of-range number or is no JSON."""
+    return jsonio.load_optional(path, what, limit=jsonio.RUN_FILE_BYTES)
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -90,51 +91,64 @@ def _metrics(run: Path) -> dict[str, Any]:
         doc = doc["metrics"]  # `eval --baseline --json`'s shape
     if not isinstance(doc, dict):
         raise UsageError(f"{run / METRICS_FILE}: expected a JSON object of metrics")
-    try:
-        flat = flatten(doc)
-    except RecursionError:
-        raise UsageError(f"{run / METRICS_FILE}: nested too deeply") from None
+    flat = flatten(doc)  # depth bounded by jsonio
     return {k: v for k, v in flat.items() if isinstance(v, (int, float, str, bool)) or v is None}
 
 
+def _count(s: Any, key: str) -> int:
+    """A stage's item count: a non-negative integer (ValueError otherwise)."""
+    v = s.get(key, 0) if isinstance(s, dict) else None
+    if isinstance(v, float) and v.is_integer():
+        v = int(v)
+    if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+        raise ValueError(key)
+    return v
+
+
 def _stage_counts(stages: Any) -> dict[str, int] | None:
+    """Stages reused / computed and their items; None when any count is not a count."""
     if not isinstance(stages, list):
         return None
     try:
-        return {"computed": sum(1 for s in stages if int(s.get("executed", 0)) > 0),
-                "reused": sum(1 for s in stages if int(s.get("executed", 0)) == 0),
-                "items_computed": sum(int(s.get("executed", 0)) for s in stages),
-                "items_reused": sum(int(s.get("cached", 0)) for s in stages)}
-    except (TypeError, ValueError, AttributeError):
+        executed = [_count(s, "executed") for s in stages]
+        cached = [_count(s, "cached") for s in stages]
+    except ValueError:
         return None
+    return {"computed": sum(1 for n in executed if n > 0), "reused": sum(1 for n in executed if n == 0),
+            "items_computed": sum(executed), "items_reused": sum(cached)}
 
 
-def _sweep_stages(run: Path, cache: dict[Path, dict[str, Any]]) -> list[dict[str, Any]] | None:
-    """The stage counts the sweep in the parent folder recorded for ``run`` (if any)."""
+def _sweep_stages(run: Path, cache: dict[Path, dict[str, Any]],
+                  notes: list[str] | None = None) -> list[dict[str, Any]] | None:
+    """The stage counts the sweep in the parent folder recorded for ``run`` (if any). An
+    unreadable sweep.json is a UsageError, or with ``notes`` a note (run.json's counts serve)."""
     parent = run.resolve().parent
     if parent not in cache:
-        doc = _read_json(parent / SWEEP_FILE, "sweep record")
+        try:
+            doc = _read_json(parent / SWEEP_FILE, "sweep record")
+        except UsageError as exc:
+            if notes is None:
+                raise
+            notes.append(str(exc))
+            doc = None
         rows = doc.get("runs") if isinstance(doc, dict) else None
         cache[parent] = {str(r.get("name")): r for r in rows if isinstance(r, dict)} if isinstance(rows, list) else {}
     row = cache[parent].get(run.resolve().name)
     return row.get("stages") if isinstance(row, dict) and isinstance(row.get("stages"), list) else None
 
 
-def read_run(run: Path, sweeps: dict[Path, dict[str, Any]]) -> dict[str, Any]:
+def read_run(run: Path, sweeps: dict[Path, dict[str, Any]], notes: list[str] | None = None) -> dict[str, Any]:
     """One run's row before the column rule: every parameter, metrics, stage counts."""
     p = run / RUN_FILE
     doc = _read_json(p, "run record")
     if not isinstance(doc, dict) or not isinstance(doc.get("config", {}), dict):
         raise UsageError(f"{p}: not a valid run record (expected an object with a config object)")
     inv: dict[str, Any] = doc["invocation"] if isinstance(doc.get("invocation"), dict) else {}
-    stages = _sweep_stages(run, sweeps)
+    stages = _sweep_stages(run, sweeps, notes)
     if stages is None and isinstance(doc.get("counts"), dict):
         stages = [{"name": k, **v} for k, v in doc["counts"].items() if isinstance(v, dict)]
     when = datetime.datetime.fromtimestamp(p.stat().st_mtime, datetime.timezone.utc)
-    try:
-        params = flatten(doc.get("config") or {})
-    except RecursionError:
-        raise UsageError(f"{p}: config nested too deeply") from None
+    params = flatten(doc.get("config") or {})  # depth bounded by jsonio
     return {"name": run.name, "out": str(run), "when": when.strftime("%Y-%m-%d %H:%M:%S UTC"),
             "input": inv.get("input") if isinstance(inv.get("input"), str) else None,
             "all_params": params, "metrics": _metrics(run), "stages": _stage_counts(stages)}
@@ -175,12 +189,23 @@ def sort_rows(rows: list[dict[str, Any]], sort: str | None) -> list[dict[str, An
     return have + rest
 
 
-def collect(paths: list[str], all_params: bool = False, sort: str | None = None) -> dict[str, Any]:
+def collect(paths: list[str], all_params: bool = False, sort: str | None = None,
+            keep_broken: bool = False) -> dict[str, Any]:
     """The --json document: {"runs": [{name, out, when, input, params, metrics, stages}],
-    "params": [the parameter columns], "metrics": [the metric names]}."""
+    "params": [the parameter columns], "metrics": [the metric names]}. A run whose files are
+    unreadable is a UsageError, or with ``keep_broken`` a row of "broken": [{name, out, error}]
+    (and an unreadable sweep.json a line of "notes")."""
     dirs = find_run_dirs(paths)
     sweeps: dict[Path, dict[str, Any]] = {}
-    rows = [read_run(d, sweeps) for d in dirs]
+    notes: list[str] | None = [] if keep_broken else None
+    rows, broken = [], []
+    for d in dirs:
+        try:
+            rows.append(read_run(d, sweeps, notes))
+        except UsageError as exc:
+            if not keep_broken:
+                raise
+            broken.append({"name": d.name, "out": str(d), "error": str(exc)})
     keys = sorted({k for r in rows for k in r["all_params"]}) if all_params else differing_keys(rows)
     inputs_differ = len({r["input"] for r in rows}) > 1
     out = []
@@ -189,7 +214,10 @@ def collect(paths: list[str], all_params: bool = False, sort: str | None = None)
         out.append({"name": r["name"], "out": r["out"], "when": r["when"], "input": r["input"],
                     "params": params, "metrics": r["metrics"], "stages": r["stages"]})
     metrics = sorted({k for r in rows for k, v in r["metrics"].items() if isinstance(v, (int, float))})
-    return {"runs": sort_rows(out, sort), "params": keys, "metrics": metrics, "inputs_differ": inputs_differ}
+    doc = {"runs": sort_rows(out, sort), "params": keys, "metrics": metrics, "inputs_differ": inputs_differ}
+    if keep_broken:
+        doc.update(broken=broken, notes=notes or [])
+    return doc
 
 
 # ------------------------------------------------------------------------------ output
@@ -200,16 +228,31 @@ def _cell(v: Any) -> str:
         return ""
     if isinstance(v, bool):
         return "true" if v else "false"
-    if isinstance(v, float):
+    if isinstance(v, float) or (isinstance(v, int) and abs(v) >= 10 ** 15):
         return f"{v:.4g}"
     if isinstance(v, (list, dict)):
         return json.dumps(v, separators=(",", ":"))
     return str(v)
 
 
-def table(doc: dict[str, Any], metric_columns: tuple[str, ...] = ()) -> tuple[list[str], list[list[str]]]:
+FORMULA_PREFIXES = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_safe(text: str) -> str:
+    """A text cell a spreadsheet will not run as a formula (OWASP "CSV injection"): a leading
+    = + - @ tab or carriage return gets a single quote in front."""
+    return "'" + text if text.startswith(FORMULA_PREFIXES) else text
+
+
+def table(doc: dict[str, Any], metric_columns: tuple[str, ...] = (),
+          text_cell: Callable[[str], str] = str) -> tuple[list[str], list[list[str]]]:
     """Header and cells: name, when, [input], params, metrics (those of ``metric_columns`` that
-    occur, else every numeric one), stages reused / computed."""
+    occur, else every numeric one), stages reused / computed. ``text_cell`` is applied to the
+    cells that hold text (not numbers): names, inputs, string values."""
+
+    def cell(v: Any) -> str:
+        return text_cell(v) if isinstance(v, str) else _cell(v)
+
     metrics = [m for m in metric_columns if m in doc["metrics"]] or list(doc["metrics"])
     head = ["name", "when"] + (["input"] if doc.get("inputs_differ") else []) + list(doc["params"]) + metrics \
         + ["stages reused/computed"]
@@ -217,9 +260,9 @@ def table(doc: dict[str, Any], metric_columns: tuple[str, ...] = ()) -> tuple[li
     for r in doc["runs"]:
         st = r["stages"]
         stages = f"{st['reused']}/{st['computed']}" if st else ""
-        cells.append([r["name"], r["when"]] + ([r["input"] or ""] if doc.get("inputs_differ") else [])
-                     + [_cell(r["params"].get(k)) for k in doc["params"]]
-                     + [_cell(r["metrics"].get(m)) for m in metrics] + [stages])
+        cells.append([cell(r["name"]), r["when"]] + ([cell(r["input"] or "")] if doc.get("inputs_differ") else [])
+                     + [cell(r["params"].get(k)) for k in doc["params"]]
+                     + [cell(r["metrics"].get(m)) for m in metrics] + [stages])
     return head, cells
 
 
@@ -245,12 +288,17 @@ def format_md(doc: dict[str, Any], metric_columns: tuple[str, ...] = ()) -> str:
 
 
 def format_csv(doc: dict[str, Any]) -> str:
-    head, cells = table(doc)  # every metric
+    """Every metric; text (names, string parameters, headers) formula-escaped, numbers as they are."""
+    head, cells = table(doc, text_cell=csv_safe)
+    return "\n".join(_csv_line(row) for row in [[csv_safe(h) for h in head], *cells])
+
+
+def _csv_line(cells: list[str]) -> str:
+    """One CSV record without its line end. Written with a CRLF terminator so that a cell holding
+    a CR (not only a LF) is quoted, then the CRLF is cut: records end in LF."""
     buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(head)
-    w.writerows(cells)
-    return buf.getvalue().rstrip("\n")
+    csv.writer(buf, lineterminator="\r\n").writerow(cells)
+    return buf.getvalue()[:-2]
 
 
 def json_doc(doc: dict[str, Any]) -> dict[str, Any]:

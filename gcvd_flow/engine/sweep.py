@@ -343,7 +343,18 @@ def _sweep_doc(plan: SweepPlan, rows: list[dict[str, Any]], state: str) -> dict[
 
 def run_sweep(plan: SweepPlan, log: Callable[[str], None],
               evaluate: Callable[[Path, str], dict[str, Any]] | None = None) -> dict[str, Any]:
-    """Run every combination (never stops early on a failing one); returns the --json doc."""
+    """Run every combination (never stops early on a failing one); returns the --json doc.
+    The sweep folder is locked like a run directory: a second sweep into it while this one runs
+    exits 2 at once (it would replace run directories this sweep.json describes)."""
+    from gcvd_flow.engine.outputs import run_dir_lock
+
+    with run_dir_lock(plan.root, busy="another sweep is writing this folder; wait for it to finish "
+                                      "or use another --out"):
+        return _run_sweep_locked(plan, log, evaluate)
+
+
+def _run_sweep_locked(plan: SweepPlan, log: Callable[[str], None],
+                      evaluate: Callable[[Path, str], dict[str, Any]] | None) -> dict[str, Any]:
     from gcvd_flow.engine import api
     from gcvd_flow.engine.executors import closing, make_executor, resolve_jobs
 

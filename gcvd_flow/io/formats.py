@@ -77,9 +77,12 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def _read_text(path: Path) -> str:
-    """A text file's content; a one-line DatasetError naming it if it is missing or unreadable."""
+    """A text file's content; a one-line DatasetError naming it if it is missing or unreadable
+    (also when it is not a regular file: a FIFO would block, /dev/zero never ends)."""
+    from gcvd_flow.engine.jsonio import read_regular
+
     try:
-        return path.read_text()
+        return read_regular(path).decode()
     except FileNotFoundError:
         raise DatasetError(path, "file not found") from None
     except (OSError, UnicodeDecodeError) as e:

@@ -254,7 +254,8 @@ def read_cameras(run: Path) -> dict[str, Any]:
     from gcvd_flow.engine import jsonio
 
     p = run / "cameras.json"
-    cams = jsonio.load_file(p, "cameras file", missing=f"missing (is {run} a finished `gcvd-flow run` directory?)")
+    cams = jsonio.load_file(p, "cameras file", missing=f"missing (is {run} a finished `gcvd-flow run` directory?)",
+                            limit=jsonio.RUN_FILE_BYTES)
     if not isinstance(cams, dict):
         raise UsageError(f"{p}: not an object of camera fields")
     return cams
@@ -339,11 +340,15 @@ def check_confidence(run: RunData) -> None:
 
 def recorded_cache(run_dir: str | Path) -> str | None:
     """The cache directory run.json records (``"cache"``) if it still exists, else None."""
+    from gcvd_flow.engine import jsonio
+    from gcvd_flow.engine.paths import is_cache_dir
+
     try:
-        rec = json.loads((Path(run_dir) / "run.json").read_text()).get("cache")
-    except (OSError, ValueError, AttributeError):
+        doc = jsonio.load_optional(Path(run_dir) / "run.json", "run record")
+    except UsageError:
         return None
-    return rec if isinstance(rec, str) and Path(rec).is_dir() else None
+    rec = doc.get("cache") if isinstance(doc, dict) else None
+    return rec if isinstance(rec, str) and is_cache_dir(rec) else None
 
 
 def attach_images(run: RunData, cache: str | None, verify: bool = True, *, frames_stage: str | Stage) -> None:

@@ -21,10 +21,12 @@ their output digests; without the cache the page still has poses, depth and the 
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 from typing import Any
 
+from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.report.collect import ReportData, collect
 
 
@@ -50,14 +52,30 @@ def write_report_doc(run_dir: str | Path, to: str | Path | None = None, gt: str 
     from gcvd_flow.report.page import render
     from gcvd_flow.report.verdict import health_json
 
-    out = Path(to) if to else Path(run_dir) / "report.html"
+    out = check_page_path(Path(to) if to else Path(run_dir) / "report.html")
     data = collect(run_dir, gt=gt, cache=cache, every=every)
-    text = render(data)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, out)
+    write_page(out, render(data))
     return {"report": str(out), "verdict": data.verdict, "health": health_json(data.signals)}
 
 
 __all__ = ["ReportData", "build_report", "collect", "write_report", "write_report_doc"]
+
+
+def check_page_path(out: Path) -> Path:
+    """``out`` if a page can be written there: not a directory (``--to`` names a file)."""
+    if out.is_dir():
+        raise UsageError(f"{out}: is a directory (--to names the page's file, e.g. {out / 'report.html'})")
+    return out
+
+
+def write_page(out: Path, text: str) -> None:
+    """Write ``out`` under a temporary name, then rename; a failure is one line naming ``out``."""
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, out)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise UsageError(f"{out}: cannot write the page ({exc.strerror or exc})") from None

@@ -43,9 +43,10 @@ class ReportData:
 
 
 def _open_store(cache: Path | None):
+    from gcvd_flow.engine.paths import is_cache_dir
     from gcvd_flow.engine.store import Store
 
-    if cache is None or not (cache / "objects").is_dir():
+    if cache is None or not is_cache_dir(cache):  # only read: never made where run.json points
         return None
     return Store(cache, verify=True)
 

@@ -16,11 +16,12 @@ import datetime
 import html
 import io
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
 
-from gcvd_flow.engine.errors import UsageError
+from gcvd_flow.engine.errors import StoreError, UsageError
 from gcvd_flow.report.page import CSP, CSS
 
 INDEX_FILE = "index.html"
@@ -46,7 +47,16 @@ def _e(x: Any) -> str:
 
 
 def _num(v: Any) -> float | None:
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+    """A finite number as a float, else None (NaN / infinity are not plotted or ranked)."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return None
+    f = float(v)  # jsonio bounds integers: no OverflowError
+    return f if math.isfinite(f) else None
+
+
+def _tex_safe(text: Any) -> str:
+    """Text matplotlib shows as is: ``$`` would start mathtext (``$\\foo$`` raises)."""
+    return str(text).replace("$", r"\$")
 
 
 def plot_png(doc: dict[str, Any], param: str, metrics: list[tuple[str, str]], dpi: int = 90) -> bytes:
@@ -71,16 +81,17 @@ def plot_png(doc: dict[str, Any], param: str, metrics: list[tuple[str, str]], dp
             if y is None:
                 continue
             xv = _num(x) if numeric else float(cats.index(json.dumps(x, sort_keys=True)))
-            g = ", ".join(f"{k}={r['params'].get(k)}" for k in others)
+            if xv is None:
+                continue
+            g = _tex_safe(", ".join(f"{k}={r['params'].get(k)}" for k in others))
             groups.setdefault(g, []).append((xv, y))
         for g, pts in sorted(groups.items()):
             pts.sort()
             ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", lw=1.4, ms=5, label=g or None)
         if not numeric:
-            ax.set_xticks(range(len(cats)), [json.loads(c) if isinstance(json.loads(c), str) else c for c in cats],
-                          rotation=30, fontsize=8)
+            ax.set_xticks(range(len(cats)), [_tex_safe(_cat_label(c)) for c in cats], rotation=30, fontsize=8)
         ax.set_title(label, fontsize=10)
-        ax.set_xlabel(param, fontsize=9)
+        ax.set_xlabel(_tex_safe(param), fontsize=9)
         ax.grid(True, lw=0.3)
         ax.tick_params(labelsize=8)
         if n == 0 and others and len(groups) > 1:
@@ -89,6 +100,13 @@ def plot_png(doc: dict[str, Any], param: str, metrics: list[tuple[str, str]], dp
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     return buf.getvalue()
+
+
+def _cat_label(c: str) -> str:
+    """A category's tick label: a string value as itself, others as JSON (cut at 40 characters)."""
+    v = json.loads(c)
+    text = v if isinstance(v, str) else c
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _best(doc: dict[str, Any], key: str) -> str | None:
@@ -129,18 +147,35 @@ def _fmt(v: Any) -> str:
 
 
 def _sweep_line(folder: Path) -> str:
-    """What sweep.json says about the sweep (input, grid, shared settings), if present."""
+    """What sweep.json says about the sweep (input, grid, shared settings), if present and of the
+    shape `sweep` writes (anything else: nothing; an unreadable one is a note of the runs table)."""
+    from gcvd_flow.engine import jsonio
+
     try:
-        doc = json.loads((folder / "sweep.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        doc = jsonio.load_optional(folder / "sweep.json", "sweep record")
+    except UsageError:
         return ""
     if not isinstance(doc, dict) or not isinstance(doc.get("grid"), list):
         return ""
-    grid = "; ".join(f"{g.get('key')} = {', '.join(_fmt(v) for v in g.get('values') or [])}"
-                     for g in doc["grid"] if isinstance(g, dict))
-    sets = " ".join(str(s) for s in doc.get("sets") or []) or "none"
-    return (f"<p id='sweep'>Sweep of <code>{_e(doc.get('input'))}</code>: {_e(grid)}; shared --set "
-            f"{_e(sets)}; profile {_e(doc.get('profile') or 'none')}.</p>")
+    grid = "; ".join(f"{_fmt(g.get('key'))} = {', '.join(_fmt(v) for v in g['values'])}"
+                     for g in doc["grid"] if isinstance(g, dict) and isinstance(g.get("values"), list))
+    sets: list[Any] = doc["sets"] if isinstance(doc.get("sets"), list) else []
+    profile = doc.get("profile") if isinstance(doc.get("profile"), str) else None
+    return (f"<p id='sweep'>Sweep of <code>{_e(_fmt(doc.get('input')))}</code>: {_e(grid)}; shared --set "
+            f"{_e(' '.join(_fmt(x) for x in sets) or 'none')}; profile {_e(profile or 'none')}.</p>")
+
+
+def _broken(doc: dict[str, Any]) -> str:
+    """The runs that could not be read, each with its one-line error, and notes on the folder."""
+    items = [f"<li><code>{_e(b['name'])}</code>: {_e(b['error'])}</li>" for b in doc.get("broken") or []]
+    notes = [f"<li>{_e(n)}</li>" for n in doc.get("notes") or []]
+    out = ""
+    if items:
+        out += (f"<h3>Broken runs ({len(items)})</h3><p>These run directories could not be read; "
+                f"they are not in the table.</p><ul id='broken'>{''.join(items)}</ul>")
+    if notes:
+        out += f"<ul class='note'>{''.join(notes)}</ul>"
+    return out
 
 
 def render_index(folder: Path, doc: dict[str, Any], links: dict[str, str], to: Path) -> str:
@@ -160,6 +195,7 @@ def render_index(folder: Path, doc: dict[str, Any], links: dict[str, str], to: P
     elif not doc["params"]:
         plots = ["<p>The runs do not differ in any parameter.</p>"]
     title = f"gcvd-flow runs: {folder.resolve().name}"
+    n_broken = f" + {len(doc['broken'])} broken" if doc.get("broken") else ""
     parts = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         "<meta name='viewport' content='width=device-width, initial-scale=1'>",
@@ -167,12 +203,12 @@ def render_index(folder: Path, doc: dict[str, Any], links: dict[str, str], to: P
         f"<title>{_e(title)}</title><style>{CSS}td.best{{background:#e3f4e4;font-weight:600}}"
         f"img.plot{{max-width:100%;height:auto}}#runs td,#runs th{{font-size:13px;padding:3px 6px}}"
         f"#runs td{{white-space:nowrap}}td.when{{color:#666}}</style></head><body>",
-        f"<h1>{_e(title)}</h1><div class='sub'>{_e(folder)} · {len(doc['runs'])} runs · written "
+        f"<h1>{_e(title)}</h1><div class='sub'>{_e(folder)} · {len(doc['runs'])} runs{n_broken} · written "
         f"{datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}</div>",
         _sweep_line(folder),
         "<h2>Runs</h2>",
         f"<p>Parameters that differ between the runs; metrics from each run's metrics.json (best in green); "
-        f"finished in UTC. A run's name links to its own report.</p>{_table(doc, links, metrics)}",
+        f"finished in UTC. A run's name links to its own report.</p>{_table(doc, links, metrics)}{_broken(doc)}",
         "<h2>Metrics against the swept parameters</h2>", "".join(plots),
         "</body></html>"]
     return "\n".join(parts)
@@ -181,20 +217,22 @@ def render_index(folder: Path, doc: dict[str, Any], links: dict[str, str], to: P
 def write_index(folder: str | Path, to: str | Path | None = None, gt: str | Path | None = None,
                 cache: str | None = None, every: int | None = None, log: Any = None) -> Path:
     """Write each run's report (RUN/report.html) and the index page (default DIR/index.html).
-    With ``gt`` every run is evaluated first (its metrics.json is written)."""
+    With ``gt`` every run is evaluated first (its metrics.json is written). A run that cannot be
+    read, evaluated or reported is listed as such (and said through ``log``); the others are shown."""
     from gcvd_flow.engine.runs import collect
-    from gcvd_flow.report import write_report
+    from gcvd_flow.report import check_page_path, write_page, write_report
 
+    say = log or (lambda m: None)
     folder = Path(folder)
-    out = Path(to) if to else folder / INDEX_FILE
+    out = check_page_path(Path(to) if to else folder / INDEX_FILE)
     if gt is not None:
-        from gcvd_flow.evaluate.run_eval import evaluate, write_metrics
-
-        doc0 = collect([str(folder)])
-        for r in doc0["runs"]:
-            write_metrics(r["out"], evaluate(r["out"], gt))
-    doc = collect([str(folder)])
-    if not doc["runs"]:
+        _evaluate_all(folder, gt, say)
+    doc = collect([str(folder)], keep_broken=True)
+    for b in doc["broken"]:
+        say(f"warning: {b['name']}: broken, left out: {b['error']}")
+    for n in doc["notes"]:
+        say(f"warning: {n}")
+    if not doc["runs"] and not doc["broken"]:
         raise UsageError(f"{folder}: no run directories found")
     sort = next((m for m in ("ate_rmse", "abs_rel") if m in doc["metrics"]), None)
     if sort is not None:
@@ -205,14 +243,28 @@ def write_index(folder: str | Path, to: str | Path | None = None, gt: str | Path
     for r in doc["runs"]:
         try:
             page = write_report(r["out"], gt=gt, cache=cache, every=every)
-        except UsageError as exc:  # one broken run must not hide the others
-            if log is not None:
-                log(f"{r['name']}: no report: {exc}")
+        except (UsageError, StoreError, OSError) as exc:  # one broken run must not hide the others
+            say(f"{r['name']}: no report: {_line(exc)}")
             continue
         links[r["out"]] = Path(os.path.relpath(page.resolve(), out.resolve().parent)).as_posix()
-    text = render_index(folder, doc, links, out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, out)
+    write_page(out, render_index(folder, doc, links, out))
     return out
+
+
+def _evaluate_all(folder: Path, gt: str | Path, say: Any) -> None:
+    """metrics.json of every readable run (a run that cannot be evaluated is said and skipped)."""
+    from gcvd_flow.engine.runs import collect
+    from gcvd_flow.evaluate.run_eval import evaluate, write_metrics
+
+    for r in collect([str(folder)], keep_broken=True)["runs"]:
+        try:
+            write_metrics(r["out"], evaluate(r["out"], gt))
+        except (UsageError, StoreError, OSError) as exc:
+            say(f"warning: {r['name']}: not evaluated: {_line(exc)}")
+
+
+def _line(exc: BaseException) -> str:
+    text = (str(exc).splitlines() or [""])[0]
+    if isinstance(exc, OSError) and exc.strerror:
+        text = f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
+    return text or type(exc).__name__
