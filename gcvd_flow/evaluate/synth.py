@@ -381,9 +381,8 @@ def render_clip(
     return its per-pixel mask in ``dynamic``; seed: texture/colour seed; noise, blur, exposure,
     texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera); focal: fx = fy
     in px (None: ``default_intrinsics``' 300/384 x long side), principal point at the centre;
-    distortion: lens distortion the frames are seen through, of ``distortion_model`` "OPENCV"
-    (k1, k2, p1, p2[, k3]) or "OPENCV_FISHEYE" (k1..k4, cv2.fisheye); the ground truth stays pinhole.
-    Returns a ``SynthClip`` (see its docstring for shapes and units).
+    distortion: the lens the frames are seen through, ``distortion_model`` "OPENCV" (k1, k2, p1, p2[, k3])
+    or "OPENCV_FISHEYE" (k1..k4, cv2.fisheye); the ground truth stays pinhole. Returns a ``SynthClip``.
     """
     w, h = int(size[0]), int(size[1])
     if distortion is not None and (any(distortion) or distortion_model != "OPENCV"):
