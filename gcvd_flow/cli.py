@@ -16,9 +16,10 @@ from gcvd_flow.runtime import quiet_openmp
 
 
 def add_run_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,K1,K2,P1,P2]",
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="camera intrinsics at the source resolution, optionally with the lens distortion "
-                   "(OpenCV order; frames are undistorted at ingest) (same as --set ingest.intrinsics=...)")
+                   "(OpenCV order), or OPENCV_FISHEYE:FX,FY,CX,CY,K1,K2,K3,K4 (cv2.fisheye); frames are "
+                   "undistorted at ingest; values no lens has are refused (same as --set ingest.intrinsics=...)")
     p.add_argument("--masks", metavar="DIR",
                    help="your own masks: one PNG per frame (the frame's name, or frame order), non-zero = leave "
                    "the pixel out of every loss and of the depth consensus (same as --set masks.user_dir=DIR)")
@@ -56,9 +57,13 @@ def _add_synth(sub) -> None:
                    help="exposure swings between frames, relative gain (default 0; e.g. 0.2)")
     p.add_argument("--texture", type=float, default=1.0, metavar="F",
                    help="surface detail contrast (default 1; e.g. 0.2 for low texture)")
-    p.add_argument("--distortion", default=None, metavar="K1,K2,P1,P2",
-                   help="render through this lens distortion (OpenCV order; written to intrinsics.txt, "
-                   "the ground truth stays pinhole)")
+    lens = p.add_mutually_exclusive_group()
+    lens.add_argument("--distortion", default=None, metavar="K1,K2,P1,P2[,K3]",
+                      help="render through this lens distortion (OpenCV order; written to intrinsics.txt, "
+                      "the ground truth stays pinhole)")
+    lens.add_argument("--fisheye", default=None, metavar="K1,K2,K3,K4",
+                      help="render through OpenCV's fisheye model (cv2.fisheye) with these coefficients "
+                      "(written to intrinsics.txt as OPENCV_FISHEYE; the ground truth stays pinhole)")
     p.add_argument("--focal", type=float, default=None, metavar="PX",
                    help="focal length fx = fy in px (default 300/384 x long side, the guess used without intrinsics)")
     p.set_defaults(handler=cmd_synth)
@@ -188,6 +193,22 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _synth_lens(a: argparse.Namespace) -> tuple[tuple[float, ...] | None, str]:
+    """(coefficients, model) of synth's --distortion (4 or 5) / --fisheye (4); None: pinhole."""
+    opt, text, counts, model = (("fisheye", a.fisheye, (4,), "OPENCV_FISHEYE") if a.fisheye is not None else
+                                ("distortion", a.distortion, (4, 5), "OPENCV"))
+    if text is None:
+        return None, "OPENCV"
+    try:
+        dist = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        dist = ()
+    if len(dist) not in counts or not all(abs(v) < 1e6 for v in dist):
+        names = "k1,k2,k3,k4" if model == "OPENCV_FISHEYE" else "k1,k2,p1,p2[,k3]"
+        raise UsageError(f"--{opt} {text!r}: expected {' or '.join(map(str, counts))} numbers {names}")
+    return dist, model
+
+
 def cmd_synth(a: argparse.Namespace) -> int:
     from gcvd_flow.evaluate.synth import render_clip
     from gcvd_flow.io.formats import write_generic_layout
@@ -201,18 +222,14 @@ def cmd_synth(a: argparse.Namespace) -> int:
             raise UsageError(f"--{name} {getattr(a, name)}: must be a non-negative number")
     if a.focal is not None and not 0 < a.focal < 1e6:
         raise UsageError(f"--focal {a.focal}: must be a positive number of pixels")
-    dist = None
-    if a.distortion is not None:
-        try:
-            dist = tuple(float(v) for v in a.distortion.replace(",", " ").split())
-        except ValueError:
-            dist = ()
-        if len(dist) != 4 or not all(abs(v) < 1e6 for v in dist):
-            raise UsageError(f"--distortion {a.distortion!r}: expected 4 numbers k1,k2,p1,p2")
-    clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
-                       moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
-                       exposure=a.exposure, texture=a.texture, focal=a.focal,
-                       distortion=dist)
+    dist, model = _synth_lens(a)
+    try:
+        clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
+                           moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
+                           exposure=a.exposure, texture=a.texture, focal=a.focal,
+                           distortion=dist, distortion_model=model)
+    except ValueError as exc:  # a lens that sees beyond what the renderer pads
+        raise UsageError(f"--{'fisheye' if a.fisheye is not None else 'distortion'}: {exc}") from None
     write_generic_layout(a.out, clip)
     print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
           f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")
@@ -351,9 +368,33 @@ PRODUCT = engine_cli.Product(
     evaluate=evaluate_run, metric_columns=METRIC_COLUMNS)
 
 
+# options whose value is a list of numbers that may start with a minus sign (k1 < 0 for most
+# lenses): argparse takes '-0.28,0.09,0,0' for an option and says "expected one argument"
+NUMBER_LIST_OPTIONS = ("--intrinsics", "--distortion", "--fisheye")
+
+
+def glue_negative_values(argv: list[str], options: tuple[str, ...] = NUMBER_LIST_OPTIONS) -> list[str]:
+    """argv with ``OPT -0.28,...`` written as ``OPT=-0.28,...`` for the number-list options, so
+    argparse reads a value that starts with a minus sign as the option's value (not after '--')."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok == "--":
+            return out + list(argv[i:])
+        nxt = argv[i + 1] if i + 1 < len(argv) else None
+        if tok in options and nxt is not None and len(nxt) > 1 and nxt[0] == "-" and (nxt[1].isdigit() or nxt[1] == "."):
+            out.append(f"{tok}={nxt}")
+            i += 2
+            continue
+        out.append(tok)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     quiet_openmp()  # before any verb loads torch / OpenCV (and so in every worker it starts)
-    return engine_cli.main(PRODUCT, argv)
+    return engine_cli.main(PRODUCT, glue_negative_values(list(sys.argv[1:] if argv is None else argv)))
 
 
 if __name__ == "__main__":

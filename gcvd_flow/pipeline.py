@@ -46,6 +46,7 @@ from stages.depth import consensus as depth_consensus, filter as depth_filter, f
 from stages.frontend import (
     flow,
     ingest as ingest_mod,
+    lens,
     masks as masks_mod,
     params as frontend_params,
     priors as priors_mod,
@@ -118,19 +119,30 @@ def section(name: str, cls: type) -> type[Section]:
 IngestParams = section("ingest", frontend_params.IngestSettings)
 
 
-def _camera_intrinsics(src: Source, p: IngestParams) -> tuple[tuple[float, float, float, float] | None, str]:
+def _camera(src: Source, p: IngestParams) -> tuple[lens.Camera | None, str]:
+    """The camera --intrinsics, the layout's intrinsics.txt or a dataset default gives (source px;
+    None: none given) and where it came from, checked against the frame size: a value no lens
+    has is one line naming it and the option or file, exit 2 (stages.frontend.lens.check_camera)."""
     if p.intrinsics:
-        return ingest_mod.parse_intrinsics(p.intrinsics), "user (--intrinsics)"
-    if src.intrinsics is not None:
-        return src.intrinsics, src.intrinsics_origin or "dataset"
-    return None, "guess"
+        cam, origin, where = lens.parse_camera(p.intrinsics), "user (--intrinsics)", "--intrinsics"
+    elif src.intrinsics is not None:
+        cam = lens.make_camera(src.intrinsics, src.distortion_model if src.distortion else "PINHOLE", src.distortion or ())
+        origin = src.intrinsics_origin or "dataset"
+        where = f"{src.path}/intrinsics.txt" if origin == "intrinsics.txt" else f"{src.path} ({origin})"
+    else:
+        return None, "guess"
+    try:
+        lens.check_camera(cam, src.size)
+    except ValueError as exc:
+        raise UsageError(f"{where}: {exc}") from None
+    return cam, origin
 
 
-def _camera_distortion(src: Source, p: IngestParams) -> tuple[float, float, float, float] | None:
-    """k1, k2, p1, p2 of --intrinsics (8 numbers), else of the layout's intrinsics.txt, else None."""
-    if p.intrinsics:
-        return ingest_mod.parse_distortion(p.intrinsics)
-    return src.distortion
+def _undistort_of(cam: dict[str, Any]) -> list[Any] | None:
+    """The ingest summary's lens as item input [intrinsics, coefficients, model] (None: pinhole)."""
+    if "distortion" not in cam:
+        return None
+    return [cam["distortion_intrinsics"], cam["distortion"], cam.get("distortion_model", "OPENCV")]
 
 
 def _ingest_items(view, p: IngestParams):
@@ -139,10 +151,11 @@ def _ingest_items(view, p: IngestParams):
     if len(sel) < 2:
         raise UsageError(f"ingest selects {len(sel)} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
-    dist = _camera_distortion(src, p)
-    # with a lens distortion each item undistorts its frame: the coefficients and the intrinsics
-    # they refer to are part of the item's key (without one the items are keyed as before)
-    extra = {} if dist is None else {"undistort": Const([list(_camera_intrinsics(src, p)[0]), list(dist)])}
+    cam, _ = _camera(src, p)
+    # with a lens distortion each item undistorts its frame: the model, its coefficients and the
+    # intrinsics they refer to are part of the item's key (without one the items are keyed as before)
+    extra = {} if cam is None or not cam.distorted else {
+        "undistort": Const([list(cam.intrinsics), list(cam.coeffs), cam.model])}
     return [{"frame": src.items[i], "source_size": Const(list(src.size)),
              "name": Const(src.names[i] if src.names else str(i)), **extra} for i in sel]
 
@@ -150,14 +163,12 @@ def _ingest_items(view, p: IngestParams):
 def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
     src: Source = view.source
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
-    intr, origin = _camera_intrinsics(src, p)
-    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
-    dist = _camera_distortion(src, p)
-    if dist is not None:
-        if intr is None:
-            raise UsageError(f"{src.path}: lens distortion needs the intrinsics it refers to")
-        cam["distortion"] = [float(v) for v in dist]  # frames undistorted at ingest (pinhole K)
-        cam["distortion_intrinsics"] = [float(v) for v in intr]  # what the coefficients refer to (source px)
+    given, origin = _camera(src, p)
+    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, None if given is None else given.intrinsics, origin)
+    if given is not None and given.distorted:
+        cam["distortion"] = list(given.coeffs)  # frames undistorted at ingest (pinhole K)
+        cam["distortion_model"] = given.model  # OPENCV or OPENCV_FISHEYE (stages.frontend.lens)
+        cam["distortion_intrinsics"] = list(given.intrinsics)  # what the coefficients refer to (source px)
     cam["frame_indices"] = list(range(len(src.items)))[p.start:p.end:p.stride]
     cam["fps"] = src.fps
     cam["layout"] = src.layout
@@ -172,10 +183,17 @@ def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
         raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
                          f"the first frame's {src_w}x{src_h}")
     size = ingest_mod.working_size(src_w, src_h, p.long_side)
-    if "undistort" in inputs:  # [intrinsics (fx, fy, cx, cy), distortion (k1, k2, p1, p2)], source px
-        intr, dist = inputs["undistort"]
-        rgb = ingest_mod.undistort_frame(ingest_mod.prepare_frame(rgb, (src_w, src_h)), tuple(intr), tuple(dist))
+    if "undistort" in inputs:  # [intrinsics (fx, fy, cx, cy) source px, coefficients, model]
+        intr, dist, model = inputs["undistort"]
+        rgb = ingest_mod.undistort_frame(ingest_mod.prepare_frame(rgb, (src_w, src_h)), tuple(intr), tuple(dist), model)
     return {"image": ingest_mod.prepare_frame(rgb, size)}
+
+
+def undistort_source_frame(rgb: np.ndarray, cameras: dict[str, Any]) -> np.ndarray:
+    """A source frame as ingest undistorted it, from cameras.json (distortion, distortion_model,
+    distortion_intrinsics): for the exports that read the source frames (exports.source_frames)."""
+    return ingest_mod.undistort_frame(rgb, tuple(cameras["distortion_intrinsics"]), tuple(cameras["distortion"]),
+                                      cameras.get("distortion_model", "OPENCV"))
 
 
 INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", items=_ingest_items,
@@ -193,7 +211,7 @@ def _user_mask_items(view, p: Any):
     from gcvd_flow.engine.keys import digest_file
 
     cam = view.summary(INGEST)
-    und = [cam["distortion_intrinsics"], cam["distortion"]] if "distortion" in cam else None
+    und = _undistort_of(cam)
     files = _user_mask_files(view.source, p, list(cam["frame_indices"]))
     return [{"user_mask": ExternalRef(digest_file(f), _MaskFile(f)), "source_size": Const(list(view.source.size)),
              "size": Const([cam["width"], cam["height"]]), **({"undistort": Const(und)} if und else {})} for f in files]
@@ -440,7 +458,7 @@ def _mask_items(view, p: MasksParams):
         sel = list(view.summary(INGEST)["frame_indices"])  # the source frames ingest selected
         user = [ExternalRef(digest_file(f), _MaskFile(f)) for f in _user_mask_files(view.source, p, sel)]
         cam = view.summary(INGEST)
-        und = [cam["distortion_intrinsics"], cam["distortion"]] if "distortion" in cam else None
+        und = _undistort_of(cam)
     out = []
     for i in range(n):
         it: dict[str, Any] = {}
@@ -483,7 +501,7 @@ def _user_keep(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
     if user.shape != (sh, sw):
         raise ingest_mod.FrameError(f"--masks: a mask is {user.shape[1]}x{user.shape[0]}, the frames are {sw}x{sh}")
     und = inputs.get("undistort")
-    return user_masks.source_to_working(user, (shape[1], shape[0]), None if und is None else (und[0], und[1]))
+    return user_masks.source_to_working(user, (shape[1], shape[0]), None if und is None else tuple(und))
 
 
 def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
@@ -1268,17 +1286,14 @@ def open_source(path: str, config: GCVDConfig) -> Source:
     if n_sel < 2:
         raise UsageError(f"{path}: ingest selects {n_sel} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
-    intr, origin = _camera_intrinsics(src, p)
+    given, origin = _camera(src, p)  # a camera no lens has: one line, exit 2, before anything runs
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
-    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
+    cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, None if given is None else given.intrinsics, origin)
     K = cam["K"]
     note = ("not given: the focal length will be estimated from the video (calibrate stage; or pass "
             "--intrinsics fx,fy,cx,cy)" if cam["guessed"] and config.calibrate.mode == "auto" else
             "GUESSED, pass --intrinsics fx,fy,cx,cy for accurate results" if cam["guessed"] else origin)
-    dist = _camera_distortion(src, p)
-    if dist is not None and intr is None:
-        raise UsageError(f"{path}: lens distortion needs the intrinsics it refers to")
-    note += "" if dist is None else f"; lens distortion k1,k2,p1,p2 = {','.join(f'{v:g}' for v in dist)}: undistorted at ingest"
+    note += "" if given is None or not given.distorted else f"; lens {given.describe()}: undistorted at ingest"
     print(f"camera: {src.layout} input {src.size[0]}x{src.size[1]} -> working {w}x{h}, fx={K[0, 0]:.1f} "
           f"fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} ({note})", file=sys.stderr)
     return src

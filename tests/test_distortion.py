@@ -12,7 +12,8 @@ from gcvd_flow import pipeline
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt
 from gcvd_flow.io.sources import open_source
-from stages.frontend.ingest import parse_distortion, parse_intrinsics, undistort_frame
+from stages.frontend.ingest import undistort_frame
+from stages.frontend.lens import parse_camera
 
 DIST = (-0.28, 0.08, 0.001, -0.0005)
 
@@ -37,11 +38,13 @@ def test_undistort_recovers_the_pinhole_frame():
 
 
 def test_parse_eight_numbers():
-    assert parse_intrinsics("100,101,50,40,-0.28,0.08,0,0") == (100.0, 101.0, 50.0, 40.0)
-    assert parse_distortion("100,101,50,40,-0.28,0.08,0,0") == (-0.28, 0.08, 0.0, 0.0)
-    assert parse_distortion("100,101,50,40") is None
+    cam = parse_camera("100,101,50,40,-0.28,0.08,0,0")
+    assert cam.intrinsics == (100.0, 101.0, 50.0, 40.0)
+    assert (cam.model, cam.coeffs) == ("OPENCV", (-0.28, 0.08, 0.0, 0.0))
+    assert not parse_camera("100,101,50,40").distorted
+    assert not parse_camera("100,101,50,40,0,0,0,0").distorted  # all zero: nothing to undistort
     with pytest.raises(ValueError, match="k1,k2,p1,p2"):
-        parse_intrinsics("1,2,3,4,5")
+        parse_camera("1,2,3,4,5")
 
 
 def test_synth_writes_and_ingest_applies_the_distortion(tmp_path):
@@ -56,6 +59,7 @@ def test_synth_writes_and_ingest_applies_the_distortion(tmp_path):
     cfg = pipeline.GCVDConfig()
     items = pipeline._ingest_items(SimpleNamespace(source=src), cfg.ingest)
     assert items[0]["undistort"].value[1] == pytest.approx(list(DIST))  # in the item's key
+    assert items[0]["undistort"].value[2] == "OPENCV"
     it = items[1]
     img = pipeline.run_ingest({"frame": it["frame"].loader(), "source_size": it["source_size"].value,
                                "name": "f", "undistort": it["undistort"].value}, cfg.ingest, None)["image"]

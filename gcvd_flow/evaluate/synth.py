@@ -92,9 +92,10 @@ class SynthClip:
     dynamic: np.ndarray | None
     trajectory: str = "orbit"
     seed: int = 0
-    # lens distortion (k1, k2, p1, p2, OpenCV) the frames were rendered through; depth, dynamic and
-    # K stay those of the pinhole camera (the undistorted image)
-    distortion: tuple[float, float, float, float] | None = None
+    # lens distortion the frames were rendered through (OPENCV: k1, k2, p1, p2[, k3]; OPENCV_FISHEYE:
+    # k1..k4, cv2.fisheye); depth, dynamic and K stay those of the pinhole camera (the undistorted image)
+    distortion: tuple[float, ...] | None = None
+    distortion_model: str = "OPENCV"
 
 
 def default_intrinsics(size: tuple[int, int]) -> np.ndarray:
@@ -370,7 +371,8 @@ def render_clip(
     exposure: float = 0.0,
     texture: float = 1.0,
     focal: float | None = None,
-    distortion: tuple[float, float, float, float] | None = None,
+    distortion: tuple[float, ...] | None = None,
+    distortion_model: str = "OPENCV",
 ) -> SynthClip:
     """Render a synthetic clip of the textured room.
 
@@ -379,14 +381,13 @@ def render_clip(
     return its per-pixel mask in ``dynamic``; seed: texture/colour seed; noise, blur, exposure,
     texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera); focal: fx = fy
     in px (None: ``default_intrinsics``' 300/384 x long side), principal point at the centre;
-    distortion: (k1, k2, p1, p2) OpenCV lens distortion the frames are seen through (ground
-    truth stays pinhole).
-    Returns a ``SynthClip`` (see its docstring for shapes and units).
+    distortion: the lens the frames are seen through, ``distortion_model`` "OPENCV" (k1, k2, p1, p2[, k3])
+    or "OPENCV_FISHEYE" (k1..k4, cv2.fisheye); the ground truth stays pinhole. Returns a ``SynthClip``.
     """
     w, h = int(size[0]), int(size[1])
-    if distortion is not None and any(distortion):
+    if distortion is not None and (any(distortion) or distortion_model != "OPENCV"):
         return _distorted_clip(n_frames, trajectory, (w, h), moving_object, seed, noise, blur, exposure, texture,
-                               focal, tuple(float(v) for v in distortion))
+                               focal, tuple(float(v) for v in distortion), distortion_model)
     K = default_intrinsics((w, h))
     if focal is not None:
         K[0, 0] = K[1, 1] = float(focal)
@@ -443,31 +444,50 @@ def render_clip(
 
 def _distorted_clip(n_frames: int, trajectory: str, size: tuple[int, int], moving_object: bool, seed: int,
                     noise: float, blur: float, exposure: float, texture: float, focal: float | None,
-                    distortion: tuple[float, float, float, float]) -> SynthClip:
-    """A clip seen through OpenCV's radial-tangential distortion: the pinhole clip is rendered on a
-    canvas padded by a third of the long side (same focal length, principal point moved by the
-    pad), and each distorted pixel samples it where the distortion model sends it (bilinear).
-    Depth and dynamic masks are the pinhole image's (the canvas' centre)."""
+                    distortion: tuple[float, ...], model: str = "OPENCV") -> SynthClip:
+    """A clip seen through a lens (OpenCV's radial-tangential model, or cv2.fisheye's): the pinhole
+    clip is rendered on a canvas padded to hold where every distorted pixel's ray lands (same
+    focal length, principal point moved by the pad), and each distorted pixel samples it there
+    (bilinear). Depth and dynamic masks are the pinhole image's (the canvas' centre)."""
     import cv2
 
     w, h = size
-    pad = max(w, h) // 3
     f = float(focal) if focal is not None else float(default_intrinsics(size)[0, 0])
-    big = render_clip(n_frames, trajectory, (w + 2 * pad, h + 2 * pad), moving_object, seed, noise, blur,
-                      exposure, texture, focal=f)
     K = default_intrinsics(size)
     K[0, 0] = K[1, 1] = f
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    pts = np.stack([u.ravel(), v.ravel()], -1)[:, None, :]
-    und = cv2.undistortPoints(pts, K, np.asarray(distortion, np.float64), None, K,
-                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-9)).reshape(h, w, 2)
+    und = undistort_pixels(K, distortion, model, size)
+    reach = max(-und[..., 0].min(), und[..., 0].max() - (w - 1), -und[..., 1].min(), und[..., 1].max() - (h - 1))
+    if not np.isfinite(reach) or reach > 2 * max(w, h):
+        raise ValueError(f"distortion {model} {distortion}: the lens sees beyond 2x the image size (too strong)")
+    pad = max(max(w, h) // 3, int(np.ceil(reach)) + 2)
+    big = render_clip(n_frames, trajectory, (w + 2 * pad, h + 2 * pad), moving_object, seed, noise, blur,
+                      exposure, texture, focal=f)
     mx = (und[..., 0] + pad).astype(np.float32)
     my = (und[..., 1] + pad).astype(np.float32)
     frames = np.stack([cv2.remap(fr, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT) for fr in big.frames])
     crop = (slice(None), slice(pad, pad + h), slice(pad, pad + w))
     return SynthClip(frames=frames, depth=np.ascontiguousarray(big.depth[crop]), poses=big.poses, K=K,
                      dynamic=None if big.dynamic is None else np.ascontiguousarray(big.dynamic[crop]),
-                     trajectory=trajectory, seed=int(seed), distortion=distortion)
+                     trajectory=trajectory, seed=int(seed), distortion=distortion, distortion_model=model)
+
+
+def undistort_pixels(K: np.ndarray, distortion: tuple[float, ...], model: str, size: tuple[int, int]) -> np.ndarray:
+    """Every pixel (u, v) of a distorted image of ``size`` = (w, h) -> where its ray meets the
+    pinhole image of K: float64 (h, w, 2) (OpenCV's iterative undistortPoints, 50 iterations)."""
+    import cv2
+
+    w, h = size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pts = np.stack([u.ravel(), v.ravel()], -1)[:, None, :]
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-9)
+    D = np.asarray(distortion, np.float64)
+    if model == "OPENCV_FISHEYE":
+        und = cv2.fisheye.undistortPoints(pts, K, D, None, K, criteria=crit)
+    elif model == "OPENCV":
+        und = cv2.undistortPoints(pts, K, D, None, K, criteria=crit)
+    else:
+        raise ValueError(f"unknown distortion model {model!r} (OPENCV, OPENCV_FISHEYE)")
+    return und.reshape(h, w, 2)
 
 
 # ----------------------------------------------------------------------------- camera impairments

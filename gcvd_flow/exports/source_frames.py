@@ -54,7 +54,7 @@ def scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
 def source_view(run: RunData) -> FrameView | str:
     """The source-resolution view, or the reason it is unavailable (a str)."""
     from gcvd_flow.io.sources import open_source
-    from gcvd_flow.pipeline import RUN_DIR_SOURCES
+    from gcvd_flow.pipeline import RUN_DIR_SOURCES, undistort_source_frame
 
     try:
         doc = read_run_dir(run.run_dir)
@@ -84,20 +84,6 @@ def source_view(run: RunData) -> FrameView | str:
         img = items[idx[k]].loader()
         if img.shape != (src_h, src_w, 3):
             raise UsageError(f"{input_}: frame {idx[k]} is {img.shape[1]}x{img.shape[0]}, expected {src_w}x{src_h}")
-        return img if not dist else undistort(img, cams["distortion_intrinsics"], dist)
+        return img if dist is None else undistort_source_frame(img, cams)
 
     return FrameView(MapValue(get, len(idx), None), K_src, src_w, src_h, (sx, sy), "source")
-
-
-def undistort(rgb: np.ndarray, intrinsics: Any, distortion: Any) -> np.ndarray:
-    """A source frame seen through the lens distortion (k1, k2, p1, p2; OpenCV) -> the pinhole image
-    of the same intrinsics (fx, fy, cx, cy, source pixels): what ``ingest`` did to the run's frames
-    (stages/frontend/ingest.undistort_frame; the same OpenCV maps and bilinear remap)."""
-    import cv2
-
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-    h, w = rgb.shape[:2]
-    mx, my = cv2.initUndistortRectifyMap(K, np.asarray(distortion, np.float64), None, K, (w, h), cv2.CV_32FC1)
-    return cv2.remap(np.ascontiguousarray(rgb), mx, my, interpolation=cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -7,7 +7,7 @@ the generic dataset layout.
 Generic dataset layout (what ``write_generic_layout`` writes and ``read_generic_layout`` reads)::
 
     OUT/frames/000000.png ...      RGB frames (PNG, deterministic bytes)
-    OUT/intrinsics.txt             one line "fx fy cx cy" (pixels)
+    OUT/intrinsics.txt             one line "fx fy cx cy" (pixels), or with a lens model: read_camera_txt
     OUT/gt/poses.txt               TUM "t tx ty tz qx qy qz qw", camera-to-world, t = frame index
     OUT/gt/depth/000000.png ...    uint16 depth in millimetres (0 = invalid)
     OUT/gt/dynamic/000000.png ...  uint8 0/1, 1 = pixel sees a moving object (only if known)
@@ -194,48 +194,104 @@ def read_redwood_log(path: PathLike) -> np.ndarray:
     return poses
 
 
-def read_intrinsics_txt(path: PathLike) -> np.ndarray:
-    """Read intrinsics -> K float64 (3, 3).
+# camera models of intrinsics.txt (COLMAP's names; the grammar is stages/frontend/lens.py's, which
+# the pipeline uses for --intrinsics: tests/test_cameras.py checks that both read the same)
+CAMERA_MODELS = {"pinhole": ("PINHOLE", (4,)), "opencv": ("OPENCV", (8, 9)),
+                 "opencv_fisheye": ("OPENCV_FISHEYE", (8,)), "fisheye": ("OPENCV_FISHEYE", (8,))}
+_CAMERA_SYNTAX = ("'fx fy cx cy' (4 values), 'fx fy cx cy k1 k2 p1 p2 [k3]' (8 or 9: with the lens distortion, "
+                  "OpenCV order), 'OPENCV_FISHEYE fx fy cx cy k1 k2 k3 k4' or a 3x3 matrix")
 
-    Accepts one line ``fx fy cx cy`` (pixels; the generic layout), the same followed by the lens
-    distortion ``k1 k2 p1 p2`` (OpenCV order; :func:`read_distortion_txt`), or 9 numbers (a 3x3 matrix,
-    row-major, on one or three lines). Non-finite values and focal lengths <= 0 are a
-    ``DatasetError`` naming the file (a garbage file must not run to the end).
+
+def read_camera_txt(path: PathLike) -> tuple[np.ndarray, str, tuple[float, ...]]:
+    """Read ``intrinsics.txt`` -> (K float64 (3, 3), model, distortion coefficients).
+
+    Accepts, after an optional model name (PINHOLE, OPENCV, OPENCV_FISHEYE or fisheye; a space or
+    a colon after it): ``fx fy cx cy`` (PINHOLE), the same followed by ``k1 k2 p1 p2 [k3]``
+    (OPENCV, OpenCV order), ``OPENCV_FISHEYE fx fy cx cy k1 k2 k3 k4`` (cv2.fisheye), or 9 unnamed
+    numbers ending with ``0 0 1`` (a 3x3 matrix, row-major, on one or three lines). Lines starting
+    with '#' are comments. Non-finite values and focal lengths <= 0 are a ``DatasetError`` naming
+    the file (a garbage file must not run to the end); whether the camera fits the frames is
+    checked at ingest (stages.frontend.lens.check_camera).
     """
     path = Path(path)
-    vals = [v for _, r in _numeric_rows(path) for v in r]
-    if len(vals) in (4, 8):  # fx fy cx cy [k1 k2 p1 p2]: read_distortion_txt reads the rest
-        if not np.all(np.isfinite(vals)):
-            raise DatasetError(path, "non-finite values (nan / inf); expected 'fx fy cx cy [k1 k2 p1 p2]'")
-        fx, fy, cx, cy = vals[:4]
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    elif len(vals) == 9:
-        K = np.array(vals, dtype=np.float64).reshape(3, 3)
+    text = " ".join(line for line in _read_text(path).splitlines() if not line.strip().startswith("#"))
+    head, sep, rest = text.partition(":")
+    if sep and _is_model_name(head.strip()):  # MODEL:numbers
+        text = head + " " + rest
+    tokens = text.replace(",", " ").split()
+    name = tokens.pop(0) if tokens and _is_model_name(tokens[0]) else None
+    try:
+        vals = [float(t) for t in tokens]
+    except ValueError:
+        raise DatasetError(path, f"not numeric: {' '.join(tokens)[:80]!r}; expected {_CAMERA_SYNTAX}") from None
+    model = _camera_model(path, name, vals)
+    if model == "MATRIX":
+        K, coeffs, model = np.array(vals, dtype=np.float64).reshape(3, 3), (), "PINHOLE"
     else:
-        raise DatasetError(path, f"expected 'fx fy cx cy' (4 values), 'fx fy cx cy k1 k2 p1 p2' (8: with the "
-                           f"lens distortion, OpenCV order) or a 3x3 matrix, got {len(vals)} values")
-    if not np.all(np.isfinite(K)):
-        raise DatasetError(path, "non-finite values (nan / inf); expected 'fx fy cx cy' in pixels")
+        fx, fy, cx, cy = vals[:4]
+        K, coeffs = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), tuple(vals[4:])
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(coeffs))):
+        raise DatasetError(path, f"non-finite values (nan / inf); expected {_CAMERA_SYNTAX}")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise DatasetError(path, f"focal lengths must be positive, got fx={K[0, 0]:g} fy={K[1, 1]:g}")
-    return K
+    return K, model, coeffs
 
 
-def read_distortion_txt(path: PathLike) -> tuple[float, float, float, float] | None:
-    """The lens distortion (k1, k2, p1, p2) of an 8-value ``intrinsics.txt``; None otherwise (or all
-    zero). Call after :func:`read_intrinsics_txt` (which checks the file)."""
-    vals = [v for _, r in _numeric_rows(Path(path)) for v in r]
-    if len(vals) != 8 or not any(vals[4:]):
+def _is_model_name(t: str) -> bool:
+    """Letters and '_' that are not a number ('nan', 'inf' are numbers)."""
+    if not t.replace("_", "").isalpha():
+        return False
+    try:
+        float(t)
+    except ValueError:
+        return True
+    return False
+
+
+def _camera_model(path: Path, name: str | None, vals: list[float]) -> str:
+    n = len(vals)
+    if name is not None:
+        if name.lower() not in CAMERA_MODELS:
+            raise DatasetError(path, f"unknown camera model {name!r} (accepted: PINHOLE, OPENCV, OPENCV_FISHEYE)")
+        model, counts = CAMERA_MODELS[name.lower()]
+        if n not in counts:
+            raise DatasetError(path, f"{model} takes {' or '.join(map(str, counts))} values, got {n}")
+        return model
+    if n == 4:
+        return "PINHOLE"
+    if n == 8 or (n == 9 and vals[6:] != [0.0, 0.0, 1.0]):
+        return "OPENCV"
+    if n == 9:
+        return "MATRIX"
+    raise DatasetError(path, f"expected {_CAMERA_SYNTAX}, got {n} values")
+
+
+def read_intrinsics_txt(path: PathLike) -> np.ndarray:
+    """Read ``intrinsics.txt`` -> K float64 (3, 3) (:func:`read_camera_txt`; the distortion is
+    :func:`read_distortion_txt`'s)."""
+    return read_camera_txt(path)[0]
+
+
+def read_distortion_txt(path: PathLike) -> tuple[float, ...] | None:
+    """The lens distortion coefficients of ``intrinsics.txt`` (OPENCV: k1 k2 p1 p2 [k3];
+    OPENCV_FISHEYE: k1 k2 k3 k4; :func:`read_camera_txt` says which model); None for a pinhole
+    camera (OPENCV with every coefficient zero included)."""
+    _, model, coeffs = read_camera_txt(path)
+    if model == "PINHOLE" or (model == "OPENCV" and not any(coeffs)):
         return None
-    return tuple(float(v) for v in vals[4:])  # type: ignore[return-value]
+    return coeffs
 
 
-def write_intrinsics_txt(path: PathLike, K: np.ndarray, distortion: Any = None) -> None:
-    """Write K (3, 3) as one line ``fx fy cx cy`` (%.9f), followed by ``k1 k2 p1 p2`` when given."""
+def write_intrinsics_txt(path: PathLike, K: np.ndarray, distortion: Any = None, model: str = "OPENCV") -> None:
+    """Write K (3, 3) as one line ``fx fy cx cy`` (%.9f), followed by ``k1 k2 p1 p2`` when given;
+    five OPENCV coefficients and the fisheye's are written with the model's name in front
+    (``OPENCV fx fy cx cy k1 k2 p1 p2 k3``, ``OPENCV_FISHEYE fx fy cx cy k1 k2 k3 k4``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    extra = "" if distortion is None else " " + " ".join(f"{float(v):.9f}" for v in distortion)
-    path.write_text(f"{K[0, 0]:.9f} {K[1, 1]:.9f} {K[0, 2]:.9f} {K[1, 2]:.9f}{extra}\n")
+    coeffs = [] if distortion is None else [float(v) for v in distortion]
+    named = model == "OPENCV_FISHEYE" or len(coeffs) == 5
+    vals = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]] + coeffs
+    path.write_text((f"{model} " if named else "") + " ".join(f"{float(v):.9f}" for v in vals) + "\n")
 
 
 # ----------------------------------------------------------------------------- images
@@ -428,7 +484,8 @@ def write_generic_layout(out_dir: PathLike, clip: Any) -> Path:
     (out / "frames").mkdir(parents=True, exist_ok=True)
     for i, f in enumerate(frames):
         write_rgb_png(out / "frames" / f"{i:06d}.png", f)
-    write_intrinsics_txt(out / "intrinsics.txt", np.asarray(clip.K), getattr(clip, "distortion", None))
+    write_intrinsics_txt(out / "intrinsics.txt", np.asarray(clip.K), getattr(clip, "distortion", None),
+                         getattr(clip, "distortion_model", "OPENCV"))
     poses = getattr(clip, "poses", None)
     if poses is not None:
         write_tum_poses(out / "gt" / "poses.txt", np.arange(len(poses), dtype=np.float64), poses)

@@ -147,11 +147,12 @@ def _warn_unsolvable(unsolvable: dict[int, str], idx: list[int]) -> None:
 
 def _distortion_doc(cam: dict[str, Any]) -> dict[str, Any]:
     """cameras.json's account of a lens distortion the frames were undistorted with at ingest: the
-    coefficients (k1, k2, p1, p2, OpenCV) and the source intrinsics they refer to. K above is the
-    pinhole camera of the undistorted frames (what every stage and export uses)."""
-    if not cam.get("distortion"):
+    model (OPENCV: k1, k2, p1, p2[, k3]; OPENCV_FISHEYE: k1..k4), its coefficients and the source
+    intrinsics they refer to. K above is the pinhole camera of the undistorted frames (what every
+    stage and export uses)."""
+    if cam.get("distortion") is None:
         return {}
-    return {"distortion": [float(v) for v in cam["distortion"]],
+    return {"distortion_model": str(cam.get("distortion_model", "OPENCV")), "distortion": [float(v) for v in cam["distortion"]],
             "distortion_intrinsics": [float(v) for v in cam["distortion_intrinsics"]], "frames_undistorted": True}
 
 

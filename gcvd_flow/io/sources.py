@@ -30,7 +30,7 @@ import numpy as np
 from gcvd_flow.engine.dag import ExternalRef
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.engine.keys import digest_file, key_of
-from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt, read_rgb, read_tum_stamped_files
+from gcvd_flow.io.formats import read_camera_txt, read_rgb, read_tum_stamped_files
 
 # FFmpeg's own log lines would break the one-line error contract; we report failures ourselves.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
@@ -104,7 +104,8 @@ class Source:
     fps: float | None = None
     intrinsics: tuple[float, float, float, float] | None = None  # at source resolution
     intrinsics_origin: str | None = None
-    distortion: tuple[float, float, float, float] | None = None  # k1 k2 p1 p2 (OpenCV) of intrinsics.txt
+    distortion: tuple[float, ...] | None = None  # lens distortion coefficients of intrinsics.txt
+    distortion_model: str = "OPENCV"  # their model (formats.read_camera_txt): OPENCV or OPENCV_FISHEYE
     gt: dict[str, str] = field(default_factory=dict)  # e.g. {"poses": path, "depth": folder}
     names: list[str] = field(default_factory=list)
     # source timestamp (seconds) of every frame where the input has one: TUM RGB-D rgb.txt
@@ -119,7 +120,8 @@ class Source:
         return key_of([[r.digest for r in self.items], self.layout,
                        None if self.intrinsics is None else [float(v) for v in self.intrinsics],
                        self.intrinsics_origin]
-                      + ([] if self.distortion is None else [[float(v) for v in self.distortion]]))
+                      + ([] if self.distortion is None else [[float(v) for v in self.distortion]])
+                      + ([] if self.distortion_model == "OPENCV" else [self.distortion_model]))
 
 
 def _image_files(folder: Path) -> list[Path]:
@@ -144,10 +146,14 @@ def _from_images(root: Path, files: list[Path], layout: str, **kw: Any) -> Sourc
     return Source(str(root), layout, refs, _first_size(files[0]), names=[f.name for f in files], **kw)
 
 
-def _intrinsics_of(path: Path) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) of an ``intrinsics.txt`` (formats.read_intrinsics_txt checks it)."""
-    K = read_intrinsics_txt(path)
-    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+def _camera_of(path: Path) -> dict[str, Any]:
+    """Source fields of an ``intrinsics.txt`` (formats.read_camera_txt checks it): intrinsics
+    (fx, fy, cx, cy), distortion (None: pinhole) and its model."""
+    K, model, coeffs = read_camera_txt(path)
+    dist = None if model == "PINHOLE" or (model == "OPENCV" and not any(coeffs)) else tuple(coeffs)
+    return {"intrinsics": (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
+            "intrinsics_origin": "intrinsics.txt", "distortion": dist,
+            "distortion_model": model if dist is not None else "OPENCV"}
 
 
 def open_video(path: Path) -> Source:
@@ -198,15 +204,13 @@ def open_source(path_str: str) -> Source:
         raise UsageError(f"{path}: not a video ({', '.join(sorted(VIDEO_EXTS))}) or a folder")
     # generic layout (gcvd-flow synth)
     if (path / "frames").is_dir():
-        intr = _intrinsics_of(path / "intrinsics.txt") if (path / "intrinsics.txt").exists() else None
+        camera = _camera_of(path / "intrinsics.txt") if (path / "intrinsics.txt").exists() else {}
         gt = {}
         if (path / "gt" / "poses.txt").exists():
             gt["poses"] = str(path / "gt" / "poses.txt")
         if (path / "gt" / "depth").is_dir():
             gt["depth"] = str(path / "gt" / "depth")
-        dist = read_distortion_txt(path / "intrinsics.txt") if intr else None
-        return _from_images(path, _image_files(path / "frames"), "generic", intrinsics=intr,
-                            intrinsics_origin="intrinsics.txt" if intr else None, distortion=dist, gt=gt)
+        return _from_images(path, _image_files(path / "frames"), "generic", gt=gt, **camera)
     # TUM RGB-D
     if (path / "rgb.txt").exists():
         stamps, files = read_tum_stamped_files(path / "rgb.txt")  # DatasetError names the line

@@ -13,6 +13,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from stages.frontend import lens
+
 DEFAULT_FOCAL_PER_LONG_SIDE = 300.0 / 384.0
 
 
@@ -44,48 +46,14 @@ def prepare_frame(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def _parse_numbers(text: str) -> tuple[float, ...]:
-    parts = [p for p in text.replace(",", " ").split() if p]
-    if len(parts) not in (4, 8):
-        raise ValueError(f"intrinsics {text!r}: expected 4 numbers fx,fy,cx,cy or 8 with the lens "
-                         "distortion fx,fy,cx,cy,k1,k2,p1,p2 (OpenCV order)")
-    try:
-        vals = tuple(float(p) for p in parts)
-    except ValueError:
-        raise ValueError(f"intrinsics {text!r}: not numbers") from None
-    if vals[0] <= 0 or vals[1] <= 0 or not all(np.isfinite(vals)):
-        raise ValueError(f"intrinsics {text!r}: focal lengths must be positive and all numbers finite")
-    return vals
-
-
-def parse_intrinsics(text: str) -> tuple[float, float, float, float]:
-    """'fx,fy,cx,cy' or 'fx,fy,cx,cy,k1,k2,p1,p2' (commas or spaces) -> (fx, fy, cx, cy);
-    ValueError naming the problem."""
-    return _parse_numbers(text)[:4]  # type: ignore[return-value]
-
-
-def parse_distortion(text: str) -> tuple[float, float, float, float] | None:
-    """The lens distortion (k1, k2, p1, p2) of an 8-number intrinsics string, None for 4 numbers
-    (or all-zero coefficients: nothing to undistort)."""
-    vals = _parse_numbers(text)
-    if len(vals) == 4 or not any(vals[4:]):
-        return None
-    return vals[4:]  # type: ignore[return-value]
-
-
 def undistort_frame(rgb: np.ndarray, intrinsics: tuple[float, float, float, float],
-                    distortion: tuple[float, float, float, float]) -> np.ndarray:
-    """Source frame uint8 (H, W, 3) seen through OpenCV's radial-tangential distortion (k1, k2, p1, p2)
-    -> the pinhole image of the same intrinsics (fx, fy, cx, cy, source pixels): each output pixel
-    samples the input where the distortion moves it (bilinear; outside the frame: black)."""
-    import cv2
-
-    fx, fy, cx, cy = intrinsics
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-    h, w = rgb.shape[:2]
-    mx, my = cv2.initUndistortRectifyMap(K, np.asarray(distortion, np.float64), None, K, (w, h), cv2.CV_32FC1)
-    return cv2.remap(np.ascontiguousarray(rgb), mx, my, interpolation=cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                    distortion: tuple[float, ...], model: str = "OPENCV") -> np.ndarray:
+    """Source frame uint8 (H, W, 3) seen through the lens (``model`` OPENCV: k1, k2, p1, p2[, k3];
+    OPENCV_FISHEYE: k1..k4; stages.frontend.lens) -> the pinhole image of the same intrinsics
+    (fx, fy, cx, cy, source pixels): each output pixel samples the input where the distortion
+    moves it (bilinear; outside the frame: black)."""
+    return lens.undistort_image(rgb, lens.Camera(*(float(v) for v in intrinsics), model,
+                                                 tuple(float(v) for v in distortion)))
 
 
 def make_camera(src_w: int, src_h: int, work_w: int, work_h: int,

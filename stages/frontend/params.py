@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from stages.frontend.ingest import parse_intrinsics
+from stages.frontend.lens import parse_camera
 from stages.params import USER_DIR, WEIGHTS_FILE, param
 
 DisPreset = Literal["ultrafast", "fast", "medium", "fine"]
@@ -14,7 +14,7 @@ DisPreset = Literal["ultrafast", "fast", "medium", "fine"]
 
 def _valid_intrinsics(v: str | None) -> str | None:
     if v is not None:
-        parse_intrinsics(v)  # ValueError naming what is wrong
+        parse_camera(v)  # ValueError naming what is wrong (check_camera at ingest: the frame size)
     return v
 
 
@@ -27,7 +27,8 @@ class IngestSettings:
     stride: int = param(1, "take every stride-th frame", ge=1)
     long_side: int = param(256, "working resolution, px of the long side (paper: 384)", ge=16, le=16384)
     intrinsics: str | None = param(None, "fx,fy,cx,cy at the source resolution, optionally followed by the lens "
-                                   "distortion k1,k2,p1,p2 (OpenCV order): frames are undistorted at ingest",
+                                   "distortion k1,k2,p1,p2[,k3] (OpenCV order), or OPENCV_FISHEYE:fx,fy,cx,cy,"
+                                   "k1,k2,k3,k4 (cv2.fisheye): frames are undistorted at ingest",
                                    validator=_valid_intrinsics)
 
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from stages.frontend import lens
+
 __all__ = [
     "source_to_working",
     "hard_masks",
@@ -29,20 +31,21 @@ __all__ = [
 
 
 def source_to_working(out: np.ndarray, size: tuple[int, int],
-                      undistort: tuple[tuple[float, ...], tuple[float, ...]] | None = None) -> np.ndarray:
+                      undistort: tuple | list | None = None) -> np.ndarray:
     """The user's mask bool (H0, W0), True = left out, at source resolution -> kept mask uint8
     (h, w), 1 = no source pixel the working pixel is made of was masked.
 
-    size = (w, h). ``undistort`` = (intrinsics (fx, fy, cx, cy), distortion (k1, k2, p1, p2)) in
-    source px when ingest undistorts the frames: the mask goes through the same remap (bilinear,
-    so an output pixel is out when any of the four source pixels it mixes is). Then the area
-    resize of ingest: a working pixel is out when any source pixel it covers is."""
+    size = (w, h). ``undistort`` = (intrinsics (fx, fy, cx, cy), coefficients[, model]) in source
+    px when ingest undistorts the frames (model OPENCV when not given; stages.frontend.lens): the
+    mask goes through the same remap (bilinear, so an output pixel is out when any of the four
+    source pixels it mixes is). Then the area resize of ingest: a working pixel is out when any
+    source pixel it covers is."""
     m = np.asarray(out, np.float32)
     if undistort is not None:
-        (fx, fy, cx, cy), dist = undistort
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        model = str(undistort[2]) if len(undistort) > 2 else "OPENCV"
+        cam = lens.Camera(*(float(v) for v in undistort[0]), model, tuple(float(v) for v in undistort[1]))
         h0, w0 = m.shape
-        mx, my = cv2.initUndistortRectifyMap(K, np.asarray(dist, np.float64), None, K, (w0, h0), cv2.CV_32FC1)
+        mx, my = lens.undistort_maps(cam, (w0, h0))
         # cv2.remap's bilinear weights are 1/32-quantised: a tap with a weight under 1/32 may get
         # none. Dilating by one pixel first makes the test "any of the four taps" exact.
         m = cv2.dilate(m, np.ones((3, 3), np.uint8))
