@@ -9,6 +9,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from gcvd_flow.engine import cli as engine_cli
 from gcvd_flow.engine.errors import UsageError
@@ -61,6 +62,9 @@ def _add_synth(sub) -> None:
                    "the ground truth stays pinhole)")
     p.add_argument("--focal", type=float, default=None, metavar="PX",
                    help="focal length fx = fy in px (default 300/384 x long side, the guess used without intrinsics)")
+    p.add_argument("--principal-point", default=None, metavar="CX,CY",
+                   help="principal point in px (default the image centre ((W-1)/2, (H-1)/2); written to "
+                   "intrinsics.txt; not with --distortion)")
     p.set_defaults(handler=cmd_synth)
 
 
@@ -209,14 +213,30 @@ def cmd_synth(a: argparse.Namespace) -> int:
             dist = ()
         if len(dist) != 4 or not all(abs(v) < 1e6 for v in dist):
             raise UsageError(f"--distortion {a.distortion!r}: expected 4 numbers k1,k2,p1,p2")
+    pp = _parse_principal_point(a.principal_point, size, dist)
     clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
                        moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
                        exposure=a.exposure, texture=a.texture, focal=a.focal,
-                       distortion=dist)
+                       distortion=dist, principal_point=pp)
     write_generic_layout(a.out, clip)
     print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
           f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _parse_principal_point(text: str | None, size: tuple[int, int], dist: Any) -> tuple[float, float] | None:
+    """synth's --principal-point CX,CY (px, inside the image) -> (cx, cy), or None without it."""
+    if text is None:
+        return None
+    try:
+        pp = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        pp = ()
+    if len(pp) != 2 or not (0 <= pp[0] <= size[0] - 1 and 0 <= pp[1] <= size[1] - 1):
+        raise UsageError(f"--principal-point {text!r}: expected CX,CY in px inside the {size[0]}x{size[1]} image")
+    if dist is not None and any(dist):
+        raise UsageError("--principal-point: not with --distortion (the distorted render keeps the centre)")
+    return (pp[0], pp[1])
 
 
 # ------------------------------------------------------------------------------ evaluation
