@@ -282,6 +282,7 @@ def _principal_point_outcome(res: dict[str, Any], K: np.ndarray, scale: tuple[fl
     sx, sy = scale
     cx, cy = float(K[0, 2]), float(K[1, 2])
     sig = res.get("pp_sigma")
+    sig = None if sig is None or not np.all(np.isfinite(sig)) else sig  # artifacts hold finite floats only
     doc = {"cx": cx, "cy": cy, "cx_source": (cx + 0.5) / sx - 0.5, "cy_source": (cy + 0.5) / sy - 0.5,
            "sigma_px": [float(v) for v in sig] if sig is not None else None,
            "sigma_source_px": [float(sig[0]) / sx, float(sig[1]) / sy] if sig is not None else None,

@@ -267,3 +267,7 @@ def test_principal_point_not_determined_keeps_the_centre_and_warns():
     assert out["principal_point"]["estimated"] is False and out["principal_point"]["sigma_px"] == [4.0, 6.0]
     assert [ln for ln in ctx.lines if ln.startswith("warning: ")] == ["warning: " + out["pp_warning"]]
     assert "principal point not estimated" in out["pp_warning"] and "centre" in out["pp_warning"]
+    # a singular marginal (std inf, HoloLens) is stored as no std: artifacts hold finite floats only
+    res["pp_sigma"] = [float("inf"), float("inf")]
+    pipeline._principal_point_outcome(res, K, (0.5, 0.5), out, _Ctx())
+    assert out["principal_point"]["sigma_px"] is None and out["principal_point"]["estimated"] is False
