@@ -1,6 +1,6 @@
 """Focal self-calibration alone (stages/frontend/calibrate.estimate_focal) on a folder's frames.
 
-    PYTHONPATH=. python benchmarks/bench_calibrate.py DIR TRUE_FX [--long-side 256] [--set key=value ...]
+    PYTHONPATH=. python benchmarks/bench_calibrate.py DIR TRUE_FX [--true-pp CX,CY] [--long-side 256] [--set key=value ...]
 
 DIR: a generic (``frames/``), Redwood/ICL (``color/``) folder or any folder of images. The frames
 are loaded at the working resolution as ``ingest`` does (``long_side``, area resampling), the guess
@@ -8,7 +8,11 @@ is f = 300/384 x long side at the image centre (what a run without intrinsics st
 JSON line is printed: the estimate at the source resolution, its error against TRUE_FX, rel_sigma
 and its terms (blocks / principal point / formal), forward_share, whether it is determined, the
 work proxies (frames, points, tracks, LM iterations) and the seconds (contaminated on a shared
-machine). ``--set`` passes estimate_focal keyword arguments (e.g. ``tracks_per_frame=100``).
+machine). ``--set`` passes estimate_focal keyword arguments (e.g. ``tracks_per_frame=100``,
+``pp_mode=centre``). The principal point the stage ends with (``pp_source``: estimated or the centre)
+and its estimate (``pp_estimate_source``, std ``pp_sigma_source``) at the source resolution; with
+``--true-pp`` (source px) their errors in px and in % of the image size (``pp_error_pct``: the
+larger of x / width and y / height).
 Numbers of docs/benchmarks.md ("Issue 27, second round") come from this script.
 """
 
@@ -18,6 +22,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -45,21 +50,55 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", type=Path)
     ap.add_argument("true_fx", type=float, help="the true fx at the source resolution (px)")
+    ap.add_argument("--true-pp", default=None, metavar="CX,CY", help="the true principal point (source px)")
     ap.add_argument("--long-side", type=int, default=256)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args()
-    ims, (w, _), (W, H) = load(a.folder, a.long_side)
+    ims, (w, h), (W, H) = load(a.folder, a.long_side)
     s = W / w
     f0 = 300 / 384 * max(W, H)
     K = np.array([[f0, 0, (W - 1) / 2], [0, f0, (H - 1) / 2], [0, 0, 1.0]])
-    kw = {k: (float(v) if "." in v else int(v)) for k, v in (item.split("=", 1) for item in a.set)}
+    kw = {k: _value(v) for k, v in (item.split("=", 1) for item in a.set)}
     t = time.time()
     res = calibrate.estimate_focal(ims, K, **kw)
     f = res.get("estimate", res["focal"]) / s
     out = {k: v for k, v in res.items() if isinstance(v, (int, float, str, bool))}
     out.update(f_source=f, error_pct=100 * (f / a.true_fx - 1), seconds=round(time.time() - t, 1),
                n=len(ims), size=[W, H])
+    out.update(_pp_fields(res, s, (w, h), a.true_pp))
     print(json.dumps(out))
+
+
+def _value(v: str) -> Any:
+    try:
+        return int(v)
+    except ValueError:
+        try:
+            return float(v)
+        except ValueError:
+            return v
+
+
+def _pp_fields(res: dict[str, Any], s: float, src: tuple[int, int], true_pp: str | None) -> dict[str, Any]:
+    """The principal point at the source resolution (pixel-centre scaling, as ingest) and its errors."""
+    def source(c):
+        return [(float(v) + 0.5) / s - 0.5 for v in c]
+
+    out: dict[str, Any] = {"pp_source": source(res["principal_point"]), "pp_estimated": res["pp_estimated"],
+                           "pp_reason": res.get("pp_reason", ""), "pp_z": res.get("pp_z")}
+    if res.get("pp_estimate") is not None:
+        out["pp_estimate_source"] = source(res["pp_estimate"])
+        out["pp_sigma_source"] = [float(v) / s for v in res["pp_sigma"]]
+        out["pp_sigma_blocks_source"] = [float(v) / s for v in res["pp_sigma_blocks"]]
+        out["pp_sigma_formal_source"] = [float(v) / s for v in res["pp_sigma_formal"]]
+    if true_pp:
+        t = np.asarray([float(v) for v in true_pp.split(",")])
+        for name in ("pp_source", "pp_estimate_source"):
+            if name in out:
+                e = np.asarray(out[name]) - t
+                out[name.replace("source", "error_px")] = e.tolist()
+                out[name.replace("source", "error_pct")] = float(100 * np.max(np.abs(e) / np.asarray(src)))
+    return out
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from gcvd_flow.engine import cli as engine_cli
 from gcvd_flow.engine.errors import UsageError
@@ -66,6 +67,9 @@ def _add_synth(sub) -> None:
                       "(written to intrinsics.txt as OPENCV_FISHEYE; the ground truth stays pinhole)")
     p.add_argument("--focal", type=float, default=None, metavar="PX",
                    help="focal length fx = fy in px (default 300/384 x long side, the guess used without intrinsics)")
+    p.add_argument("--principal-point", default=None, metavar="CX,CY",
+                   help="principal point in px (default the image centre ((W-1)/2, (H-1)/2); written to "
+                   "intrinsics.txt; not with --distortion)")
     p.set_defaults(handler=cmd_synth)
 
 
@@ -223,17 +227,33 @@ def cmd_synth(a: argparse.Namespace) -> int:
     if a.focal is not None and not 0 < a.focal < 1e6:
         raise UsageError(f"--focal {a.focal}: must be a positive number of pixels")
     dist, model = _synth_lens(a)
+    pp = _parse_principal_point(a.principal_point, size, dist)
     try:
         clip = render_clip(n_frames=a.frames, trajectory=a.trajectory, size=size,
                            moving_object=a.moving_object, seed=a.seed, noise=a.noise, blur=a.blur,
                            exposure=a.exposure, texture=a.texture, focal=a.focal,
-                           distortion=dist, distortion_model=model)
+                           distortion=dist, distortion_model=model, principal_point=pp)
     except ValueError as exc:  # a lens that sees beyond what the renderer pads
         raise UsageError(f"--{'fisheye' if a.fisheye is not None else 'distortion'}: {exc}") from None
     write_generic_layout(a.out, clip)
     print(f"wrote {a.frames} frames ({size[0]}x{size[1]}, {a.trajectory}"
           f"{', moving object' if a.moving_object else ''}) to {a.out} in {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _parse_principal_point(text: str | None, size: tuple[int, int], dist: Any) -> tuple[float, float] | None:
+    """synth's --principal-point CX,CY (px, inside the image) -> (cx, cy), or None without it."""
+    if text is None:
+        return None
+    try:
+        pp = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        pp = ()
+    if len(pp) != 2 or not (0 <= pp[0] <= size[0] - 1 and 0 <= pp[1] <= size[1] - 1):
+        raise UsageError(f"--principal-point {text!r}: expected CX,CY in px inside the {size[0]}x{size[1]} image")
+    if dist is not None and any(dist):
+        raise UsageError("--principal-point: not with --distortion (the distorted render keeps the centre)")
+    return (pp[0], pp[1])
 
 
 # ------------------------------------------------------------------------------ evaluation

@@ -43,6 +43,8 @@ def test_forward_motion_keeps_the_guess_and_says_why():
     warnings = [ln for ln in ctx.lines if ln.startswith("warning: ")]
     assert warnings == ["warning: " + out["warning"]]
     assert "only moves forward" in out["warning"] and "principal point" in out["warning"], out["warning"]
+    # the principal point stays at the centre, recorded as assumed (the one warning covers it)
+    assert out["principal_point"]["estimated"] is False and "centre" in out["principal_point"]["detail"]
 
 
 def test_forward_share_of_poses():
@@ -212,3 +214,61 @@ def test_user_masks_remove_the_focal_bias_of_a_patch_fixed_in_the_image():
     errs = [abs(o["K"][0, 0] / f_true - 1) for o in outs]
     assert outs[1]["estimated"] and errs[1] < 0.05, errs
     assert errs[0] > 0.1 and errs[1] < errs[0] / 3, errs
+
+
+@pytest.mark.slow
+def test_principal_point_estimated_on_a_clip_rendered_off_centre():
+    """A loop rendered with its principal point 3 % of the height (and 1.6 % of the width) off the
+    centre: the stage estimates it within 1 % of the image size, with a std that covers the error,
+    and uses it in K; assumed at the centre (principal_point=centre) it stays 3 % off. (The same
+    loop at 160x120 and 30 frames fits the centre within 0.07 px: not determined there.)"""
+    from gcvd_flow import pipeline
+
+    size = (256, 192)
+    K_guess = default_intrinsics(size)
+    true = np.array([131.5, 101.5])
+    clip = render_clip(60, "loop", size=size, seed=0, principal_point=tuple(true))
+    ctx = _Ctx()
+    out = pipeline.run_calibrate({"ingest": _Frames(list(clip.frames), K_guess, True)}, pipeline.CalibrateParams(), ctx)
+    pp = out["principal_point"]
+    assert out["estimated"] and pp["estimated"], (out, ctx.lines)
+    err = np.abs(out["K"][:2, 2] - true)
+    assert np.all(err <= 0.01 * np.asarray(size)), (out["K"], true)
+    assert np.all(err <= 2 * np.asarray(pp["sigma_px"])) and np.all(np.asarray(pp["sigma_px"]) < 0.01 * np.asarray(size)), pp
+    assert abs(out["K"][0, 0] / clip.K[0, 0] - 1) < 0.02
+    assert not [ln for ln in ctx.lines if ln.startswith("warning: ")]
+    assert any(ln.startswith("principal point estimated") for ln in ctx.lines), ctx.lines
+
+
+@pytest.mark.slow
+def test_principal_point_of_a_centred_clip_stays_at_the_centre():
+    size = (256, 192)
+    K_guess = default_intrinsics(size)
+    clip = render_clip(60, "loop", size=size, seed=0)
+    res = estimate_focal(list(clip.frames), K_guess)
+    assert res["determined"] and res["pp_estimate"] is not None, res
+    err = np.abs(np.asarray(res["principal_point"]) - K_guess[:2, 2])
+    assert np.all(err <= 0.005 * np.asarray(size)), res["principal_point"]
+    assert np.all(np.abs(np.asarray(res["pp_estimate"]) - K_guess[:2, 2]) <= 0.01 * np.asarray(size)), res["pp_estimate"]
+
+
+def test_principal_point_not_determined_keeps_the_centre_and_warns():
+    """A principal point whose std exceeds pp_max_sigma is not used: the centre is kept and one
+    warning line names it (the estimate and its std in the reason)."""
+    from gcvd_flow import pipeline
+
+    K = default_intrinsics(SIZE)
+    res = {"determined": True, "focal": 150.0, "rel_sigma": 0.01, "reason": "", "pairs": 10, "rotation_pairs": 0,
+           "method": "bundle adjustment", "median_px": 0.1, "frames": 20, "points": 500, "iterations": 10,
+           "principal_point": K[:2, 2].tolist(), "pp_estimated": False, "pp_estimate": [70.0, 50.0],
+           "pp_sigma": [4.0, 6.0], "pp_reason": "the motion does not determine it (...)"}
+    ctx = _Ctx()
+    out = {"K": K}
+    pipeline._principal_point_outcome(res, K, (0.5, 0.5), out, ctx)
+    assert out["principal_point"]["estimated"] is False and out["principal_point"]["sigma_px"] == [4.0, 6.0]
+    assert [ln for ln in ctx.lines if ln.startswith("warning: ")] == ["warning: " + out["pp_warning"]]
+    assert "principal point not estimated" in out["pp_warning"] and "centre" in out["pp_warning"]
+    # a singular marginal (std inf, HoloLens) is stored as no std: artifacts hold finite floats only
+    res["pp_sigma"] = [float("inf"), float("inf")]
+    pipeline._principal_point_outcome(res, K, (0.5, 0.5), out, _Ctx())
+    assert out["principal_point"]["sigma_px"] is None and out["principal_point"]["estimated"] is False

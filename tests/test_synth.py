@@ -191,3 +191,37 @@ def test_scan_is_keyframe_heavy():
     assert 1.5 < ang.mean() < 4.0 and ang.max() < 6.0
     yaw = np.degrees(np.arctan2(P[:, 0, 2], P[:, 2, 2]))
     assert yaw.max() - yaw.min() > 70  # sweeps the walls, not one view
+
+
+# ----------------------------------------------------------------------------- principal point
+
+
+def test_principal_point_off_centre_shifts_the_image_and_is_the_ground_truth():
+    """A principal point moved by whole pixels (dx, dy) renders the same rays dx, dy pixels later:
+    the image is the centred one shifted (exactly, on the overlap), and K carries it."""
+    size, dx, dy = (64, 48), 3, 2
+    c = default_intrinsics(size)
+    base = render_clip(n_frames=2, trajectory="loop", size=size, seed=1)
+    off = render_clip(n_frames=2, trajectory="loop", size=size, seed=1,
+                      principal_point=(c[0, 2] + dx, c[1, 2] + dy))
+    np.testing.assert_allclose(off.K[:2, 2], c[:2, 2] + [dx, dy])
+    assert off.K[0, 0] == base.K[0, 0]
+    np.testing.assert_array_equal(off.frames[:, dy:, dx:], base.frames[:, :-dy, :-dx])
+    np.testing.assert_allclose(off.depth[:, dy:, dx:], base.depth[:, :-dy, :-dx], rtol=1e-6)
+    assert not np.array_equal(off.frames, base.frames)
+
+
+def test_synth_cli_writes_the_principal_point_and_rejects_a_bad_one(tmp_path):
+    from conftest import cli
+
+    from gcvd_flow.io.formats import read_intrinsics_txt
+
+    r = cli("synth", str(tmp_path / "c"), "--frames", "2", "--size", "64x48", "--principal-point", "34.5,26")
+    assert r.returncode == 0, r.stderr
+    K = read_intrinsics_txt(tmp_path / "c" / "intrinsics.txt")
+    np.testing.assert_allclose([K[0, 2], K[1, 2]], [34.5, 26.0])
+    for bad in ("34.5", "70,20", "a,b"):
+        r = cli("synth", str(tmp_path / "x"), "--frames", "2", "--size", "64x48", "--principal-point", bad)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--principal-point" in r.stderr, r.stderr
+    r = cli("synth", str(tmp_path / "x"), "--frames", "2", "--principal-point", "130,100", "--distortion", "0.1,0,0,0")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -373,6 +373,7 @@ def render_clip(
     focal: float | None = None,
     distortion: tuple[float, ...] | None = None,
     distortion_model: str = "OPENCV",
+    principal_point: tuple[float, float] | None = None,
 ) -> SynthClip:
     """Render a synthetic clip of the textured room.
 
@@ -382,15 +383,22 @@ def render_clip(
     texture: camera impairments (module docstring; 0, 0, 0, 1 = a perfect camera); focal: fx = fy
     in px (None: ``default_intrinsics``' 300/384 x long side), principal point at the centre;
     distortion: the lens the frames are seen through, ``distortion_model`` "OPENCV" (k1, k2, p1, p2[, k3])
-    or "OPENCV_FISHEYE" (k1..k4, cv2.fisheye); the ground truth stays pinhole. Returns a ``SynthClip``.
+    or "OPENCV_FISHEYE" (k1..k4, cv2.fisheye); the ground truth stays pinhole; principal_point: (cx, cy)
+    in px (None: the centre ((W-1)/2, (H-1)/2)), not with ``distortion``.
+    Returns a ``SynthClip`` (see its docstring for shapes and units).
     """
     w, h = int(size[0]), int(size[1])
-    if distortion is not None and (any(distortion) or distortion_model != "OPENCV"):
+    lensed = distortion is not None and (any(distortion) or distortion_model != "OPENCV")
+    if principal_point is not None and lensed:
+        raise ValueError("a principal point off the centre is not rendered with lens distortion")
+    if lensed:
         return _distorted_clip(n_frames, trajectory, (w, h), moving_object, seed, noise, blur, exposure, texture,
                                focal, tuple(float(v) for v in distortion), distortion_model)
     K = default_intrinsics((w, h))
     if focal is not None:
         K[0, 0] = K[1, 1] = float(focal)
+    if principal_point is not None:
+        K[0, 2], K[1, 2] = float(principal_point[0]), float(principal_point[1])
     poses = make_trajectory(trajectory, n_frames)
     static = _static_scene()
     n_static = 1 + len(_FURNITURE)

@@ -158,7 +158,9 @@ def _distortion_doc(cam: dict[str, Any]) -> dict[str, Any]:
 
 def _calibration_doc(calib: dict[str, Any], K: Any, cam: dict[str, Any]) -> dict[str, Any]:
     """cameras.json's account of the focal length: estimated (value at source resolution,
-    relative uncertainty, what it was estimated from) and any warning."""
+    relative uncertainty, what it was estimated from) and any warning; with an estimated focal
+    length the principal point's (cx, cy, their std, estimated or assumed at the centre, and a
+    warning when the motion did not determine it)."""
     doc: dict[str, Any] = {}
     if calib.get("estimated"):
         fs = calib["focal_source"]
@@ -168,6 +170,10 @@ def _calibration_doc(calib: dict[str, Any], K: Any, cam: dict[str, Any]) -> dict
             "pairs": calib["pairs"], "rotation_pairs": calib["rotation_pairs"], "detail": calib["origin"]}
     if calib.get("warning"):
         doc["intrinsics_warning"] = calib["warning"]
+    if isinstance(calib.get("principal_point"), dict):  # with an estimated focal length: estimated or assumed
+        doc["principal_point"] = calib["principal_point"]
+    if calib.get("pp_warning"):
+        doc["principal_point_warning"] = calib["pp_warning"]
     return doc
 
 

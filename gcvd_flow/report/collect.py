@@ -292,10 +292,17 @@ def _frame_signals(data: ReportData, store: Any) -> None:
         est = est if isinstance(est, dict) else {}
         rel = est.get("rel_sigma") if isinstance(est.get("rel_sigma"), (int, float)) else None
         fx = est.get("fx_source") if isinstance(est.get("fx_source"), (int, float)) else float("nan")
-        data.signals.append(Signal("intrinsics", f"estimated fx {fx:.1f} px (source)", "info",
+        pp = data.cams.get("principal_point")
+        pp_text = ""
+        if isinstance(pp, dict) and isinstance(pp.get("detail"), str):
+            pp_text = f"; principal point {pp['detail']}"
+        pp_warn = data.cams.get("principal_point_warning")
+        data.signals.append(Signal("intrinsics", f"estimated fx {fx:.1f} px (source)"
+                                   + (", principal point estimated" if isinstance(pp, dict) and pp.get("estimated")
+                                      else ""), "warn" if pp_warn else "info",
                                    "focal length estimated from the video (calibrate stage)"
                                    + (f" +- {100 * rel:.1f} % (spread over frame blocks and a principal point "
-                                      "2 % off)" if rel is not None else "")))
+                                      "2 % off)" if rel is not None else "") + pp_text, judged=False))
     if store is None:
         return
     try:

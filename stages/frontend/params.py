@@ -49,6 +49,12 @@ class CalibrateSettings:
                                   "one final adjustment uses all): bounds the work on richly textured clips", ge=0)
     pp_frac: float = param(0.02, "the principal point is assumed at the centre; the uncertainty includes how far f "
                            "moves if it is off by this x the image size (x and y)", ge=0)
+    principal_point: Literal["auto", "centre"] = param(
+        "auto", "auto: with an estimated focal length, also estimate the principal point (square pixels) and use it "
+        "when its std is within pp_max_sigma of the image size and it lies > 3 std from the centre (else the centre, "
+        "with a warning when the motion does not determine it); centre: always the image centre")
+    pp_max_sigma: float = param(0.01, "the largest std (x / width, y / height) of a principal point estimate that "
+                                "is used", gt=0)
 
 
 @dataclass(frozen=True)
