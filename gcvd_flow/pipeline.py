@@ -141,7 +141,7 @@ def _ingest_items(view, p: IngestParams):
 
 def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
     src: Source = view.source
-    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
+    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side, p.min_short_frac)
     intr, origin = _camera_intrinsics(src, p)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
     dist = _camera_distortion(src, p)
@@ -163,7 +163,7 @@ def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     if (rgb.shape[1], rgb.shape[0]) != (src_w, src_h):
         raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
                          f"the first frame's {src_w}x{src_h}")
-    size = ingest_mod.working_size(src_w, src_h, p.long_side)
+    size = ingest_mod.working_size(src_w, src_h, p.long_side, p.min_short_frac)
     if "undistort" in inputs:  # [intrinsics (fx, fy, cx, cy), distortion (k1, k2, p1, p2)], source px
         intr, dist = inputs["undistort"]
         rgb = ingest_mod.undistort_frame(ingest_mod.prepare_frame(rgb, (src_w, src_h)), tuple(intr), tuple(dist))
@@ -1172,7 +1172,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     "paper": {
         "bundle_adjustment": {"enabled": False},
         "association": {"verify": "paper", "per_keyframe": 0, "retrieval": "global"},
-        "ingest": {"long_side": 384},
+        "ingest": {"long_side": 384, "min_short_frac": 0.0},
         "flow": {"preset": "medium"},
         "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024,
                                "points_by_weight": False, "stop_rel": 0.0},
@@ -1236,7 +1236,7 @@ def open_source(path: str, config: GCVDConfig) -> Source:
         raise UsageError(f"{path}: ingest selects {n_sel} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
     intr, origin = _camera_intrinsics(src, p)
-    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
+    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side, p.min_short_frac)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, intr, origin)
     K = cam["K"]
     note = ("not given: the focal length will be estimated from the video (calibrate stage; or pass "

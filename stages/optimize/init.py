@@ -41,6 +41,11 @@ __all__ = [
 ]
 
 
+# A pair is rotation-only when the homography's rotation moves the pixels onto their flow targets
+# within this median distance (px, the homography's own RANSAC threshold); stages.two_view.
+ROTATION_MAX_RESIDUAL_PX = 1.0
+
+
 def rays(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pixels uv (M, 2) -> camera rays (M, 3) float64 with z = 1."""
     return np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
@@ -65,7 +70,8 @@ def two_view_pose(
     f = float(K[0, 0])
     # Rotation-only (or no) motion first: E is then degenerate and its decomposition arbitrary
     # (identical frames gave a ~176-degree rotation).
-    R_h = rotation_from_homography(uv_a, uv_b, K)
+    # (the rotation itself must explain the flow: forward motion's zoom passes as a homography)
+    R_h = rotation_from_homography(uv_a, uv_b, K, max_residual_px=ROTATION_MAX_RESIDUAL_PX)
     if R_h is not None:
         T_b_a[:3, :3] = R_h
         return T_b_a, None
