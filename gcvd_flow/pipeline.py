@@ -673,7 +673,8 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
                               verify=p.verify, min_inliers=p.min_inliers, min_epipolar=p.min_epipolar,
                               per_keyframe=p.per_keyframe, max_candidates=p.max_candidates, retrieval=p.retrieval,
                               words=p.words, top_k=p.top_k, min_ratio=p.min_ratio, window=p.window,
-                              loop_nms=p.loop_nms, min_departure=p.min_departure)
+                              loop_nms=p.loop_nms, min_departure=p.min_departure,
+                              prewarp_sequential=p.prewarp_sequential)
     if p.threshold is not None:
         kw["similarity_threshold"] = p.threshold
     if p.backend == "resnet18":
@@ -1171,7 +1172,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     # The paper's / authors' settings (GPU-sized), and the paper's method: no bundle adjustment.
     "paper": {
         "bundle_adjustment": {"enabled": False},
-        "association": {"verify": "paper", "per_keyframe": 0, "retrieval": "global"},
+        "association": {"verify": "paper", "per_keyframe": 0, "retrieval": "global", "prewarp_sequential": "on"},
         "ingest": {"long_side": 384, "min_short_frac": 0.0},
         "flow": {"preset": "medium"},
         "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024,
