@@ -45,9 +45,9 @@ def test_two_view_forward_motion_is_not_taken_for_a_rotation() -> None:
     """Driving along the optical axis towards a far scene (KITTI at 256x78: 0.3 m steps, a street
     10-80 m away): the image zooms about the epipole by ~1 px over most of the frame, so one
     homography fits 95 % of the pixels within 1 px and its singular values pass the rotation
-    test; the old test then dropped the translation (zero baseline, no triangulation). The
-    rotation itself must explain the flow: here it leaves ~3 px, so the pair keeps its forward
-    translation."""
+    test; the default test then drops the translation (zero baseline, no triangulation). With
+    ``rotation_max_residual_px`` (opt-in) the rotation itself must explain the flow: here it leaves
+    ~3 px, so the pair keeps its forward translation."""
     from scipy.spatial.transform import Rotation
 
     K = np.array([[147.6, 0, 125.3], [0, 149.1, 38.2], [0, 0, 1]])
@@ -61,7 +61,9 @@ def test_two_view_forward_motion_is_not_taken_for_a_rotation() -> None:
     T[:3, :3] = Rotation.from_euler("y", 0.4, degrees=True).as_matrix()
     T[:3, 3] = T[:3, :3] @ np.array([0.0, 0.0, -0.25])  # camera b is 0.25 m ahead of a
     flow = _forward_flow(K, depth, T)
-    T_est, corr = two_view_pose(flow, np.ones(depth.shape, bool), K)
+    _, corr = two_view_pose(flow, np.ones(depth.shape, bool), K)
+    assert corr is None  # the default (the pipeline's): taken for a rotation
+    T_est, corr = two_view_pose(flow, np.ones(depth.shape, bool), K, rotation_max_residual_px=1.0)
     assert corr is not None, "forward motion taken for a rotation"
     t = T_est[:3, 3] / np.linalg.norm(T_est[:3, 3])
     assert t @ (T[:3, 3] / np.linalg.norm(T[:3, 3])) > np.cos(np.radians(3.0))
