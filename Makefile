@@ -88,9 +88,14 @@ peerdeps:
 	  $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq colmap >/dev/null; \
 	fi
 
-# gcvd-flow vs COLMAP on the ICL-NUIM frames; e.g. make bench-peer PEER_ARGS="--frames 30 --json"
+# gcvd-flow vs COLMAP on the ICL-NUIM frames and on forward driving (KITTI 07, frames 0-99), one
+# table each; e.g. make bench-peer PEER_ARGS="--frames 30 --json", or PEER_DATA=... for other folders
+PEER_DATA ?= $(ICL) ../shared/data/kitti07_first100
 bench-peer: $(STAMP) peerdeps
-	$(BIN)/python benchmarks/bench_peer.py $(PEER_ARGS)
+	@for d in $(PEER_DATA); do \
+	  echo "bench-peer: $$d"; \
+	  $(BIN)/python benchmarks/bench_peer.py --data $$d $(PEER_ARGS) || exit 1; \
+	done
 
 # CI regression check: GCVD on the shared ICL-NUIM frames at a small size (60 frames, 128 px,
 # about a minute on 2 cores), metrics compared with benchmarks/regress_baseline.json: exit 1 with

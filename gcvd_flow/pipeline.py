@@ -162,7 +162,7 @@ def _ingest_items(view, p: IngestParams):
 
 def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
     src: Source = view.source
-    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
+    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side, p.min_short_frac)
     given, origin = _camera(src, p)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, None if given is None else given.intrinsics, origin)
     if given is not None and given.distorted:
@@ -182,7 +182,7 @@ def run_ingest(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
     if (rgb.shape[1], rgb.shape[0]) != (src_w, src_h):
         raise ingest_mod.FrameError(f"{inputs['name']}: frame size {rgb.shape[1]}x{rgb.shape[0]} differs from "
                          f"the first frame's {src_w}x{src_h}")
-    size = ingest_mod.working_size(src_w, src_h, p.long_side)
+    size = ingest_mod.working_size(src_w, src_h, p.long_side, p.min_short_frac)
     if "undistort" in inputs:  # [intrinsics (fx, fy, cx, cy) source px, coefficients, model]
         intr, dist, model = inputs["undistort"]
         rgb = ingest_mod.undistort_frame(ingest_mod.prepare_frame(rgb, (src_w, src_h)), tuple(intr), tuple(dist), model)
@@ -759,7 +759,8 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
                               verify=p.verify, min_inliers=p.min_inliers, min_epipolar=p.min_epipolar,
                               per_keyframe=p.per_keyframe, max_candidates=p.max_candidates, retrieval=p.retrieval,
                               words=p.words, top_k=p.top_k, min_ratio=p.min_ratio, window=p.window,
-                              loop_nms=p.loop_nms, min_departure=p.min_departure)
+                              loop_nms=p.loop_nms, min_departure=p.min_departure,
+                              prewarp_sequential=p.prewarp_sequential)
     if p.threshold is not None:
         kw["similarity_threshold"] = p.threshold
     if p.backend == "resnet18":
@@ -1257,8 +1258,8 @@ PROFILES: dict[str, dict[str, Any]] = {
     # The paper's / authors' settings (GPU-sized), and the paper's method: no bundle adjustment.
     "paper": {
         "bundle_adjustment": {"enabled": False},
-        "association": {"verify": "paper", "per_keyframe": 0, "retrieval": "global"},
-        "ingest": {"long_side": 384},
+        "association": {"verify": "paper", "per_keyframe": 0, "retrieval": "global", "prewarp_sequential": "on"},
+        "ingest": {"long_side": 384, "min_short_frac": 0.0},
         "flow": {"preset": "medium"},
         "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024,
                                "points_by_weight": False, "stop_rel": 0.0},
@@ -1322,7 +1323,7 @@ def open_source(path: str, config: GCVDConfig) -> Source:
         raise UsageError(f"{path}: ingest selects {n_sel} frame(s) of {len(src.items)} "
                          f"(start={p.start}, end={p.end}, stride={p.stride}); need at least 2")
     given, origin = _camera(src, p)  # a camera no lens has: one line, exit 2, before anything runs
-    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side)
+    w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side, p.min_short_frac)
     cam = ingest_mod.make_camera(src.size[0], src.size[1], w, h, None if given is None else given.intrinsics, origin)
     K = cam["K"]
     note = ("not given: the focal length will be estimated from the video (calibrate stage; or pass "

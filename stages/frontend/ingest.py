@@ -24,11 +24,20 @@ class FrameError(ValueError):
     user_error = True
 
 
-def working_size(src_w: int, src_h: int, long_side: int | None) -> tuple[int, int]:
-    """(w, h) with the long side scaled to ``long_side`` (None or 0: keep), even numbers."""
+def working_size(src_w: int, src_h: int, long_side: int | None, min_short_frac: float = 0.0) -> tuple[int, int]:
+    """(w, h) with the long side scaled to ``long_side`` (None or 0: keep), even numbers.
+
+    ``min_short_frac``: the short side is at least this fraction of ``long_side`` (the long side
+    grows for frames wider than that, never past the source): a 1226x370 driving camera at 256 px
+    would keep 78 rows, where forward motion's parallax is too few pixels for bundle adjustment to
+    hold the scale (docs/benchmarks.md); at 0.5 it gets 424x128, about the pixels of a 4:3 clip."""
     if not long_side or long_side >= max(src_w, src_h):
         return src_w, src_h
     s = long_side / max(src_w, src_h)
+    if min_short_frac > 0:
+        s = min(1.0, max(s, min_short_frac * long_side / min(src_w, src_h)))
+        if s >= 1.0:
+            return src_w, src_h
     w = max(2, int(round(src_w * s / 2)) * 2)
     h = max(2, int(round(src_h * s / 2)) * 2)
     return w, h

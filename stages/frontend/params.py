@@ -26,6 +26,9 @@ class IngestSettings:
     end: int | None = param(None, "one past the last source frame (None: all)")
     stride: int = param(1, "take every stride-th frame", ge=1)
     long_side: int = param(256, "working resolution, px of the long side (paper: 384)", ge=16, le=16384)
+    min_short_frac: float = param(0.5, "the short side is at least this fraction of long_side: frames wider than "
+                                  "2:1 (a 1226x370 driving camera) get a longer long side instead of a few dozen "
+                                  "rows (0: the long side alone decides)", ge=0, le=1)
     intrinsics: str | None = param(None, "fx,fy,cx,cy at the source resolution, optionally followed by the lens "
                                    "distortion k1,k2,p1,p2[,k3] (OpenCV order), or OPENCV_FISHEYE:fx,fy,cx,cy,"
                                    "k1,k2,k3,k4 (cv2.fisheye): frames are undistorted at ingest",

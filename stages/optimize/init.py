@@ -47,12 +47,20 @@ def rays(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def two_view_pose(
-    fwd: np.ndarray, valid: np.ndarray, K: np.ndarray, n_pts: int = 3000, min_parallax: float = 0.5
+    fwd: np.ndarray, valid: np.ndarray, K: np.ndarray, n_pts: int = 3000, min_parallax: float = 0.5,
+    rotation_max_residual_px: float | None = None,
 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
     """Relative pose T_b_a (4, 4) float64 (camera a -> camera b coordinates) with unit
     translation (zero if rotation-only / unreliable) from the forward flow a -> b (H, W, 2) px and
     a usable-pixel mask (H, W) of frame a; also the correspondences (uv_a (M, 2), uv_b (M, 2)) px
-    of the RANSAC inliers, or None."""
+    of the RANSAC inliers, or None.
+
+    ``rotation_max_residual_px`` (opt-in, not used by the pipeline): a homography that fits is
+    taken for a rotation only when its rotation itself moves the pixels onto the flow within this
+    median distance (1.0: the homography's own threshold). Forward motion towards a far scene
+    passes as a homography (KITTI 07 at 256x78: 4 keyframe pairs lost their translation); on the
+    HoloLens walk-through the same test gave 4 short pairs a translation and cost ATE 0.061 ->
+    0.068 m, and at KITTI's new working size (424x128) no pair needs it (docs/log/2026-11-28-forward.md)."""
     h, w = valid.shape
     ys, xs = np.nonzero(valid)
     T_b_a = np.eye(4)
@@ -65,7 +73,7 @@ def two_view_pose(
     f = float(K[0, 0])
     # Rotation-only (or no) motion first: E is then degenerate and its decomposition arbitrary
     # (identical frames gave a ~176-degree rotation).
-    R_h = rotation_from_homography(uv_a, uv_b, K)
+    R_h = rotation_from_homography(uv_a, uv_b, K, max_residual_px=rotation_max_residual_px)
     if R_h is not None:
         T_b_a[:3, :3] = R_h
         return T_b_a, None
