@@ -290,3 +290,17 @@ def test_overall_verdict_is_the_worst_judged_status():
     assert keyframe_status(60, 4, 22, 39) == "ok"  # a slow orbit: 22 of 60
     assert keyframe_status(120, 4, 39, 39) == "warn"  # a gap at keyframes.max_gap
     assert keyframe_status(120, 12, 15, 39) == "ok"
+
+
+def test_loop_edges_are_read_at_run_positions_not_source_indices():
+    """Issue 37: optimize_edges names its loop edges by ingest position (= run position). A run
+    with ingest.start = 100 (source frames 100..) read them as source frame indices: every edge
+    was dropped (or drawn at the wrong frames) and the report said "0 used"."""
+    from gcvd_flow.report.collect import loop_edges
+
+    edges = [{"i": 3, "j": 40}, {"i": 10, "j": 55}, {"i": 12, "j": 90}]
+    rejected = [{"i": 10, "j": 55, "rotation_disagreement_deg": 41.0}]
+    got = loop_edges(edges, rejected, n=60, pose_graph_on=True)
+    # positions as given; the edge past the run's 60 frames is left out; the rejected one is not used
+    assert got == [{"a": 3, "b": 40, "used": True}, {"a": 10, "b": 55, "used": False}]
+    assert [lp["used"] for lp in loop_edges(edges, [], n=60, pose_graph_on=False)] == [False, False]

@@ -108,7 +108,7 @@ def collect(run_dir: str | Path, gt: str | Path | None = None, cache: str | None
     pos = {f: k for k, f in enumerate(run.frame_indices)}
     kf = cams.get("keyframes")
     data.keyframes = [pos[f] for f in kf if isinstance(f, int) and f in pos] if isinstance(kf, list) else []
-    _graph_signals(data, store, pos)
+    _graph_signals(data, store)
     _trajectory(data, gt)
     _frame_signals(data, store)
     _strip(data, store, every, max_frames)
@@ -135,7 +135,23 @@ def _trajectory(data: ReportData, gt: str | Path | None) -> None:
     data.gt_positions = g
 
 
-def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
+def loop_edges(edges: list[dict[str, Any]], rejected: list[dict[str, Any]] | None, n: int,
+               pose_graph_on: bool) -> list[dict[str, Any]]:
+    """optimize_edges' loop edges as {a, b, used}: a, b the run positions of the edge's frames
+    and used = kept by the pose graph (not in its ``rejected_loops``). The edges' i, j are ingest
+    positions, i.e. run positions: not source frame indices (cameras.json's ``frame_indices``),
+    which differ from them under ingest.start / stride (read as source indices, the edges of
+    such a run were dropped or drawn at the wrong frames, and the report said "0 used")."""
+    bad = {(int(r["i"]), int(r["j"])) for r in rejected or []}
+    out = []
+    for e in edges:
+        i, j = int(e["i"]), int(e["j"])
+        if 0 <= i < n and 0 <= j < n:
+            out.append({"a": i, "b": j, "used": pose_graph_on and (i, j) not in bad})
+    return out
+
+
+def _graph_signals(data: ReportData, store: Any) -> None:
     """Keyframes and gaps, loop edges found / verified / used, pose-graph residual."""
     from gcvd_flow import pipeline as G  # the stage names as the pipeline declares them
 
@@ -163,11 +179,7 @@ def _graph_signals(data: ReportData, store: Any, pos: dict[int, int]) -> None:
     except CACHE_ERRORS + (IndexError,) as exc:
         data.notes.append(f"loop edges and pose graph: not readable from the cache ({exc})")
         return
-    bad = {(int(r["i"]), int(r["j"])) for r in rejected or []}
-    for e in edges:
-        i, j = int(e["i"]), int(e["j"])
-        if i in pos and j in pos:
-            data.loops.append({"a": pos[i], "b": pos[j], "used": (i, j) not in bad and bool(pg["enabled"])})
+    data.loops = loop_edges(edges, rejected, len(data.run), bool(pg["enabled"]))
     found = len(graph.get("nonsequential_edges", [])) + len(graph.get("rejected", []))
     used = sum(lp["used"] for lp in data.loops)
     data.signals.append(Signal(
