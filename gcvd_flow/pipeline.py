@@ -305,7 +305,11 @@ FLOW = declare(MapStage("flow", run_flow, deps=(INGEST,), params="flow", kind="f
 # what compute_pair_flow(b, a) returns as fwd / fwd_valid.
 def _prior_refs(i: int, n: int, p: Any) -> list[int]:
     """Frame i's prior references (the geometric backend only): stages.graph.references."""
-    return references.prior_references(i, n, p.span) if p.backend == "geometric" else []
+    if p.backend != "geometric":
+        return []
+    if p.references == "symmetric":
+        return references.symmetric_prior_references(i, n, p.span)
+    return references.prior_references(i, n, p.span)
 
 
 def _fusion_refs(i: int, n: int, p: Any) -> list[int]:

@@ -150,3 +150,31 @@ def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
     dup = {img for img, k in seen.items() if k > 1}
     assert max(calls.values()) == 1
     assert not any((b, a) in calls for a, b in calls if a not in dup and b not in dup)
+
+
+def test_symmetric_prior_references_share_each_pair(clip, tmp_path):
+    """priors.references=symmetric: frame i reads i - span and i + span, so the pair (i, i + span)
+    is read by both frames it joins (frame i forward, frame i + span backward) and computed
+    once; the priors equal those triangulated from flows computed directly."""
+    sym = {"references": "symmetric"}
+    pairs = _pairs(N, priors=sym, depth_fusion={"references": "baseline"})
+    readers: Counter = Counter()
+    for i in range(N):
+        for j in gp._prior_refs(i, N, gp.PriorsParams(**sym)):
+            readers[(min(i, j), max(i, j))] += 1
+    assert set(readers) == {(a, b) for a, b, _, _ in pairs}
+    assert all(readers[(i, i + 8)] == 2 for i in range(N - 8))  # each span pair: two consumers
+    assert len(pairs) < len(_pairs(N, depth_fusion={"references": "baseline"}))
+    n = 211  # ICL: 215 pairs instead of 410
+    assert len(_pairs(n, priors=sym, depth_fusion={"references": "baseline"})) <= n + 8  # about n - span + 2 span (the ends); 410 with references=back
+    run = _run(clip, tmp_path, "priors.references=symmetric", "depth_fusion.references=baseline")
+    assert run["flow_far"]["executed"] == len(pairs) and run["priors"]["executed"] == N
+    frames = api.recorded_output(tmp_path / "run", "ingest", str(tmp_path / "cache"))
+    pri = api.recorded_output(tmp_path / "run", "priors", str(tmp_path / "cache"))
+    K = np.asarray(frames.summary["K"])
+    for i in (3, 12, N - 1):  # forward only, both ways, backward only
+        fl = [flow_mod.compute_pair_flow(frames[i]["image"], frames[j]["image"], preset="fine")
+              for j in gp._prior_refs(i, N, gp.PriorsParams(**sym))]
+        fl = [(f["fwd"], f["fwd_valid"]) for f in fl if f["fwd_valid"].mean() >= priors_mod.MIN_VALID_FRACTION]
+        ref = priors_mod.geometric_prior(frames[i]["image"], K, fl[:1], extra=fl[1:])
+        assert np.array_equal(pri[i]["inv_depth"], ref["inv_depth"].astype(np.float32))

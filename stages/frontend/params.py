@@ -100,6 +100,10 @@ class PriorsSettings:
 
     backend: Literal["geometric", "midas"] = "geometric"
     span: int = param(8, "frames between a frame and its reference for triangulation", ge=1)
+    references: Literal["back", "symmetric"] = param(
+        "back", "back: span and span/2 frames back (forward for the first frames), two direct flows per "
+        "frame; symmetric: span back and span forward, each direct flow shared by the two frames it joins "
+        "(half the flow_far pairs)")
     preset: DisPreset = param("fine", "DIS preset of the prior's direct flows ('fine': full-resolution "
                               "finest level; prior AbsRel 0.058 vs 0.095 with 'medium' on the synthetic loop)")
     fb_thresh: float = param(1.0, gt=0)
