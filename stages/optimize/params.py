@@ -114,8 +114,7 @@ class EdgeSettings:
 class SegmentSettings:
     """Segment optimisation: all frames, keyframe poses frozen."""
 
-    steps: int = _f(30, "Adam steps per window (60 until 2026-11-28: ICL ATE 1.153 -> 1.166 cm, AbsRel "
-                    "0.0479 -> 0.0481 with 30, the stage's time halved; docs/log/2026-11-28-cost.md)")
+    steps: int = _f(60, "Adam steps per window")
     lr: float = _f(1e-4, "depth head lr")
     loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution")
     pair_power: float = _f(0.5, "pair weight tau ** pair_power")
