@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test lint check-install test-fast bench-engine bench-accuracy bench-runtime bench-peer bench-scale bench-sweep clean sysdeps peerdeps testdeps regress regress-baseline
+.PHONY: setup demo test lint check-install test-fast bench-engine bench-accuracy bench-runtime bench-cost bench-peer bench-scale bench-sweep clean sysdeps peerdeps testdeps regress regress-baseline
 
 setup: $(STAMP)
 
@@ -71,6 +71,15 @@ bench-runtime: $(STAMP)
 	$(BIN)/python benchmarks/bench_runtime.py --real
 	$(BIN)/python benchmarks/bench_runtime.py --side-by-side 30 --size 128x96
 	$(BIN)/python benchmarks/bench_runtime.py --side-by-side 100 --trajectory scan --size 256x192 --policies passive
+
+# wall time against a reference commit, alternating on ICL, the HoloLens walk and KITTI (issue 38):
+# per-stage seconds, cores busy, peak memory, ratio. The references are detached worktrees next to
+# this checkout (made here when absent); e.g. make bench-cost COST_ARGS="--clips icl --repeat 2"
+COST_REF ?= 5261f0f
+COST_ALSO ?= aaaa9c0
+bench-cost: $(STAMP)
+	@for c in $(COST_REF) $(COST_ALSO); do test -d ../ref-$$c || git worktree add --detach ../ref-$$c $$c; done
+	$(BIN)/python benchmarks/bench_cost.py --ref ../ref-$(COST_REF) $(foreach c,$(COST_ALSO),--also ../ref-$(c)) $(COST_ARGS)
 
 # map stages' throughput on 1 vs 2 Dask workers, and a cluster projection (docs/teams.md)
 bench-scale: $(STAMP)

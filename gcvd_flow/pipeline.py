@@ -381,7 +381,11 @@ FLOW = declare(MapStage("flow", run_flow, deps=(INGEST,), params="flow", kind="f
 # what compute_pair_flow(b, a) returns as fwd / fwd_valid.
 def _prior_refs(i: int, n: int, p: Any) -> list[int]:
     """Frame i's prior references (the geometric backend only): stages.graph.references."""
-    return references.prior_references(i, n, p.span) if p.backend == "geometric" else []
+    if p.backend != "geometric":
+        return []
+    if p.references == "symmetric":
+        return references.symmetric_prior_references(i, n, p.span)
+    return references.prior_references(i, n, p.span)
 
 
 def _fusion_refs(i: int, n: int, p: Any) -> list[int]:
@@ -660,7 +664,8 @@ PriorsParams = section("priors", frontend_params.PriorsSettings)
 
 
 def _prior_items(view, p: PriorsParams):
-    # Reference frames span and span/2 frames back (forward for the first frames): the prior
+    # Reference frames span back and span forward (priors.references=symmetric: each pair serves
+    # the two frames it joins), or span and span/2 back (references=back): the prior
     # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
     # link, which on ICL turned 2-view poses off by degrees (AbsRel 0.25 vs 0.085 direct).
     # The direct flows are flow_far's items (shared with depth_fusion).

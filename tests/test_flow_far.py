@@ -34,6 +34,7 @@ def _pairs(n: int, **sections) -> list[tuple]:
     (with the default references=baseline fusion's pairs are chosen from the poses, in
     fusion_flow: tests/test_fusion_references.py)."""
     sections["depth_fusion"] = {"references": "offsets", **sections.get("depth_fusion", {})}
+    sections["priors"] = {"references": "back", **sections.get("priors", {})}  # unless a test says otherwise
     cfg = gp.GCVDConfig(**sections)
     return gp._far_pairs(n, type("B", (), {"priors": cfg.priors, "depth_fusion": cfg.depth_fusion}))
 
@@ -53,7 +54,7 @@ def test_pairs_are_the_union_of_both_consumers():
     # i-8 / i+8 of fusion and the span-8 prior share one set of pairs; the span-4 prior its own
     assert spans == {8: N - 8, 4: N - 4}
     # a consumer of each kind asks for 2 flows per frame: 4 per frame before, ~2 per frame now
-    asked = sum(len(gp._prior_refs(i, N, gp.PriorsParams())) + len(gp._fusion_refs(i, N, gp.DepthFusionParams(**two)))
+    asked = sum(len(gp._prior_refs(i, N, gp.PriorsParams(references="back"))) + len(gp._fusion_refs(i, N, gp.DepthFusionParams(**two)))
                 for i in range(N))
     assert asked == 2 * N + 2 * (N - 8) and len(pairs) == 2 * N - 12
     # the default references (+-1, 2, 4, 8): +-8 and +-4 shared with the priors, +-1 the flow
@@ -80,7 +81,9 @@ def test_a_reversed_pair_is_the_direct_flow_of_the_other_frame():
 
 
 def _run(clip: Path, tmp: Path, *sets: str, until: str = "priors") -> dict:
-    args = [a for s in ("depth_fusion.references=offsets", *sets) for a in ("--set", s)]
+    # the back-looking prior references (span, span / 2) unless a test sets them
+    back = () if any(s.startswith("priors.references=") for s in sets) else ("priors.references=back",)
+    args = [a for s in ("depth_fusion.references=offsets", *back, *sets) for a in ("--set", s)]
     return by_stage(cli_json("run", str(clip), "--out", str(tmp / "run"), "--cache", str(tmp / "cache"),
                              "--until", until, *args))
 
@@ -102,7 +105,7 @@ def test_each_pair_once_and_offsets_do_not_invalidate_priors(clip, tmp_path):
     K = np.asarray(frames.summary["K"])
     for i in (2, N - 1):  # a frame looking forward, one looking back
         fl = [flow_mod.compute_pair_flow(frames[i]["image"], frames[j]["image"], preset="fine")
-              for j in gp._prior_refs(i, N, gp.PriorsParams())]
+              for j in gp._prior_refs(i, N, gp.PriorsParams(references="back"))]
         fl = [(f["fwd"], f["fwd_valid"]) for f in fl if f["fwd_valid"].mean() >= priors_mod.MIN_VALID_FRACTION]
         ref = priors_mod.geometric_prior(frames[i]["image"], K, fl[:1], extra=fl[1:])
         assert np.array_equal(pri[i]["inv_depth"], ref["inv_depth"].astype(np.float32))
@@ -118,7 +121,7 @@ def test_each_pair_once_and_offsets_do_not_invalidate_priors(clip, tmp_path):
     adj = _run(clip, tmp_path, "depth_fusion.offsets=[-8, -1, 1, 8]")
     assert adj["flow_far"]["executed"] == 0
     assert all(abs(a - b) != 1 for a, b, *_ in gp._far_pairs(N, type("B", (), {
-        "priors": gp.PriorsParams(),
+        "priors": gp.PriorsParams(references="back"),
         "depth_fusion": gp.DepthFusionParams(offsets=(-8, -1, 1, 8), references="offsets")})))
 
 
@@ -132,7 +135,8 @@ def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
         return real(img_a, img_b, *a, **kw)
 
     monkeypatch.setattr(flow_mod, "compute_pair_flow", counting)
-    quick = ["optimize_keyframes.steps=10", "optimize_edges.steps=5", "optimize_segments.steps=5"]
+    quick = ["optimize_keyframes.steps=10", "optimize_edges.steps=5", "optimize_segments.steps=5",
+             "priors.references=back"]
     res = api.run(api.Invocation(input=str(clip), out=str(tmp_path / "run"), cache=str(tmp_path / "cache"),
                                  sets=quick, json_mode=True), log=lambda m: None)
     st = {s["name"]: s for s in res["stages"]}
@@ -150,3 +154,31 @@ def test_a_full_run_computes_each_pair_once(clip, tmp_path, monkeypatch):
     dup = {img for img, k in seen.items() if k > 1}
     assert max(calls.values()) == 1
     assert not any((b, a) in calls for a, b in calls if a not in dup and b not in dup)
+
+
+def test_symmetric_prior_references_share_each_pair(clip, tmp_path):
+    """priors.references=symmetric: frame i reads i - span and i + span, so the pair (i, i + span)
+    is read by both frames it joins (frame i forward, frame i + span backward) and computed
+    once; the priors equal those triangulated from flows computed directly."""
+    sym = {"references": "symmetric"}
+    pairs = _pairs(N, priors=sym, depth_fusion={"references": "baseline"})
+    readers: Counter = Counter()
+    for i in range(N):
+        for j in gp._prior_refs(i, N, gp.PriorsParams(**sym)):
+            readers[(min(i, j), max(i, j))] += 1
+    assert set(readers) == {(a, b) for a, b, _, _ in pairs}
+    assert all(readers[(i, i + 8)] == 2 for i in range(N - 8))  # each span pair: two consumers
+    assert len(pairs) < len(_pairs(N, depth_fusion={"references": "baseline"}))
+    n = 211  # ICL: 215 pairs instead of 410
+    assert len(_pairs(n, priors=sym, depth_fusion={"references": "baseline"})) <= n + 8  # about n - span + 2 span (the ends); 410 with references=back
+    run = _run(clip, tmp_path, "priors.references=symmetric", "depth_fusion.references=baseline")
+    assert run["flow_far"]["executed"] == len(pairs) and run["priors"]["executed"] == N
+    frames = api.recorded_output(tmp_path / "run", "ingest", str(tmp_path / "cache"))
+    pri = api.recorded_output(tmp_path / "run", "priors", str(tmp_path / "cache"))
+    K = np.asarray(frames.summary["K"])
+    for i in (3, 12, N - 1):  # forward only, both ways, backward only
+        fl = [flow_mod.compute_pair_flow(frames[i]["image"], frames[j]["image"], preset="fine")
+              for j in gp._prior_refs(i, N, gp.PriorsParams(**sym))]
+        fl = [(f["fwd"], f["fwd_valid"]) for f in fl if f["fwd_valid"].mean() >= priors_mod.MIN_VALID_FRACTION]
+        ref = priors_mod.geometric_prior(frames[i]["image"], K, fl[:1], extra=fl[1:])
+        assert np.array_equal(pri[i]["inv_depth"], ref["inv_depth"].astype(np.float32))

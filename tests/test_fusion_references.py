@@ -120,8 +120,9 @@ def walk_clip(tmp_path_factory) -> Path:
     return out
 
 
+# priors.references=back: flow_far's pair counts below are those of the back-looking prior rule
 QUICK = ["--profile", "fast", "--set", "optimize_keyframes.steps=10", "--set", "optimize_edges.steps=5",
-         "--set", "optimize_segments.steps=5"]
+         "--set", "optimize_segments.steps=5", "--set", "priors.references=back"]
 
 
 def _run(clip: Path, tmp: Path, name: str, *sets: str) -> dict:

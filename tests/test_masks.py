@@ -107,3 +107,24 @@ def test_motion_masks_static_and_solve():
     assert solve.mean() < static.mean()
     s2, v2 = motion_masks(clip.K, nb)
     assert np.array_equal(s2, v2) and np.array_equal(s2, motion_static_mask(clip.K, nb))
+
+
+def test_motion_masks_fit_each_flow_once(monkeypatch):
+    """The static and solve masks threshold the same epipolar residuals at two sigmas: each
+    neighbour flow's static-scene model is fitted once per frame (not once per mask), and the
+    masks are those of fitting it for each (motion_static_mask, which fits its own)."""
+    from stages.frontend import masks as masks_mod
+
+    clip = render_clip(N, "orbit", size=(256, 192), seed=1)
+    clip.frames[:] = impair(clip.frames, clip.depth, clip.poses, clip.K, noise=3, blur=0.5, exposure=0.15)
+    i = FRAMES[-1]
+    nb = _neighbour_flows(clip, i)
+    calls = []
+    real = masks_mod.motion_residual
+    monkeypatch.setattr(masks_mod, "motion_residual", lambda *a, **k: calls.append(1) or real(*a, **k))
+    static, solve = motion_masks(clip.K, nb, image=clip.frames[i], sigma_mult=5.0, texture_frac=1.0,
+                                 solve_sigma_mult=4.0)
+    assert len(calls) == len(nb)
+    monkeypatch.setattr(masks_mod, "motion_residual", real)
+    assert np.array_equal(static, motion_static_mask(clip.K, nb, sigma_mult=5.0, image=clip.frames[i], texture_frac=1.0))
+    assert np.array_equal(solve, np.minimum(static, motion_static_mask(clip.K, nb, sigma_mult=4.0)))

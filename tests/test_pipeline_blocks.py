@@ -58,6 +58,8 @@ def test_reference_rules():
     assert R.prior_references(0, n, 8) == [8, 4] and R.prior_references(12, n, 8) == [4, 8]
     assert R.prior_references(19, n, 8) == [11, 15]
     assert R.prior_references(0, 2, 8) == [1, 1]  # both clamped to the other frame (kept: the bits of the priors)
+    assert R.symmetric_prior_references(10, n, 8) == [2, 18] and R.symmetric_prior_references(3, n, 8) == [11, 7]
+    assert R.symmetric_prior_references(19, n, 8) == [11, 15] and R.symmetric_prior_references(0, 2, 8) == [1]
     assert R.offset_references(3, n, (-8, 8, 0)) == [11] and R.offset_references(15, n, (-8, 8)) == [7]
     assert R.symmetric_references(10, n, (8, 16)) == [2, 18] and R.symmetric_references(0, n, (8,)) == [8]
     assert R.flow_chain(2, n, 6) == ("fwd", [2, 3, 4, 5, 6, 7]) and R.flow_chain(9, n, 6) == ("bwd", [8, 7, 6, 5, 4, 3])

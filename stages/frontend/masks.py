@@ -96,18 +96,30 @@ def texture_weight(image: np.ndarray, frac: float, block: int = 7) -> np.ndarray
     return np.clip(lam / ref, 0.0, 1.0).astype(np.float32)
 
 
-def _residual_ratio(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], sigma_mult: float,
-                    min_threshold: float, seed: int) -> np.ndarray:
-    """max over the neighbour flows of (epipolar residual / that flow's threshold), float32
-    (H, W); 0 where no flow is valid. Threshold = max(min_threshold, median + sigma_mult x
-    robust sigma of the valid pixels' residuals)."""
-    h, w = flows[0][0].shape[:2]
-    ratio = np.zeros((h, w), np.float32)
+def _residuals(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]],
+               seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(residual (H, W) px, valid bool (H, W)) of each neighbour flow whose static-scene model
+    could be fitted (:func:`motion_residual`): computed once per frame, whatever the thresholds
+    applied to them afterwards."""
+    out = []
     for flow, valid in flows:
         valid = np.asarray(valid, bool)
         res = motion_residual(K, flow, valid, seed)
-        if res is None:
-            continue
+        if res is not None:
+            out.append((res, valid))
+    return out
+
+
+def _residual_ratio(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], sigma_mult: float,
+                    min_threshold: float, seed: int,
+                    residuals: list[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
+    """max over the neighbour flows of (epipolar residual / that flow's threshold), float32
+    (H, W); 0 where no flow is valid. Threshold = max(min_threshold, median + sigma_mult x
+    robust sigma of the valid pixels' residuals). ``residuals``: :func:`_residuals` of the same
+    flows, when already computed (the fits are most of the cost)."""
+    h, w = flows[0][0].shape[:2]
+    ratio = np.zeros((h, w), np.float32)
+    for res, valid in _residuals(K, flows, seed) if residuals is None else residuals:
         r = res[valid]
         if r.size == 0:
             continue
@@ -146,13 +158,14 @@ def motion_masks(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], 
     (0.059 -> 0.119 m). For ``texture_frac`` 0 and equal sigmas both masks are the same."""
     if not flows:
         raise ValueError("motion_masks needs at least one neighbour flow")
-    ratio = _residual_ratio(K, flows, sigma_mult, min_threshold, seed)
+    residuals = _residuals(K, flows, seed)  # fitted once, thresholded at both sigmas
+    ratio = _residual_ratio(K, flows, sigma_mult, min_threshold, seed, residuals)
     weighted = ratio * texture_weight(image, texture_frac) if image is not None and texture_frac > 0 else ratio
     static = _clean(weighted > 1.0, min_area, dilate)
     if solve_sigma_mult == sigma_mult:
         plain = ratio
     else:
-        plain = _residual_ratio(K, flows, solve_sigma_mult, min_threshold, seed)
+        plain = _residual_ratio(K, flows, solve_sigma_mult, min_threshold, seed, residuals)
     solve = np.minimum(static, _clean(plain > 1.0, min_area, dilate)) if weighted is not plain else static
     return static, solve
 

@@ -26,6 +26,21 @@ def prior_references(i: int, n: int, span: int) -> list[int]:
     return [j for j in js if j != i]
 
 
+def symmetric_prior_references(i: int, n: int, span: int) -> list[int]:
+    """Frame i's prior references, the pair-sharing rule: ``span`` frames back and ``span``
+    frames forward (the first two of i - span, i + span, i - span // 2, i + span // 2 that lie
+    in the clip, never i). Frame i's forward pair (i, i + span) is frame i + span's backward
+    one, so each direct flow serves two frames: about n - span pairs for n frames instead of
+    about 2 n. A frame within ``span`` of the clip's end reads a frame that appending frames
+    changes (the rule above of the extension property does not hold for them)."""
+    out: list[int] = []
+    for j in (i - span, i + span, i - max(1, span // 2), i + max(1, span // 2)):
+        if 0 <= j < n and j != i and j not in out:
+            out.append(j)
+    # a clip shorter than span // 2 + 1 frames: the clamped references of prior_references, once
+    return out[:2] or list(dict.fromkeys(prior_references(i, n, span)))
+
+
 def offset_references(i: int, n: int, offsets: Iterable[int]) -> list[int]:
     """Frames i + offset (offsets signed, 0 skipped) that lie in the clip, in ``offsets`` order."""
     return [i + off for off in offsets if 0 <= i + off < n and off != 0]
