@@ -96,3 +96,34 @@ def test_moving_and_invalid_pixels():
     still = splat_consensus(depth, conf, _pose(0.0), refs, K, ref_static=[np.zeros((H, W), np.uint8)])
     np.testing.assert_array_equal(still, depth)  # nothing static in the reference: nothing splatted
     np.testing.assert_array_equal(splat_consensus(depth, conf, _pose(0.0), [], K), depth)
+
+
+def _stage_inputs(depth: np.ndarray, conf: np.ndarray, splat: bool) -> dict:
+    """depth_consensus's item for frame 0 of a 2-frame clip (frame 1 the plane seen from x = 0.1)."""
+    ref_depth, ref_conf, ref_pose = _refs([0.1])[0]
+    static = [{"static": np.ones((H, W), np.uint8)} for _ in range(2)]
+    inputs = {"index": 0, "K": K, "poses": np.stack([_pose(0.0), ref_pose]),
+              "depth": {"depth": depth, "confidence": conf},
+              "refs": [{"depth": ref_depth, "confidence": ref_conf}], "ref_indices": [1], "static": static}
+    if splat:
+        img = np.repeat((_wall_guide() * 255).astype(np.uint8)[..., None], 3, axis=2)
+        inputs.update(splat_indices=[1], image={"image": img})
+    return inputs
+
+
+def test_the_stage_splats_only_with_splat_offsets():
+    """pipeline.run_depth_consensus: the item of depth_consensus.splat_offsets=[1] corrects the
+    far-off region; the default (carry only, offsets without 1) leaves it; the confidence is
+    passed through either way."""
+    from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
+
+    depth, conf = _far_off_frame()
+    mask = np.zeros((H, W), bool)
+    mask[REGION] = True
+    before = _log_err(depth, mask)
+    off = run_depth_consensus(_stage_inputs(depth, conf, False), DepthConsensusParams(offsets=(1,)), None)
+    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,)),
+                             None)
+    assert _log_err(off["depth"], mask) > 0.9 * before
+    assert _log_err(on["depth"], mask) < 0.05 * before
+    np.testing.assert_array_equal(on["confidence"], conf)
