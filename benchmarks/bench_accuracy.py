@@ -32,8 +32,11 @@ REAL = {
     "holo": ROOT.parent / "shared" / "data" / "hololens_walk_100_199",
     "kitti": ROOT.parent / "shared" / "data" / "kitti07_first100",
 }
+# depth_consensus.splat_offsets (opt-in, docs/log/2026-11-28-depth.md): confident depth of 20 distances splatted
+SPLAT = "depth_consensus.splat_offsets=[1,2,3,4,5,6,7,8,9,10,11,12,16,20,24,32,40,48,56,64]"
 REAL_ROWS = [
     ("full (GCVD)", []),
+    ("+ depth splat (opt-in)", [SPLAT]),
     ("paper loop rule", ["association.verify=paper", "association.per_keyframe=0"]),
     ("w/o bundle adjustment", ["bundle_adjustment.enabled=false"]),
 ]
@@ -48,6 +51,7 @@ ROWS = [
     ("w/o bundle adjustment", ["bundle_adjustment.enabled=false"]),
     ("w/o depth consensus", ["depth_consensus.enabled=false"]),
     ("+ depth fill (opt-in)", ["depth_filter.fill_below=0.4"]),
+    ("+ depth splat (opt-in)", [SPLAT]),
 ]
 
 # Hard synthetic clips (issue 13): what real footage does to the method, with exact ground truth.

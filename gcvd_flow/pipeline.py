@@ -1217,31 +1217,45 @@ def _consensus_items(view, p: DepthConsensusParams):
     out = []
     for i in range(n):
         refs = references.symmetric_references(i, n, p.offsets) if p.enabled else []
+        splat = references.symmetric_references(i, n, p.splat_offsets) if p.enabled and p.splat_offsets else []
+        both = refs + [j for j in splat if j not in refs]  # the carry's first, in its order
         out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)), "depth": ItemRef(DEPTH_FILTER, i),
-                    "refs": [ItemRef(DEPTH_FILTER, j) for j in refs], "ref_indices": Const(refs),
-                    "static": [ItemRef(MASKS, j) for j in [i, *refs]] if refs else []})
+                    "refs": [ItemRef(DEPTH_FILTER, j) for j in both], "ref_indices": Const(both),
+                    "static": [ItemRef(MASKS, j) for j in [i, *both]] if both else [],
+                    **({"splat_indices": Const(splat), "image": ItemRef(INGEST, i)} if splat else {})})
     return out
 
 
 def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: Any) -> dict[str, Any]:
     """Frame i's filtered depth averaged with the depths its references see at its pixels (moving
-    pixels, by the masks stage, left out) -> {depth float32 (H, W), confidence float32 (H, W):
-    depth_filter's, unchanged}."""
+    pixels, by the masks stage, left out), then (splat_offsets) corrected with their confident
+    depth splatted into it -> {depth float32 (H, W), confidence float32 (H, W): depth_filter's,
+    unchanged}."""
     own = inputs["depth"]
     depth = np.asarray(own["depth"], np.float32)
     conf = np.asarray(own.get("confidence", np.zeros_like(depth)), np.float32)
     if not p.enabled or not inputs["refs"]:
         return {"depth": depth, "confidence": conf}
     poses = np.asarray(inputs["poses"], np.float64)
-    refs = [(np.asarray(r["depth"]), np.asarray(r.get("confidence", np.zeros_like(depth))), poses[int(j)])
-            for r, j in zip(inputs["refs"], inputs["ref_indices"])]
+    idx = [int(j) for j in inputs["ref_indices"]]
+    refs = [(np.asarray(r["depth"]), np.asarray(r.get("confidence", np.zeros_like(depth))), poses[j])
+            for r, j in zip(inputs["refs"], idx)]
     static = [np.asarray(m["static"]) for m in inputs["static"]]  # frame i's, then the references'
     if "user_keep" in inputs["static"][0]:  # --masks: no reference sample mixes a user-masked pixel
         static[1:] = [np.where(_eroded_keep(m), st, 0) for m, st in zip(inputs["static"][1:], static[1:])]
-    out = depth_consensus.consensus_depth(depth, conf, poses[int(inputs["index"])], refs, np.asarray(inputs["K"]),
+    carry = [k for k, j in enumerate(idx) if abs(j - int(inputs["index"])) in set(p.offsets)]
+    pose, K = poses[int(inputs["index"])], np.asarray(inputs["K"])
+    out = depth_consensus.consensus_depth(depth, conf, pose, [refs[k] for k in carry], K,
                                           max_log_dev=p.max_log_dev, reproj_sigma_px=p.reproj_sigma_px,
-                                          static=static[0], ref_static=static[1:])
+                                          static=static[0], ref_static=[static[1 + k] for k in carry])
+    if "splat_indices" in inputs:
+        use = set(int(j) for j in inputs["splat_indices"])
+        sel = [k for k, j in enumerate(idx) if j in use]
+        gray = np.asarray(inputs["image"]["image"], np.float64).mean(axis=2) / 255.0
+        out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray,
+                                              min_confidence=p.splat_min_confidence, front=p.splat_front,
+                                              static=static[0], ref_static=[static[1 + k] for k in sel])
     return {"depth": out, "confidence": conf}
 
 

@@ -164,6 +164,47 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     return res
 
 
+def _cached_maps(run: Path, n: int) -> tuple[Any, Any]:
+    """The run's working-resolution frames (ingest) and static masks (masks stage) from the cache
+    run.json records, each None when not readable there (the breakdown then leaves out the
+    texture / dynamic classes)."""
+    from gcvd_flow.engine import api
+    from gcvd_flow.engine.artifacts import ArtifactError
+    from gcvd_flow.engine.dag import stage_name
+    from gcvd_flow.engine.store import StoreError
+    from gcvd_flow.io.run_dir import recorded_cache
+
+    cache = recorded_cache(run)
+    if cache is None or not (run / "run.json").exists():
+        return None, None
+    from gcvd_flow import pipeline as G  # the stage names as the pipeline declares them
+
+    out = []
+    for stage in (G.RUN_DIR_SOURCES.frames, G.MASKS):
+        try:
+            value = api.recorded_output(run, stage_name(stage), cache)
+            out.append(value if len(value) == n else None)
+        except (UsageError, StoreError, ArtifactError, TypeError):
+            out.append(None)
+    return out[0], out[1]
+
+
+def _frame_maps(frames: Any, masks: Any, k: int, shape: tuple[int, ...]) -> tuple[Any, Any]:
+    """Frame k's grey image (0..255) and static mask at ``shape``, or None each."""
+    import cv2
+
+    gray = static = None
+    if frames is not None:
+        img = np.asarray(frames[k]["image"])
+        if img.shape[:2] == shape:
+            gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    if masks is not None:
+        st = np.asarray(masks[k]["static"])
+        if st.shape == shape:
+            static = st
+    return gray, static
+
+
 def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float = 0.5) -> dict[str, Any]:
     """Aggregated depth metrics of run/depth/NNNNNN.npy against the ground-truth PNGs (frames
     without either are skipped); {} when no frame has both.
@@ -172,11 +213,19 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
     (confidence >= ``min_confidence``, the default of the exports' masks): ``abs_rel_confident``
     and ``delta1_confident`` (per-frame median scaling over those pixels, as a user who masks
     by confidence would see them) and ``confident_fraction`` (mean share of the frame's pixels
-    with valid ground truth that are kept)."""
+    with valid ground truth that are kept).
+
+    ``regions``: AbsRel split by region classes (``gcvd_flow.evaluate.regions``: confident,
+    texture-less, depth edges, near / far, border, dynamic); the texture and dynamic classes need
+    the run's frames and masks from the cache run.json records."""
     import cv2
 
+    from gcvd_flow.evaluate.regions import RegionBreakdown
+
+    frames, masks = _cached_maps(run, m.run_frames)
+    breakdown = RegionBreakdown(max_depth=max_depth, min_confidence=min_confidence)
     per_frame, confident, kept = [], [], []
-    for i, gpath in zip(m.frame_indices, m.depth_files):
+    for k, i, gpath in zip(m.run_pos, m.frame_indices, m.depth_files):
         pred_path = run / "depth" / f"{i:06d}.npy"
         if gpath is None or not pred_path.exists():
             continue
@@ -186,12 +235,14 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
             g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
         per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))
         conf_path = run / "confidence" / f"{i:06d}.npy"
-        if conf_path.exists():
-            conf = np.load(conf_path, allow_pickle=False)
+        conf = np.load(conf_path, allow_pickle=False) if conf_path.exists() else None
+        if conf is not None:
             ok = conf >= min_confidence
             confident.append(metrics.depth_metrics(np.where(ok, pred, 0.0), g, max_depth=max_depth))
             valid = (g > 0) & (g <= max_depth)
             kept.append(float((ok & valid).sum() / max(valid.sum(), 1)))
+        gray, static = _frame_maps(frames, masks, k, pred.shape)
+        breakdown.add(pred, g, gray=gray, confidence=conf, static=static)
     if not per_frame:
         return {}
     out = {**metrics.aggregate_depth_metrics(per_frame), "depth_frames": len(per_frame)}
@@ -199,6 +250,9 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
         agg = metrics.aggregate_depth_metrics(confident)
         out.update(abs_rel_confident=agg["abs_rel"], delta1_confident=agg["delta1"],
                    confident_fraction=float(np.mean(kept)), min_confidence=min_confidence)
+    regions = breakdown.result()
+    if regions:
+        out["regions"] = regions
     return out
 
 
@@ -233,6 +287,11 @@ def format_metrics(res: dict[str, Any]) -> str:
     lines.append(f"{'frames':<12} {res['frames']:10d}")
     if "keyframes" in res:
         lines.append(f"{'keyframes':<12} {res['keyframes']:10d}")
+    if res.get("regions"):
+        from gcvd_flow.evaluate.regions import format_regions
+
+        lines += ["", "depth by region (pixels: share of valid ones; of error: share of the summed AbsRel; "
+                  "bias: median log(pred / gt))", format_regions(res["regions"])]
     return "\n".join(lines)
 
 

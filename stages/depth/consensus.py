@@ -160,3 +160,111 @@ def _consensus_rows(cam: _Camera, rows: slice, depth: np.ndarray, confidence: np
         num += wgt * log_z
         den += wgt
     return np.where(valid, np.exp(num / den), 0.0).astype(np.float32)
+
+
+# ------------------------------------------------------------------ forward splatting (opt-in: splat_offsets)
+SPLAT_FOOTPRINT = ((0, 0), (1, 0), (0, 1), (1, 1))  # a point covers the 4 pixels around where it lands
+
+
+def splat_points(K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray, depth_j: np.ndarray,
+                 weight_j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame j's pixels with weight > 0 moved into frame i (T_i_j maps j's camera coordinates to
+    i's) and projected: (flat pixel index into i's (H, W) grid, depth in i, weight), each point
+    covering the 4 pixels around its landing position (no holes between neighbours on a
+    receding surface); points behind i or outside its image are left out."""
+    h, w = shape
+    K = np.asarray(K, np.float64)
+    vs, us = np.nonzero(weight_j > 0)
+    z = np.asarray(depth_j, np.float64)[vs, us]
+    rays = np.stack([us, vs, np.ones_like(us)], 0).astype(np.float64)
+    X = (np.linalg.inv(K) @ rays) * z
+    Y = T_i_j[:3, :3] @ X + T_i_j[:3, 3:4]
+    front = Y[2] > 1e-6
+    Y, wj = Y[:, front], np.asarray(weight_j, np.float64)[vs[front], us[front]]
+    q = K @ Y
+    uf, vf = np.floor(q[0] / q[2]).astype(np.int64), np.floor(q[1] / q[2]).astype(np.int64)
+    idx, zs, ws = [], [], []
+    for du, dv in SPLAT_FOOTPRINT:
+        u, v = uf + du, vf + dv
+        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        idx.append(v[ok] * w + u[ok])
+        zs.append(Y[2, ok])
+        ws.append(wj[ok])
+    return np.concatenate(idx), np.concatenate(zs), np.concatenate(ws)
+
+
+def splat_consensus(
+    depth: np.ndarray,
+    confidence: np.ndarray,
+    pose: np.ndarray,
+    refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    guide: np.ndarray | None = None,
+    min_confidence: float = 0.5,
+    front: float = 0.1,
+    static: np.ndarray | None = None,
+    ref_static: Sequence[np.ndarray | None] | None = None,
+) -> np.ndarray:
+    """Frame i's depth float32 (H, W) corrected with its references' confident depth splatted
+    forward into it (z-buffered), and the correction spread edge-aware over what no view covers.
+
+    ``consensus_depth`` carries a reference's depth to where frame i's *own* depth says a pixel's
+    point lands, and uses it only within ``max_log_dev`` of that depth: where frame i's depth is
+    bad (a texture-less wall no flow triangulates, 20-40 % off), the point lands elsewhere and
+    is rejected as an occlusion. Splatting does not need frame i's depth: every confident pixel
+    (>= ``min_confidence``, static) of a reference is moved into frame i with the final poses;
+    per pixel the nearest landing depth z_min is the visible surface and the landings within
+    ``front`` (relative) of it are averaged in log depth, weighted by confidence^2, with frame i's
+    own estimate (weight confidence^2 + PRIOR_WEIGHT). With ``guide`` (grey (H, W) in [0, 1]) the
+    log correction of the pixels that were covered or are confident themselves is densified
+    by guided filtering over the image (``stages.frontend.priors.densify``) into the pixels
+    neither covered nor confident: the correction is smooth where the depth error is (a
+    surface's depth off by a scale), the depth's own shape is kept.
+
+    refs: [(depth_j (H, W), confidence_j (H, W), pose_j (4, 4) camera-to-world), ...]; static /
+    ref_static as in ``consensus_depth``. Pixels with depth 0 stay 0.
+    """
+    depth = np.asarray(depth, np.float32)
+    h, w = depth.shape
+    valid = depth > 0
+    conf = np.asarray(confidence, np.float64)
+    pose = np.asarray(pose, np.float64)
+    T_i_w = np.linalg.inv(pose)
+    if ref_static is None:
+        ref_static = [None] * len(refs)
+    pts = []
+    for (depth_j, conf_j, pose_j), st in zip(refs, ref_static):
+        dj = np.asarray(depth_j, np.float32)
+        wj = np.where((dj > 0) & (np.asarray(conf_j) >= min_confidence), np.asarray(conf_j, np.float64) ** 2, 0.0)
+        if st is not None:
+            wj = np.where(np.asarray(st) > 0, wj, 0.0)
+        if wj.any():
+            pts.append(splat_points(K, (h, w), T_i_w @ np.asarray(pose_j, np.float64), dj, wj))
+    if not pts:
+        return depth
+    idx, z, wt = (np.concatenate(a) for a in zip(*pts))
+    zmin = np.full(h * w, np.inf)
+    np.minimum.at(zmin, idx, z)
+    keep = z < zmin[idx] * (1.0 + front)  # the visible surface, not what it occludes
+    num = np.bincount(idx[keep], wt[keep] * np.log(z[keep]), h * w).reshape(h, w)
+    den = np.bincount(idx[keep], wt[keep], h * w).reshape(h, w)
+    log_d = np.log(np.where(valid, depth, 1.0).astype(np.float64))
+    own = conf ** CONFIDENCE_POWER + PRIOR_WEIGHT
+    fused = (own * log_d + num) / (own + den)
+    if guide is not None:
+        fused = _spread_correction(guide, log_d, fused, (den > 0) | (conf >= min_confidence))
+    out = np.where(valid, np.exp(fused), 0.0).astype(np.float32)
+    if static is not None:
+        out = np.where(np.asarray(static) > 0, out, depth)
+    return out
+
+
+def _spread_correction(guide: np.ndarray, log_d: np.ndarray, fused: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """log depth (H, W): ``fused`` where ``known``, elsewhere ``log_d`` plus the correction
+    fused - log_d of the known pixels densified edge-aware over ``guide``."""
+    from stages.frontend.priors import densify
+
+    if known.sum() < 16 or known.all():
+        return fused
+    dense, _ = densify(np.asarray(guide, np.float64), fused - log_d, known.astype(np.float64))
+    return np.where(known, fused, log_d + dense)

@@ -1,0 +1,129 @@
+"""Forward-splatting consensus (stages.depth.consensus.splat_consensus, depth_consensus.splat_offsets):
+a region whose depth is far off (beyond the carry's occlusion test) takes the depth confident
+views see there, the correction spreads to what no view covers, and occluded points do not
+count."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_depth_consensus import REGION, H, K, W, _log_err, _plane, _pose, _refs
+
+from stages.depth.consensus import consensus_depth, splat_consensus, splat_points
+
+
+def _far_off_frame(factor: float = 1.4) -> tuple[np.ndarray, np.ndarray]:
+    """Frame i: the plane, its REGION 40 % too far and unconfident (a texture-less wall)."""
+    depth = _plane(0.0)
+    depth[REGION] *= factor
+    conf = np.full((H, W), 0.9, np.float32)
+    conf[REGION] = 0.0
+    return depth, conf
+
+
+def _wall_guide() -> np.ndarray:
+    """The grey image: the wrong region is a darker wall (its edges bound the spread)."""
+    g = np.full((H, W), 0.7)
+    g[REGION] = 0.3
+    return g
+
+
+def test_splatted_points_land_where_the_poses_say():
+    T_i_j = np.linalg.inv(_pose(0.0)) @ _pose(0.1)
+    idx, z, w = splat_points(K, (H, W), T_i_j, _plane(0.1), np.ones((H, W)))
+    est = np.full(H * W, np.nan)
+    est[idx] = z  # any of a pixel's landings: on one plane they agree to the footprint's px
+    ok = np.isfinite(est).reshape(H, W)
+    assert ok.mean() > 0.8 and not ok[:, :2].any()  # frame j is right of i: i's left edge unseen
+    np.testing.assert_allclose(est.reshape(H, W)[ok], _plane(0.0)[ok], rtol=0.02)
+    assert np.all(w == 1)
+
+
+def test_a_far_off_region_takes_the_depth_confident_views_see():
+    """40 % off is beyond the carry's max_log_dev (0.2): consensus_depth leaves the region wrong,
+    the splat corrects it to a few %."""
+    depth, conf = _far_off_frame()
+    refs = _refs([-0.1, 0.1])
+    mask = np.zeros((H, W), bool)
+    mask[REGION] = True
+    before = _log_err(depth, mask)
+    carried = consensus_depth(depth, conf, _pose(0.0), refs, K)
+    assert _log_err(carried, mask) > 0.9 * before  # the carry rejects it as another surface
+    out = splat_consensus(depth, conf, _pose(0.0), refs, K)
+    assert _log_err(out, mask) < 0.05 * before
+    assert _log_err(out, ~mask) < 0.01  # the confident rest stays put
+
+
+def test_the_correction_spreads_to_pixels_no_view_covers():
+    """The reference is sure of only the left part of the wrong region; with the image as a guide
+    the rest of that wall (uncovered, unconfident) gets the same correction; without one it keeps
+    its error."""
+    depth, conf = _far_off_frame()
+    ref_depth, ref_conf, ref_pose = _refs([0.0])[0]
+    ref_conf = ref_conf.copy()
+    ref_conf[:, 60:] = 0.0  # the reference is sure of its left part only
+    half = np.zeros((H, W), bool)
+    half[REGION[0], 64:80] = True  # frame i's pixels only the unconfident part of the reference sees
+    no_guide = splat_consensus(depth, conf, _pose(0.0), [(ref_depth, ref_conf, ref_pose)], K)
+    guided = splat_consensus(depth, conf, _pose(0.0), [(ref_depth, ref_conf, ref_pose)], K, guide=_wall_guide())
+    before = _log_err(depth, half)
+    assert _log_err(no_guide, half) > 0.9 * before
+    assert _log_err(guided, half) < 0.75 * before  # (the far side of the wall also borders the
+    # confident, uncorrected plane: the guided fill mixes some of that in)
+    assert _log_err(guided, ~np.pad(np.ones((30, 40), bool), ((30, 36), (40, 48)))) < 0.01
+
+
+def test_occluded_points_do_not_count():
+    """Two references: one sees the plane, one (wrongly confident) a surface twice as far at the
+    same pixels; the z-buffer keeps the nearer (the visible surface), the far one is not averaged in."""
+    depth, conf = _far_off_frame()
+    near = _refs([0.0])[0]
+    far = (near[0] * 2.0, near[1], near[2])
+    mask = np.zeros((H, W), bool)
+    mask[REGION] = True
+    out = splat_consensus(depth, conf, _pose(0.0), [near, far], K)
+    assert _log_err(out, mask) < 0.01
+
+
+def test_moving_and_invalid_pixels():
+    depth, conf = _far_off_frame()
+    depth[0:5, 0:5] = 0.0
+    refs = _refs([0.1])
+    static = np.ones((H, W), np.uint8)
+    static[REGION] = 0  # frame i's region is a moving object: it keeps its depth
+    out = splat_consensus(depth, conf, _pose(0.0), refs, K, static=static)
+    np.testing.assert_array_equal(out[REGION], depth[REGION])
+    assert (out[0:5, 0:5] == 0).all()
+    still = splat_consensus(depth, conf, _pose(0.0), refs, K, ref_static=[np.zeros((H, W), np.uint8)])
+    np.testing.assert_array_equal(still, depth)  # nothing static in the reference: nothing splatted
+    np.testing.assert_array_equal(splat_consensus(depth, conf, _pose(0.0), [], K), depth)
+
+
+def _stage_inputs(depth: np.ndarray, conf: np.ndarray, splat: bool) -> dict:
+    """depth_consensus's item for frame 0 of a 2-frame clip (frame 1 the plane seen from x = 0.1)."""
+    ref_depth, ref_conf, ref_pose = _refs([0.1])[0]
+    static = [{"static": np.ones((H, W), np.uint8)} for _ in range(2)]
+    inputs = {"index": 0, "K": K, "poses": np.stack([_pose(0.0), ref_pose]),
+              "depth": {"depth": depth, "confidence": conf},
+              "refs": [{"depth": ref_depth, "confidence": ref_conf}], "ref_indices": [1], "static": static}
+    if splat:
+        img = np.repeat((_wall_guide() * 255).astype(np.uint8)[..., None], 3, axis=2)
+        inputs.update(splat_indices=[1], image={"image": img})
+    return inputs
+
+
+def test_the_stage_splats_only_with_splat_offsets():
+    """pipeline.run_depth_consensus: the item of depth_consensus.splat_offsets=[1] corrects the
+    far-off region; the default (carry only, offsets without 1) leaves it; the confidence is
+    passed through either way."""
+    from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
+
+    depth, conf = _far_off_frame()
+    mask = np.zeros((H, W), bool)
+    mask[REGION] = True
+    before = _log_err(depth, mask)
+    off = run_depth_consensus(_stage_inputs(depth, conf, False), DepthConsensusParams(offsets=(1,)), None)
+    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,)),
+                             None)
+    assert _log_err(off["depth"], mask) > 0.9 * before
+    assert _log_err(on["depth"], mask) < 0.05 * before
+    np.testing.assert_array_equal(on["confidence"], conf)
