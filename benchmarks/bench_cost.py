@@ -182,6 +182,8 @@ def main() -> None:
                     help="a --set KEY=VALUE for every run (e.g. ingest.end=20 for a quick check)")
     ap.add_argument("--this-set", dest="this_sets", action="append", default=[],
                     help="a --set KEY=VALUE for this code's runs only (to time an option)")
+    ap.add_argument("--keep", type=Path, metavar="DIR",
+                    help="keep this code's last run dir of each clip as DIR/<clip> (for `gcvd-flow eval`)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     names = a.clips.split(",")
@@ -202,6 +204,9 @@ def main() -> None:
                     x = extra + [v for s in sets for v in ("--set", s)]
                     runs[t].append(cold_run(d, clip, x, Path(tmp) / f"{name}-{t}-{r}"))
                     print(f"{name} round {r} {t}: {runs[t][-1]['wall_s']:.1f} s", file=sys.stderr, flush=True)
+            if a.keep is not None:  # the run dir (not its cache): what `gcvd-flow eval --gt` scores
+                shutil.rmtree(a.keep / name, ignore_errors=True)
+                shutil.copytree(Path(tmp) / f"{name}-this-{a.repeat - 1}" / "run", a.keep / name)
             rows = {t: summary(v) for t, v in runs.items()}
             print_clip(name, trees, rows)
             out["clips"][name] = rows

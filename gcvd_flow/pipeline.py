@@ -1244,7 +1244,9 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
     static = [np.asarray(m["static"]) for m in inputs["static"]]  # frame i's, then the references'
     if "user_keep" in inputs["static"][0]:  # --masks: no reference sample mixes a user-masked pixel
         static[1:] = [np.where(_eroded_keep(m), st, 0) for m, st in zip(inputs["static"][1:], static[1:])]
-    carry = [k for k, j in enumerate(idx) if abs(j - int(inputs["index"])) in set(p.offsets)]
+    # with splat_offsets the items add the splat's references: carry only the consensus's own offsets
+    carry = ([k for k, j in enumerate(idx) if abs(j - int(inputs["index"])) in set(p.offsets)]
+             if "splat_indices" in inputs else list(range(len(idx))))
     pose, K = poses[int(inputs["index"])], np.asarray(inputs["K"])
     out = depth_consensus.consensus_depth(depth, conf, pose, [refs[k] for k in carry], K,
                                           max_log_dev=p.max_log_dev, reproj_sigma_px=p.reproj_sigma_px,

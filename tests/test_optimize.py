@@ -340,15 +340,16 @@ def test_pair_blocks_on_threads_sum_to_the_unsplit_gradient(tiny: dict, by_weigh
     nonzero = 0
     for p1, p3, p3b in zip(*params):
         assert p1.grad is not None and p3.grad is not None
-        nonzero += bool(p1.grad.abs().max() > 0)
+        nonzero += bool(p1.grad.abs().max() > 1e-5)
         # atol: a gradient that cancels to ~0 (the head's output bias: LayerNorm removes a depth
         # offset) keeps the rounding of its terms, ~3e-7 here
         torch.testing.assert_close(p3.grad, p1.grad, rtol=1e-4, atol=1e-6)
         assert p3.grad.numpy().tobytes() == p3b.grad.numpy().tobytes()
     # all but the head's first layer (weight, bias), whose gradient is 0 while its zero-initialised
-    # last layer is: the head's output layer, pose corrections, mesh vertices, per-frame scales (the
-    # output bias's gradient cancels to ~0, and to exactly 0 on the point-group draw)
-    assert nonzero == len(params[0]) - (3 if by_weight else 2)
+    # last layer is, and the output bias, whose gradient cancels to ~0 (LayerNorm removes a depth
+    # offset; exactly 0 or ~3e-7 depending on the CPU's float summation, hence the 1e-5 floor): the
+    # head's output weights, pose corrections, mesh vertices, per-frame scales
+    assert nonzero == len(params[0]) - 3
     # after the step the parameters moved the same way
     torch.testing.assert_close(three.poses(), one.poses(), rtol=0, atol=1e-6)
 

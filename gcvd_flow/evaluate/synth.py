@@ -360,6 +360,7 @@ def _cast(scene: o3d.t.geometry.RaycastingScene, o: np.ndarray, d: np.ndarray) -
     return {k: r[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_normals")}
 
 
+# long: one ray-cast loop over the frames (static scene, moving cube, shading), clearer in one piece
 def render_clip(
     n_frames: int = 60,
     trajectory: str = "orbit",

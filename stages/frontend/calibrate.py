@@ -793,6 +793,7 @@ def _chosen(feat: Any, n: int, target: float, knn: _Knn) -> list[int]:
     return chosen
 
 
+# long: the calibration steps in order (frames, tracks, SfM, focal, principal point): issue 39 splits it
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
                    n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
                    robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
