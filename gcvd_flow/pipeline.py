@@ -226,7 +226,8 @@ def run_user_masks(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
 
 USER_MASKS = declare(MapStage("user_masks", run_user_masks, deps=(INGEST,), params="masks", kind="user_mask",
                               items=_user_mask_items,
-                              selection_params=tuple(f.name for f in dataclasses.fields(frontend_params.MasksSettings) if f.name != "user_dir"),
+                              selection_params=tuple(f.name for f in dataclasses.fields(frontend_params.MasksSettings)
+                                                     if f.name != "user_dir"),
                               description="the user's --masks at working resolution (no item without --masks)"))
 
 
@@ -790,7 +791,8 @@ ASSOCIATION = declare(Stage("association", run_association, deps=(INGEST, CALIBR
 # ============================================================================== optimisation: shared
 DepthParams = config_section("depth")(section_from_dataclass(opt_params.DepthModel, "DepthParams"))
 LossParams = config_section("losses")(section_from_dataclass(opt_params.LossWeights, "LossParams"))
-OptimizeKeyframesParams = config_section("optimize_keyframes")(section_from_dataclass(opt_params.KeyframeSettings, "OptimizeKeyframesParams"))
+OptimizeKeyframesParams = config_section("optimize_keyframes")(
+    section_from_dataclass(opt_params.KeyframeSettings, "OptimizeKeyframesParams"))
 OptimizeEdgesParams = config_section("optimize_edges")(section_from_dataclass(opt_params.EdgeSettings, "OptimizeEdgesParams"))
 OptimizeSegmentsParams = config_section("optimize_segments")(section_from_dataclass(opt_params.SegmentSettings, "OptimizeSegmentsParams"))
 

@@ -170,7 +170,8 @@ def test_symmetric_prior_references_share_each_pair(clip, tmp_path):
     assert all(readers[(i, i + 8)] == 2 for i in range(N - 8))  # each span pair: two consumers
     assert len(pairs) < len(_pairs(N, depth_fusion={"references": "baseline"}))
     n = 211  # ICL: 215 pairs instead of 410
-    assert len(_pairs(n, priors=sym, depth_fusion={"references": "baseline"})) <= n + 8  # about n - span + 2 span (the ends); 410 with references=back
+    # about n - span + 2 span (the ends); 410 with references=back
+    assert len(_pairs(n, priors=sym, depth_fusion={"references": "baseline"})) <= n + 8
     run = _run(clip, tmp_path, "priors.references=symmetric", "depth_fusion.references=baseline")
     assert run["flow_far"]["executed"] == len(pairs) and run["priors"]["executed"] == N
     frames = api.recorded_output(tmp_path / "run", "ingest", str(tmp_path / "cache"))

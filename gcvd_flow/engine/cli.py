@@ -117,7 +117,8 @@ def _add_scale_args(p: argparse.ArgumentParser) -> None:
 def _add_scale_commands(sub: Any) -> None:
     p = sub.add_parser("run-many", help="run many inputs through one DAG and one cache; a summary table")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="videos / image folders / dataset folders")
-    p.add_argument("--out", required=True, metavar="DIR", help="one run directory per input: DIR/<input name>; a repeated name gets the first "
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="one run directory per input: DIR/<input name>; a repeated name gets the first "
                    "free -2, -3, ... (never one shared by two inputs)")
     _add_config_args(p)
     p.add_argument("--jobs", type=_jobs_arg, default=0, metavar="N|auto",

@@ -140,7 +140,8 @@ class Checkpointer:
         for name, arrays in (value.get("shards") or {}).items():
             tensors.update({f"{name}/{k}": v for k, v in arrays.items()})
         meta = value["meta"]
-        self.log(f"resuming from checkpoint ({', '.join(f'{k}={meta[k]}' for k in sorted(meta) if isinstance(meta[k], (int, float, str)))})")
+        shown = ', '.join(f'{k}={meta[k]}' for k in sorted(meta) if isinstance(meta[k], (int, float, str)))
+        self.log(f"resuming from checkpoint ({shown})")
         return tensors, meta
 
     def discard(self) -> None:
@@ -424,7 +425,8 @@ class Runner:
                 rep.reasons.append(f"upstream will run: {', '.join(waiting)}")
                 f = self._key_fields(stage, {d: self._outputs.get(d) for d in stage.deps})
                 if prev_fields:
-                    rep.reasons.extend(r for r in diff_fields(prev_fields, f, stage.params if isinstance(stage.params, str) else None) if not r.startswith("input "))
+                    section = stage.params if isinstance(stage.params, str) else None
+                    rep.reasons.extend(r for r in diff_fields(prev_fields, f, section) if not r.startswith("input "))
                 out.append(rep)
                 continue
             f = self._key_fields(stage, ins)

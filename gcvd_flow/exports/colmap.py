@@ -18,7 +18,8 @@ observations evenly spread over those frames (its own frame always); points fewe
 frames see are dropped (COLMAP's bundle adjuster aborts on a one-view track). The observations are
 the projections of the point (reprojection error ~1e-14 px), not independent measurements: the
 model is consistent for bundle adjusters and Gaussian-splatting loaders, but a refinement in
-COLMAP starts at its optimum and has nothing to correct. COLMAP puts the top-left pixel's *centre* at (0.5, 0.5), we (OpenCV) at (0, 0): cx, cy
+COLMAP starts at its optimum and has nothing to correct. COLMAP puts the top-left pixel's *centre* at
+(0.5, 0.5), we (OpenCV) at (0, 0): cx, cy
 and the 2D points are ours + 0.5. Files that reference others are written after them.
 """
 

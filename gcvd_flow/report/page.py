@@ -172,7 +172,8 @@ def render(d: ReportData) -> str:
         f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
         f"<h1>{_e(title)}</h1><div class='sub'>{sub}</div>", _verdict(d), notes,
         "<h2>Trajectory</h2>",
-        f"<p>Camera centres, {'aligned to the ground truth (Sim(3), Umeyama)' if d.gt_positions is not None else 'as estimated (one global scale)'};"
+        "<p>Camera centres, "
+        f"{'aligned to the ground truth (Sim(3), Umeyama)' if d.gt_positions is not None else 'as estimated (one global scale)'};"
         f" {len(d.keyframes)} keyframes (orange).{loops}</p>",
         f"<img class='traj' id='trajectory' alt='trajectory' width='864' height='396' src='{figures.data_uri(traj)}'>",
         "<h2>Frames, depth and motion masks</h2>", _strip(d),

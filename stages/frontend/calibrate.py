@@ -585,7 +585,8 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     pixels: fx = fy and no skew held by tight factors), pulled towards ``centre`` by a Gaussian
     prior of ``sigma``; it starts at K's. Its gauge is minimal (the first pose and its distance to
     the model's furthest camera): a point held in place fixes its bearing, which held the principal
-    point of a planar-motion clip where it started (orbit: cy 5.3 px off at a formal std of 0.03 px). Returns {focal, pp (2,), median_px, observations, points,
+    point of a planar-motion clip where it started (orbit: cy 5.3 px off at a formal std of 0.03 px).
+    Returns {focal, pp (2,), median_px, observations, points,
     frames, iterations (LM), T (world-to-camera (4, 4) per frame), pts, errors (reprojection error
     per observation, px), with ``marginal`` rel_sigma_formal (:func:`_formal_cov`) and, with
     ``pp_prior``, pp_sigma_formal (2,) px}."""

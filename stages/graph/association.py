@@ -642,7 +642,8 @@ def build_graph(
             verification per loop candidate), e.g. on worker processes; results are the same.
         per_keyframe, max_candidates: see :func:`candidate_pairs` (max_candidates caps both
             retrievals: the best-scoring candidates are verified).
-        retrieval: "vocabulary" (when neither ``descriptors`` nor ``descriptor_fn`` is given): visual vocabularies learned (``seed``) from these keyframes' own SIFT features
+        retrieval: "vocabulary" (when neither ``descriptors`` nor ``descriptor_fn`` is given): visual vocabularies
+        learned (``seed``) from these keyframes' own SIFT features
             (VLAD of ``words`` words and a TF-IDF bag of words), candidates over all keyframe
             pairs by :func:`stages.graph.retrieval.relative_candidates` (``top_k`` per keyframe,
             score >= ``min_ratio`` relative to the temporal neighbours', averaged over

@@ -181,7 +181,8 @@ def baseline_references(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.
     an earlier frame already chose. The cheapest candidate on each side comes first (both sides
     see the occlusions the other misses), then the cheapest others, up to ``rule.max_refs``;
     at most ``rule.max_new`` of them new pairs. (Topping a frame with fewer than 2 up from views
-    that see 40-80 % of it lowered the HoloLens confident share, 44.5 % -> 37 %: not done.) Frames are visited in order, then once more to fill each frame's free
+    that see 40-80 % of it lowered the HoloLens confident share, 44.5 % -> 37 %: not done.) Frames are visited
+    in order, then once more to fill each frame's free
     places with usable pairs that later frames added (no new flow), so the choice is
     deterministic and the new pairs number at most max_new * N.
 

@@ -357,7 +357,8 @@ def transfer_depths(
         if hole.any():
             own = 1.0 / pri[n]
             good = ~hole
-            s = float(np.median(d[good] / own[good])) if good.sum() > 20 else float(np.median(kd[max(j, 0)][kd[max(j, 0)] > 0]) / np.median(own))
+            s = (float(np.median(d[good] / own[good])) if good.sum() > 20
+                 else float(np.median(kd[max(j, 0)][kd[max(j, 0)] > 0]) / np.median(own)))
             d = np.where(hole, own * s, d)
         out[n] = d
     return out
