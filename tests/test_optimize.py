@@ -469,6 +469,35 @@ def test_segments_depth_sink_and_resume(tiny: dict) -> None:
     assert np.array_equal(np.stack([sink.stored[h] for h in out["depths"]]), ref["depths"])
 
 
+def test_segment_plateau_stop_ends_a_converged_window_and_not_a_learning_one(tiny: dict) -> None:
+    """A segment window whose loss no longer falls (every learning rate 0) stops at the first
+    plateau check (``optimize_segments.stop_rel``); a learning one runs all its steps; the stop is a
+    function of the losses only (the same bits on a re-run); off (stop_rel 0) it never stops."""
+    kres = _kf_run(tiny, steps=2)
+    c = tiny["clip"]
+    seg = dataclasses.replace(SMALL_SEG, steps=30, stop_every=5, stop_rel=0.03)  # 5-step means: frozen within 1.7 %, learning -4.7 %+
+
+    def run(kf: KeyframeSettings, sg: SegmentSettings) -> tuple[dict, list[int]]:
+        seen: list = []
+
+        def spy(fn, jobs):
+            for j in jobs:
+                seen.append(fn(j))
+                yield seen[-1]
+
+        out = optimize_segments(c.frames, tiny["prior"], tiny["masks"], c.K, tiny["adj"], tiny["kf"], kres["poses"],
+                                kres["depths"], kf=kf, seg=sg, seed=0, state=kres["state"], window_map=spy)
+        return out, [r.steps for r in seen]
+
+    frozen_kf = dataclasses.replace(SMALL, pose_lr=0.0, mesh_lr_mult=0.0)
+    frozen, steps = run(frozen_kf, dataclasses.replace(seg, lr=0.0))
+    assert len(steps) > 1 and all(s == 10 for s in steps)  # the first check: steps 6-10 against 1-5
+    _assert_same(frozen, run(frozen_kf, dataclasses.replace(seg, lr=0.0))[0])
+    assert all(s == 30 for s in run(frozen_kf, dataclasses.replace(seg, lr=0.0, stop_rel=0.0))[1])
+    learning = run(dataclasses.replace(SMALL, pose_lr=5e-3), dataclasses.replace(seg, lr=1e-3))[1]
+    assert all(s == 30 for s in learning), learning
+
+
 def test_segment_windows_are_independent_and_equal_on_worker_processes(tiny: dict) -> None:
     """Windows solved in reverse order, or on two worker processes, give the bits of the
     in-order, in-process run: each window depends on its job alone (the engine's ``ctx.map``
