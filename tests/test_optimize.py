@@ -292,7 +292,7 @@ def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
 
     Solver._warp = spy
     try:
-        centre, pixel = _kf_run(tiny, photo_warp="centre", steps=2), _kf_run(tiny, steps=2)
+        centre, pixel = _kf_run(tiny, photo_warp="centre", steps=2), _kf_run(tiny, photo_warp="pixel", steps=2)
     finally:
         Solver._warp = orig
     uv, uvc, _ = captured["centre"]
@@ -619,3 +619,5 @@ def test_paper_profile_keeps_the_papers_sampling_and_step_count() -> None:
     assert paper.optimize_keyframes.steps == 300 and paper.optimize_segments.stop_rel == 0
     default = build_config(GCVDConfig, PROFILES)  # both opt-in (docs/benchmarks.md: they cost accuracy)
     assert default.optimize_keyframes.points_by_weight is False and default.optimize_keyframes.stop_rel == 0
+    # the paper's per-pixel patch warp; the default shifts the patch with its centre (issue 38: cost)
+    assert paper.optimize_keyframes.photo_warp == "pixel" and default.optimize_keyframes.photo_warp == "centre"
