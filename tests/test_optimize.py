@@ -292,7 +292,7 @@ def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
 
     Solver._warp = spy
     try:
-        centre, pixel = _kf_run(tiny, photo_warp="centre", steps=2), _kf_run(tiny, steps=2)
+        centre, pixel = _kf_run(tiny, photo_warp="centre", steps=2), _kf_run(tiny, photo_warp="pixel", steps=2)
     finally:
         Solver._warp = orig
     uv, uvc, _ = captured["centre"]
@@ -469,6 +469,35 @@ def test_segments_depth_sink_and_resume(tiny: dict) -> None:
     assert np.array_equal(np.stack([sink.stored[h] for h in out["depths"]]), ref["depths"])
 
 
+def test_segment_plateau_stop_ends_a_converged_window_and_not_a_learning_one(tiny: dict) -> None:
+    """A segment window whose loss no longer falls (every learning rate 0) stops at the first
+    plateau check (``optimize_segments.stop_rel``); a learning one runs all its steps; the stop is a
+    function of the losses only (the same bits on a re-run); off (stop_rel 0) it never stops."""
+    kres = _kf_run(tiny, steps=2)
+    c = tiny["clip"]
+    seg = dataclasses.replace(SMALL_SEG, steps=30, stop_every=5, stop_rel=0.03)  # 5-step means: frozen within 1.7 %, learning -4.7 %+
+
+    def run(kf: KeyframeSettings, sg: SegmentSettings) -> tuple[dict, list[int]]:
+        seen: list = []
+
+        def spy(fn, jobs):
+            for j in jobs:
+                seen.append(fn(j))
+                yield seen[-1]
+
+        out = optimize_segments(c.frames, tiny["prior"], tiny["masks"], c.K, tiny["adj"], tiny["kf"], kres["poses"],
+                                kres["depths"], kf=kf, seg=sg, seed=0, state=kres["state"], window_map=spy)
+        return out, [r.steps for r in seen]
+
+    frozen_kf = dataclasses.replace(SMALL, pose_lr=0.0, mesh_lr_mult=0.0)
+    frozen, steps = run(frozen_kf, dataclasses.replace(seg, lr=0.0))
+    assert len(steps) > 1 and all(s == 10 for s in steps)  # the first check: steps 6-10 against 1-5
+    _assert_same(frozen, run(frozen_kf, dataclasses.replace(seg, lr=0.0))[0])
+    assert all(s == 30 for s in run(frozen_kf, dataclasses.replace(seg, lr=0.0, stop_rel=0.0))[1])
+    learning = run(dataclasses.replace(SMALL, pose_lr=5e-3), dataclasses.replace(seg, lr=1e-3))[1]
+    assert all(s == 30 for s in learning), learning
+
+
 def test_segment_windows_are_independent_and_equal_on_worker_processes(tiny: dict) -> None:
     """Windows solved in reverse order, or on two worker processes, give the bits of the
     in-order, in-process run: each window depends on its job alone (the engine's ``ctx.map``
@@ -590,3 +619,5 @@ def test_paper_profile_keeps_the_papers_sampling_and_step_count() -> None:
     assert paper.optimize_keyframes.steps == 300 and paper.optimize_segments.stop_rel == 0
     default = build_config(GCVDConfig, PROFILES)  # both opt-in (docs/benchmarks.md: they cost accuracy)
     assert default.optimize_keyframes.points_by_weight is False and default.optimize_keyframes.stop_rel == 0
+    # the paper's per-pixel patch warp; the default shifts the patch with its centre (issue 38: cost)
+    assert paper.optimize_keyframes.photo_warp == "pixel" and default.optimize_keyframes.photo_warp == "centre"

@@ -90,9 +90,12 @@ class KeyframeSettings:
     flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
                                     "from the tau = 1 flows (the authors use tau = 1 only)",
                                     validator=_frame_distances)
-    photo_warp: Literal["pixel", "centre"] = _f("pixel", "photometric 3x3 patches: every pixel warped with its own "
-                                                "depth (paper), or the centre warped and the patch shifted "
-                                                "with it (a ninth of the geometry per step)")
+    photo_warp: Literal["pixel", "centre"] = _f("centre", "photometric 3x3 patches (all three optimisations): "
+                                                 "the centre warped and the patch shifted with it (a ninth of "
+                                                 "the geometry per step; the default since 2026-11-28: keyframe "
+                                                 "and segment steps -14..-17 % CPU, accuracy rows within 2.5 %, "
+                                                 "docs/log/2026-11-28-cost2.md), or every pixel warped with its "
+                                                 "own depth (the paper's, 'pixel'; --profile paper)")
     mesh_shape_lr_frac: float = _f(0.1, "spatial mesh vertex lr = lr * mesh_lr_mult * this: on point-sampled "
                                    "losses a fast spatial mesh bends the depth along flow noise, while poses "
                                    "need a fast per-frame scale", ge=0)

@@ -300,6 +300,7 @@ class WindowJob:
 class WindowResult:
     poses: np.ndarray  # (n, 4, 4) float64 T_w_c
     depth: np.ndarray  # (n, H, W) float32 at working resolution
+    steps: int = 0  # Adam steps run (fewer than seg.steps when the loss plateaued: seg.stop_rel)
 
 
 @dataclass
@@ -409,4 +410,5 @@ def solve_window(job: WindowJob) -> WindowResult:
         run_solver(solver, gen, st.seg.steps, 0, None)
         with torch.no_grad():
             poses, meshes = solver.poses().numpy(), solver.meshes().clone()
-        return WindowResult(poses, full_depth(net, job.images, pri_w, meshes, st.depth.mesh, fr.enc))
+        return WindowResult(poses, full_depth(net, job.images, pri_w, meshes, st.depth.mesh, fr.enc),
+                            len(solver.losses_run))
