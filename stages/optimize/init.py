@@ -32,6 +32,8 @@ __all__ = [
     "two_view_pose",
     "triangulate",
     "sample_np",
+    "pair_masks",
+    "chain_pair_poses",
     "essential_chain",
     "interp_pose",
     "pnp_init",
@@ -150,12 +152,35 @@ def _grid_depths(
     return np.where(ok, d, np.nan).reshape(ys.shape), uv
 
 
+def pair_masks(fl: Mapping[str, np.ndarray], static_masks: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Usable pixels (forward (H, W) of frame k, backward (H, W) of frame k + 1) of the flow dict
+    ``fl`` of pair (k, k + 1): flow-valid, static, and (--masks) not landing on a user-masked pixel."""
+    sm = np.asarray(static_masks)
+    fv = np.asarray(fl["fwd_valid"], bool) & (sm[k] > 0)
+    bv = np.asarray(fl["bwd_valid"], bool) & (sm[k + 1] > 0)
+    keep = user_keep(sm[k : k + 2])  # the user's kept pixels of both (int8 masks, -1 = masked), or None
+    if keep is not None:  # --masks: a correspondence whose target mixes a user-masked pixel is out
+        fv &= flow_target_kept(np.asarray(fl["fwd"], np.float64), keep[1])
+        bv &= flow_target_kept(np.asarray(fl["bwd"], np.float64), keep[0])
+    return fv, bv
+
+
+def chain_pair_poses(
+    flows: Sequence[Mapping[str, np.ndarray]], static_masks: np.ndarray, K: np.ndarray
+) -> list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]]:
+    """``two_view_pose`` (T_{k+1}_k, inlier correspondences or None) of every consecutive pair
+    (k, k + 1) from its forward flow ``flows[k]``, on ``pair_masks``' pixels."""
+    return [two_view_pose(np.asarray(fl["fwd"], np.float32), pair_masks(fl, static_masks, k)[0], K)
+            for k, fl in enumerate(flows)]
+
+
 def essential_chain(
     flows: Sequence[Mapping[str, np.ndarray]],
     static_masks: np.ndarray,
     ref_depths: np.ndarray,
     K: np.ndarray,
     stride: int = 2,
+    pair_poses: Sequence[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Chain of two-view poses with consistent scale.
 
@@ -168,22 +193,21 @@ def essential_chain(
     pair (k-1, k) (through the backward flow) and by pair (k, k+1) (forward flow); the median
     ratio of the two depth maps rescales pair (k, k+1)'s unit translation. Frame 0 keeps the
     prior's scale. Rotation-only pairs get a zero translation and pass the scale through.
+
+    pair_poses: the pairs' ``two_view_pose`` results (T_{k+1}_k, correspondences or None) when
+    already computed (``chain_pair_poses``, possibly repaired by ``stages.optimize.chain_check``).
     """
     n = len(flows) + 1
-    sm = np.asarray(static_masks) > 0
-    keep = user_keep(np.asarray(static_masks))  # the user's kept pixels (int8 masks, -1 = masked), or None
+    if pair_poses is None:
+        pair_poses = chain_pair_poses(flows, static_masks, K)
     T_next_cur: list[np.ndarray] = []  # T_{k+1}_k: camera k -> camera k+1, unit translation
     d_fwd: list[np.ndarray | None] = []  # depth of frame k from pair (k, k+1), unit baseline
     d_bwd: list[np.ndarray | None] = []  # depth of frame k+1 from pair (k, k+1), unit baseline
     grid_uv = None
     for k in range(n - 1):
         fl = flows[k]
-        fv = np.asarray(fl["fwd_valid"], bool) & sm[k]
-        bv = np.asarray(fl["bwd_valid"], bool) & sm[k + 1]
-        if keep is not None:  # --masks: a correspondence whose target mixes a user-masked pixel is out
-            fv &= flow_target_kept(np.asarray(fl["fwd"], np.float64), keep[k + 1])
-            bv &= flow_target_kept(np.asarray(fl["bwd"], np.float64), keep[k])
-        T_k1_k, corr = two_view_pose(np.asarray(fl["fwd"], np.float32), fv, K)
+        fv, bv = pair_masks(fl, static_masks, k)
+        T_k1_k, corr = pair_poses[k][0].copy(), pair_poses[k][1]
         T_next_cur.append(T_k1_k)
         if corr is None:
             d_fwd.append(None)

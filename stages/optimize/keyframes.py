@@ -25,6 +25,7 @@ import torch
 
 from stages.models.depth_net import DepthNet, Encoded, mesh_shape
 from stages.models.pose_net import PoseNet
+from stages.optimize.chain_check import checked_pair_poses
 from stages.optimize.frames import (
     FlowPair,
     Frames,
@@ -95,7 +96,7 @@ def optimize_keyframes(
     if kf.schedule == "independent":
         with torch_threads(kf.threads), deterministic(seed):
             net = DepthNet(layer_norm=depth.layer_norm, mesh=depth.mesh, seed=seed)
-            init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
+            init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf, gshape)
         settings = _WindowSettings(depth, losses, kf, seed, gshape)
         return _independent_windows(images, priors, static_masks, K, flows, init, mesh_init, settings,
                                     checkpointer, window_map)
@@ -106,7 +107,7 @@ def optimize_keyframes(
             fr = prepare_frames(net, images, priors, static_masks, K, kf.loss_scale, gshape)
             h, w = fr.imgs.shape[-2:]
             # initialisation: essential-matrix chain (global, deterministic, recomputed on resume)
-            init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf.init, gshape)
+            init, mesh_init = _initial_solution(net, images, priors, static_masks, K, flows, kf, gshape)
             codes = posenet.encode(fr.imgs, torch.arange(nk)) if posenet is not None else None
             flows_lr = flows_at_loss_res(flows, h, w, fr.f)
             starts = _window_starts(nk, kf)
@@ -203,14 +204,20 @@ class _Progress:
 
 def _initial_solution(
     net: DepthNet, images: np.ndarray, priors: np.ndarray, static_masks: np.ndarray, K: np.ndarray,
-    flows: list[Mapping[str, np.ndarray]], init: str, gshape: tuple[int, int],
+    flows: list[Mapping[str, np.ndarray]], kf: KeyframeSettings, gshape: tuple[int, int],
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Initial poses (K, 4, 4) float64 T_w_c and log-scale meshes (K, gh, gw) float32 (one
-    value per frame): the essential-matrix chain, or identity poses / zero meshes."""
+    value per frame): the essential-matrix chain (its pairs checked and repaired first with
+    ``kf.chain_check_deg`` > 0: ``stages.optimize.chain_check``), or identity poses / zero meshes."""
     nk = len(images)
-    if init == "essential" and nk > 1:
+    if kf.init == "essential" and nk > 1:
         ref = init_depth_full(net, images, priors)
-        init_np, log_m = essential_chain(flows, np.asarray(static_masks), ref, K)
+        pair_poses = None
+        if kf.chain_check_deg > 0:
+            pair_poses, changed, _ = checked_pair_poses(flows, np.asarray(static_masks), K, kf.chain_check_deg)
+            if changed:
+                log.info("essential chain: %d pair(s) repaired by the three-view check: %s", len(changed), changed)
+        init_np, log_m = essential_chain(flows, np.asarray(static_masks), ref, K, pair_poses=pair_poses)
     else:
         init_np, log_m = np.tile(np.eye(4), (nk, 1, 1)), np.zeros(nk)
     mesh_init = torch.as_tensor(log_m, dtype=torch.float32)[:, None, None].expand(nk, *gshape).clone()

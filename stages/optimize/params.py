@@ -69,6 +69,11 @@ class KeyframeSettings:
     pose_param: Literal["direct", "net"] = _f("direct", "per-frame pose corrections or a pose network")
     init: Literal["essential", "identity"] = _f("essential", "initial keyframe poses: essential-matrix "
                                                 "chain or identity")
+    chain_check_deg: float = _f(0.0, "essential chain: pairs in a keyframe triplet whose chained-flow rotation "
+                                "disagrees with the composed pairs' by more than this (degrees) get the rotation "
+                                "medoid of their own and two bridged estimates and a translation re-estimated "
+                                "with it (stages/optimize/chain_check.py; 0 = off; 2.0 measured in "
+                                "docs/log/2026-11-28-scale2.md)", ge=0)
     checkpoint_every: int = _f(50, "steps between checkpoints", ge=1)
     schedule: Literal["chained", "independent"] = _f(
         "chained", "chained (the authors'): each window starts from the previous one's optimised, "
