@@ -335,3 +335,20 @@ def test_negative_first_coefficient_is_accepted_as_typed(tmp_path):
     p = cli("plan", str(tmp_path / "a"), "--out", str(tmp_path / "r"), "--cache", str(tmp_path / "cache"),
             "--intrinsics", "-50,50,31.5,23.5")
     assert p.returncode == 2 and "fx=-50" in p.stderr and "expected one argument" not in p.stderr, p.stderr
+
+
+def test_the_undistorted_border_repeats_the_frame_edge_not_black():
+    """Where the lens leaves the undistorted image's corners outside the frame (TUM fr1's, 5.6 % of
+    the image), ingest fills them with the nearest edge pixel, not black: a hard black edge fixed
+    in the image is a static feature for the flow and the depth prior (its synthetic clip: ATE
+    2.5x the pinhole clip with black corners, 0.7x with the edge repeated; docs/log/2026-11-28-cams2.md).
+    The corners are left out of every loss all the same (tests/test_user_masks.py)."""
+    cam = lens.parse_camera("206.9,206.9,127.5,95.5,0.2624,-0.9531,-0.0054,0.0026,1.1633")
+    frame = np.full((192, 256, 3), 128, np.uint8)
+    frame[:, :128] = 60
+    und = undistort_frame(frame, cam.intrinsics, cam.coeffs, cam.model)
+    mx, my = lens.undistort_maps(cam, (256, 192))
+    outside = (mx < -0.5) | (mx > 255.5) | (my < -0.5) | (my > 191.5)
+    assert outside.mean() > 0.03
+    assert und.min() >= 59 and und[outside].min() >= 59  # no black anywhere
+    assert np.all(und[:10, :10] == 60) and np.all(und[-10:, -10:] == 128)  # each corner: its own edge
