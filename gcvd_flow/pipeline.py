@@ -206,15 +206,24 @@ INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", 
 def _user_mask_items(view, p: Any):
     # Only with --masks (masks.user_dir): the user's mask of each frame, by its content (an
     # ExternalRef), for the stages that run before the masks stage (calibrate). Without: no item.
-    if not p.user_dir:
+    # A lens leaving a black border after undistortion: that border alone, as if masked (user_masks.lens_border).
+    border = _lens_border(view)
+    if not p.user_dir and not border:
         return []
     from gcvd_flow.engine.keys import digest_file
 
     cam = view.summary(INGEST)
     und = _undistort_of(cam)
-    files = _user_mask_files(view.source, p, list(cam["frame_indices"]))
-    return [{"user_mask": ExternalRef(digest_file(f), _MaskFile(f)), "source_size": Const(list(view.source.size)),
-             "size": Const([cam["width"], cam["height"]]), **({"undistort": Const(und)} if und else {})} for f in files]
+    files = _user_mask_files(view.source, p, list(cam["frame_indices"])) if p.user_dir else [None] * view.len(INGEST)
+    return [{**({"user_mask": ExternalRef(digest_file(f), _MaskFile(f))} if f else {}),
+             "source_size": Const(list(view.source.size)), "size": Const([cam["width"], cam["height"]]),
+             **({"undistort": Const(und)} if und else {})} for f in files]
+
+
+def _lens_border(view) -> list[Any] | None:
+    """Ingest's undistortion when it leaves a black border (stages.frontend.user_masks.lens_border), else None."""
+    und = _undistort_of(view.summary(INGEST))
+    return und if user_masks.lens_border(und, view.source.size) else None
 
 
 def run_user_masks(inputs: dict[str, Any], p: Any, ctx: Any) -> dict[str, Any]:
@@ -491,7 +500,7 @@ def _mask_items(view, p: MasksParams):
     # The semantic backend reads the frame itself; the motion backend its flows (only); the user's
     # mask of the frame enters by its content (an ExternalRef: file digest + loader).
     n = view.len(INGEST)
-    user, und = [], None
+    user, und = [], _lens_border(view)
     if p.user_dir:
         from gcvd_flow.engine.keys import digest_file
 
@@ -506,8 +515,9 @@ def _mask_items(view, p: MasksParams):
             it = {"K": PartRef(CALIBRATE, ("K",)), **_chain_refs(i, n, p.span)}
         if "maskrcnn" in p.backend or (p.backend != "none" and p.texture_frac > 0):
             it["image"] = ItemRef(INGEST, i)
-        if user:
-            it["user_mask"] = user[i]
+        if user or und:  # --masks, or the lens' black border alone
+            if user:
+                it["user_mask"] = user[i]
             it["source_size"] = Const(list(view.source.size))
             if und:  # ingest undistorts the frames: the masks go through the same remap
                 it["undistort"] = Const(und)
@@ -536,8 +546,8 @@ def _user_keep(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
     """The user's mask (source resolution, True = out) as a kept mask uint8 (h, w) at working
     resolution, 1 = kept: a working pixel is out when any source pixel it is made of is (through
     ingest's undistortion when it has one: stages.frontend.user_masks.source_to_working)."""
-    user = np.asarray(inputs["user_mask"], bool)
     sw, sh = inputs["source_size"]
+    user = np.asarray(inputs["user_mask"], bool) if "user_mask" in inputs else np.zeros((sh, sw), bool)
     if user.shape != (sh, sw):
         raise ingest_mod.FrameError(f"--masks: a mask is {user.shape[1]}x{user.shape[0]}, the frames are {sw}x{sh}")
     und = inputs.get("undistort")
@@ -546,7 +556,7 @@ def _user_keep(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
 
 def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
     """static uint8 (h, w) with the user's mask (source resolution, True = out) set to 0."""
-    if "user_mask" not in inputs:
+    if "source_size" not in inputs:
         return static
     return np.where(_user_keep(inputs, static.shape) > 0, static, 0).astype(np.uint8)
 
@@ -557,7 +567,7 @@ def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any
     --masks also user_keep: uint8 (H, W), 1 = not masked by the user (what the later stages
     exclude hard, at every resolution: stages.frontend.user_masks)."""
     masks = _backend_mask(inputs, p, ctx)
-    if "user_mask" not in inputs:
+    if "source_size" not in inputs:
         return masks
     keep = _user_keep(inputs, masks["static"].shape)
     return {**{k: np.where(keep > 0, v, 0).astype(np.uint8) for k, v in masks.items()}, "user_keep": keep}
@@ -615,7 +625,7 @@ def _mask_summary(view, p: MasksParams) -> dict[str, Any] | None:
     """{"user_masks": True} when the items carry the user's (--masks) kept pixels, else None (the
     stage's manifest as without a summary): what later items functions ask, without loading an item
     (a read-through run from a remote fetches no mask item then)."""
-    return {"user_masks": True} if p.user_dir else None
+    return {"user_masks": True} if p.user_dir or _lens_border(view) else None
 
 
 def _has_user_masks(view) -> bool:

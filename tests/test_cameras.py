@@ -105,6 +105,44 @@ def test_the_shared_real_clips_pass(name):
     assert not cam["guessed"] and "distortion" not in cam
 
 
+def test_tum_fr1_full_calibration_is_accepted_as_typed(tmp_path):
+    """Issue 37's held-out TUM run: the published Kinect calibration, k3 included, typed after
+    --intrinsics and written in intrinsics.txt, opens (exit 0) as a 5-coefficient OPENCV camera;
+    its radial map increases well past the farthest corner (no fold to clip)."""
+    typed = ",".join(map(str, TUM_FR1))
+    clip = _black_clip(tmp_path / "c")
+    p = cli("plan", str(clip), "--out", str(tmp_path / "r"), "--cache", str(tmp_path / "cache"), "--intrinsics", typed)
+    assert p.returncode == 0, p.stderr
+    (clip / "intrinsics.txt").write_text(" ".join(map(str, TUM_FR1)) + "\n")
+    p = cli("plan", str(clip), "--out", str(tmp_path / "r2"), "--cache", str(tmp_path / "cache"))
+    assert p.returncode == 0, p.stderr
+    src, _ = _open(clip)
+    assert (src.distortion_model, tuple(src.distortion)) == ("OPENCV", TUM_FR1[4:])
+    cam = lens.parse_camera(typed)
+    r = np.linspace(0.0, 1.5, 1501)  # the farthest corner is at r = 0.79
+    assert np.all(np.diff(lens.radial(cam, r)[0]) > 0)
+
+
+def test_tum_fr1_undistortion_agrees_with_cv2_undistort_points():
+    """For source pixels on a grid over the 640x480 frame, OpenCV's iterated undistortPoints gives
+    the pinhole pixel; ingest's undistortion map at that pixel points back to the source pixel
+    (within 0.01 px; the float32 maps), over the whole frame but its corners."""
+    cam = lens.parse_camera(",".join(map(str, TUM_FR1)))
+    u, v = np.meshgrid(np.linspace(0, 639, 33), np.linspace(0, 479, 25))
+    src = np.stack([u.ravel(), v.ravel()], -1)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    pin = cv2.undistortPoints(src[:, None, :], cam.K(), np.asarray(cam.coeffs), R=None, P=cam.K(),
+                              criteria=crit).reshape(-1, 2)
+    inside = (pin[:, 0] >= 0) & (pin[:, 0] <= 639) & (pin[:, 1] >= 0) & (pin[:, 1] <= 479)
+    assert inside.mean() > 0.95
+    mx, my = lens.undistort_maps(cam, (640, 480))
+    q = pin[inside].astype(np.float32)[None]
+    at = np.stack([cv2.remap(m, q[..., 0], q[..., 1], cv2.INTER_LINEAR).ravel() for m in (mx, my)], -1)
+    err = np.abs(at - src[inside]).max()
+    assert err < 0.01, err
+    assert np.abs(pin - src).max() > 15  # the lens moves the periphery by over 15 px
+
+
 def test_tum_calibration_without_its_k3_folds_the_image():
     # what issue 37 ran: the published fr1 coefficients with k3 dropped turn back near the corners
     with pytest.raises(ValueError, match="fold the image .* 0.9"):
@@ -297,3 +335,20 @@ def test_negative_first_coefficient_is_accepted_as_typed(tmp_path):
     p = cli("plan", str(tmp_path / "a"), "--out", str(tmp_path / "r"), "--cache", str(tmp_path / "cache"),
             "--intrinsics", "-50,50,31.5,23.5")
     assert p.returncode == 2 and "fx=-50" in p.stderr and "expected one argument" not in p.stderr, p.stderr
+
+
+def test_the_undistorted_border_repeats_the_frame_edge_not_black():
+    """Where the lens leaves the undistorted image's corners outside the frame (TUM fr1's, 5.6 % of
+    the image), ingest fills them with the nearest edge pixel, not black: a hard black edge fixed
+    in the image is a static feature for the flow and the depth prior (its synthetic clip: ATE
+    2.5x the pinhole clip with black corners, 0.7x with the edge repeated; docs/log/2026-11-28-cams2.md).
+    The corners are left out of every loss all the same (tests/test_user_masks.py)."""
+    cam = lens.parse_camera("206.9,206.9,127.5,95.5,0.2624,-0.9531,-0.0054,0.0026,1.1633")
+    frame = np.full((192, 256, 3), 128, np.uint8)
+    frame[:, :128] = 60
+    und = undistort_frame(frame, cam.intrinsics, cam.coeffs, cam.model)
+    mx, my = lens.undistort_maps(cam, (256, 192))
+    outside = (mx < -0.5) | (mx > 255.5) | (my < -0.5) | (my > 191.5)
+    assert outside.mean() > 0.03
+    assert und.min() >= 59 and und[outside].min() >= 59  # no black anywhere
+    assert np.all(und[:10, :10] == 60) and np.all(und[-10:, -10:] == 128)  # each corner: its own edge

@@ -73,3 +73,46 @@ def test_missing_or_missized_masks_are_one_line_exit_2(tmp_path):
     assert len(r.stderr.strip().splitlines()) == 2  # the camera line and the error
     r = cli("plan", str(clip), "--out", str(tmp_path / "run"), "--masks", str(tmp_path / "nope"))
     assert r.returncode == 2 and "not a folder" in r.stderr
+
+
+TUM_SYNTH = [[206.9, 206.9, 127.5, 95.5], [0.2624, -0.9531, -0.0054, 0.0026, 1.1633], "OPENCV"]  # fr1 at 256 px
+
+
+def test_only_a_lens_that_leaves_a_black_border_gets_one():
+    from stages.frontend import user_masks
+
+    assert user_masks.lens_border(TUM_SYNTH, (256, 192))  # its corners fall outside the frame
+    assert not user_masks.lens_border([[200, 200, 127.5, 95.5], [0.03, -0.01, 0.004, -0.001], "OPENCV_FISHEYE"], (256, 192))
+    assert not user_masks.lens_border([[200, 200, 127.5, 95.5], [-0.25, 0.08, 0.001, -0.0008, -0.02], "OPENCV"], (256, 192))
+    assert not user_masks.lens_border(None, (256, 192))
+
+
+def test_the_lens_black_border_is_left_out_as_a_user_mask_would_be():
+    """Without --masks, a lens whose undistortion leaves the frame's corners black (TUM fr1's):
+    the mask items carry the border as the user's exclusion (user_keep 0 there, static 0, the
+    summary says so); a pinhole clip's items stay as they were (no user_keep)."""
+    from types import SimpleNamespace
+
+    from stages.frontend import lens
+
+    src = SimpleNamespace(size=(256, 192))
+    lensed = {"frame_indices": [0, 1], "width": 256, "height": 192, "distortion_intrinsics": TUM_SYNTH[0],
+              "distortion": TUM_SYNTH[1], "distortion_model": "OPENCV"}
+    p = pipeline.MasksParams(backend="none")
+    fl = {"fwd": np.zeros((192, 256, 2), np.float32), "fwd_valid": np.ones((192, 256), bool)}
+    for summary, border in ((lensed, True), ({"frame_indices": [0, 1], "width": 256, "height": 192}, False)):
+        view = SimpleNamespace(source=src, len=lambda s: 2, summary=lambda s, d=summary: d)
+        items = pipeline._mask_items(view, p)
+        assert ("source_size" in items[0]) == border and "user_mask" not in items[0]
+        assert (pipeline._mask_summary(view, p) is not None) == border
+        assert len(pipeline._user_mask_items(view, p)) == (2 if border else 0)
+        inputs = {**{k: v.value for k, v in items[0].items() if hasattr(v, "value")}, "chain": [fl], "direction": "fwd"}
+        out = pipeline.run_masks(inputs, p, None)
+        if not border:
+            assert "user_keep" not in out and out["static"].all()
+            continue
+        mx, my = lens.undistort_maps(lens.parse_camera(",".join(map(str, TUM_SYNTH[0] + TUM_SYNTH[1]))), (256, 192))
+        outside = (mx < -0.5) | (mx > 255.5) | (my < -0.5) | (my > 191.5)
+        keep = out["user_keep"] > 0
+        assert not keep[outside].any() and out["static"][outside].max() == 0
+        assert keep.mean() > 0.9 and keep[60:130, 80:180].all()

@@ -213,13 +213,13 @@ def undistort_maps(cam: Camera, size: tuple[int, int]) -> tuple[np.ndarray, np.n
     return mx, my
 
 
-def undistort_image(img: np.ndarray, cam: Camera) -> np.ndarray:
+def undistort_image(img: np.ndarray, cam: Camera, border: str = "replicate") -> np.ndarray:
     """A source image (H, W[, C]) seen through the lens -> the pinhole image of the same intrinsics
-    (bilinear; outside the source: 0)."""
+    (bilinear; outside the source: its nearest edge pixel, ``border`` "replicate", or 0, "black")."""
     h, w = img.shape[:2]
     mx, my = undistort_maps(cam, (w, h))
-    return cv2.remap(np.ascontiguousarray(img), mx, my, interpolation=cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mode = cv2.BORDER_REPLICATE if border == "replicate" else cv2.BORDER_CONSTANT
+    return cv2.remap(np.ascontiguousarray(img), mx, my, interpolation=cv2.INTER_LINEAR, borderMode=mode, borderValue=0)
 
 
 # ----------------------------------------------------------------------------- plausibility

@@ -23,6 +23,7 @@ from stages.frontend import lens
 
 __all__ = [
     "source_to_working",
+    "lens_border",
     "hard_masks",
     "user_keep",
     "footprint_kept",
@@ -49,11 +50,24 @@ def source_to_working(out: np.ndarray, size: tuple[int, int],
         # cv2.remap's bilinear weights are 1/32-quantised: a tap with a weight under 1/32 may get
         # none. Dilating by one pixel first makes the test "any of the four taps" exact.
         m = cv2.dilate(m, np.ones((3, 3), np.uint8))
-        m = cv2.remap(m, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        # a working pixel the lens leaves outside the source frame (ingest's black border) shows
+        # nothing: left out like a masked one
+        m = cv2.remap(m, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
     w, h = size
     if (m.shape[1], m.shape[0]) != (w, h):
         m = cv2.resize(m, (w, h), interpolation=cv2.INTER_AREA)
     return (m <= 0).astype(np.uint8)
+
+
+def lens_border(undistort: tuple | list | None, source_size: tuple[int, int] | list[int]) -> bool:
+    """Whether ingest's undistortion (``undistort`` as in :func:`source_to_working`, None: none)
+    leaves working pixels whose rays fall outside the source frame (its black border, e.g. the
+    corners of a barrel-corrected image): those are then left out as user-masked pixels are
+    (:func:`source_to_working` of an empty mask), so no loss, track or average sees the border."""
+    if undistort is None:
+        return False
+    w0, h0 = int(source_size[0]), int(source_size[1])
+    return bool((source_to_working(np.zeros((h0, w0), bool), (w0, h0), undistort) == 0).any())
 
 
 def hard_masks(masks: np.ndarray, keep: np.ndarray | None) -> np.ndarray:
