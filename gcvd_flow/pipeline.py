@@ -1259,7 +1259,8 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
         gray = np.asarray(inputs["image"]["image"], np.float64).mean(axis=2) / 255.0
         out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray,
                                               min_confidence=p.splat_min_confidence, front=p.splat_front,
-                                              static=static[0], ref_static=[static[1 + k] for k in sel])
+                                              static=static[0], ref_static=[static[1 + k] for k in sel],
+                                              keep_confidence=p.splat_keep, keep_edges=p.splat_keep_edges or None)
     return {"depth": out, "confidence": conf}
 
 

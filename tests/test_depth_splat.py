@@ -122,8 +122,52 @@ def test_the_stage_splats_only_with_splat_offsets():
     mask[REGION] = True
     before = _log_err(depth, mask)
     off = run_depth_consensus(_stage_inputs(depth, conf, False), DepthConsensusParams(offsets=(1,)), None)
-    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,)),
+    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,), splat_keep_edges=0.0),
                              None)
     assert _log_err(off["depth"], mask) > 0.9 * before
     assert _log_err(on["depth"], mask) < 0.05 * before
     np.testing.assert_array_equal(on["confidence"], conf)
+
+
+def test_confident_pixels_keep_their_depth_the_unconfident_take_the_splat():
+    """Ten references each 3 % too far (their own small errors): with keep_confidence the frame's
+    confident pixels keep their exact depth (without it they are outvoted and move), the
+    unconfident region is still corrected, and a pixel at half the keep confidence takes 3/4 of
+    the correction ((c / keep)^2 of its own depth)."""
+    depth, conf = _far_off_frame()
+    conf[5:10, 5:120] = 0.25
+    refs = [(d * 1.03, c, p) for d, c, p in _refs([-0.05, -0.04, -0.03, -0.02, -0.01, 0.01, 0.02, 0.03, 0.04, 0.05])]
+    mask = np.zeros((H, W), bool)
+    mask[REGION] = True
+    sure = conf >= 0.5
+    free = splat_consensus(depth, conf, _pose(0.0), refs, K)
+    kept = splat_consensus(depth, conf, _pose(0.0), refs, K, keep_confidence=0.5)
+    assert _log_err(free, sure) > 0.02  # outvoted: the references' 3 %
+    np.testing.assert_array_equal(kept[sure], depth[sure])
+    assert _log_err(kept, mask) < 0.1 * _log_err(depth, mask)
+    half = np.log(kept[5:10, 20:100] / depth[5:10, 20:100])
+    np.testing.assert_allclose(half, 0.75 * np.log(1.03), atol=0.004)
+
+
+def _step_frame() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box 1.5 m in front of the plane (cols 60+ of frame i, and where the references see it),
+    all of frame i unconfident, 8 % too far; the references confident and right."""
+    truth = _plane(0.0)
+    truth[:, 60:] = 1.5
+    conf = np.zeros((H, W), np.float32)
+    return truth, truth * 1.08, conf
+
+
+def test_pixels_at_a_depth_edge_of_the_frame_keep_their_depth():
+    """keep_edges: pixels within 2 px of a jump of the frame's own log depth keep their depth (the
+    2x2 footprint puts the box's points over the plane there); elsewhere the splat corrects."""
+    truth, depth, conf = _step_frame()
+    ref = (truth, np.full((H, W), 0.9, np.float32), _pose(0.0))
+    out = splat_consensus(depth, conf, _pose(0.0), [ref], K, keep_edges=0.05)
+    edge = np.zeros((H, W), bool)
+    edge[:, 58:62] = True
+    np.testing.assert_array_equal(out[edge], depth[edge])
+    np.testing.assert_allclose(out[:, 10:50], truth[:, 10:50], rtol=3e-3)
+    np.testing.assert_allclose(out[:, 70:120], truth[:, 70:120], rtol=3e-3)
+    free = splat_consensus(depth, conf, _pose(0.0), [ref], K)
+    assert not np.array_equal(free[edge], depth[edge])

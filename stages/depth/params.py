@@ -114,3 +114,8 @@ class DepthConsensusSettings:
     splat_front: float = param(0.1, "splatted depths within this (relative) of the nearest one at a pixel are its "
                                "visible surface and averaged; the rest are occluded", gt=0)
     splat_min_confidence: float = param(0.5, "reference pixels at least this confident are splatted", ge=0, le=1)
+    splat_keep: float = param(0.5, "frame i's pixels at least this confident keep their own depth; less confident "
+                              "ones take the splat in proportion, (1 - (c / splat_keep)^2) (above 1: every pixel "
+                              "blended as first built, ICL 0.048 -> 0.060)", ge=0)
+    splat_keep_edges: float = param(0.05, "pixels within 2 px of a jump of frame i's own log depth larger than this "
+                                    "keep their depth (0 = off)", ge=0)
