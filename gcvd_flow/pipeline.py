@@ -1261,6 +1261,8 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
                                               min_confidence=p.splat_min_confidence, front=p.splat_front,
                                               static=static[0], ref_static=[static[1 + k] for k in sel],
                                               keep_confidence=p.splat_keep, keep_edges=p.splat_keep_edges or None)
+    if p.edge_jump > 0:
+        conf = depth_consensus.edge_confidence(out, conf, p.edge_jump)
     return {"depth": out, "confidence": conf}
 
 

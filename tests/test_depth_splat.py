@@ -171,3 +171,38 @@ def test_pixels_at_a_depth_edge_of_the_frame_keep_their_depth():
     np.testing.assert_allclose(out[:, 70:120], truth[:, 70:120], rtol=3e-3)
     free = splat_consensus(depth, conf, _pose(0.0), [ref], K)
     assert not np.array_equal(free[edge], depth[edge])
+
+
+def test_confidence_drops_at_depth_edges_only():
+    """edge_confidence: within 2 px of a 10 % jump of the depth (the box in front of the plane) or
+    of an invalid pixel the confidence falls below 0.5; a smoothly tilted plane keeps all of its."""
+    from stages.depth.consensus import edge_confidence
+
+    truth, _, _ = _step_frame()
+    truth[90:, :10] = 0.0
+    conf = np.full((H, W), 0.9, np.float32)
+    conf[0, 0] = 1.0
+    out = edge_confidence(truth, conf, 0.1)
+    assert (out[:, 58:62] < 0.5).all() and (out[:88, 8:12] < 0.5).sum() == 0
+    assert (out[88:90, :12] < 0.5).all() and (out[90:, 10:12] < 0.5).all()  # next to the invalid corner
+    np.testing.assert_array_equal(out[:80, 12:56], conf[:80, 12:56])
+    np.testing.assert_array_equal(out[:, 64:], conf[:, 64:])
+    assert out[0, 0] == 1.0
+    np.testing.assert_array_equal(edge_confidence(_plane(0.0), conf, 0.1), conf)
+    one = np.ones((H, W), np.float32)
+    assert edge_confidence(truth, one, 0.1)[:, 59].max() < 0.5  # even confidence 1 is unconfident there
+
+
+def test_the_stage_lowers_the_confidence_at_its_output_depth_edges():
+    """pipeline.run_depth_consensus with edge_jump (default 0.1): the box's boundary is unconfident
+    in the output; edge_jump=0 passes the confidence through."""
+    from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
+
+    truth, _, _ = _step_frame()
+    conf = np.full((H, W), 0.9, np.float32)
+    inputs = _stage_inputs(truth, conf, False)
+    on = run_depth_consensus(inputs, DepthConsensusParams(offsets=(1,)), None)
+    off = run_depth_consensus(inputs, DepthConsensusParams(offsets=(1,), edge_jump=0.0), None)
+    assert (on["confidence"][:, 58:62] < 0.5).all()
+    np.testing.assert_array_equal(on["confidence"][:, 64:], conf[:, 64:])
+    np.testing.assert_array_equal(off["confidence"], conf)

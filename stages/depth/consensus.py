@@ -283,6 +283,31 @@ def _near_depth_edge(log_d: np.ndarray, valid: np.ndarray, jump: float) -> np.nd
     return near | (cv2.dilate((~valid).astype(np.uint8), k) > 0)
 
 
+EDGE_CONFIDENCE_FACTOR = 0.45  # at a depth edge even confidence 1 falls below 0.5 (unconfident)
+
+
+def edge_confidence(depth: np.ndarray, confidence: np.ndarray, jump: float, radius: int = 2) -> np.ndarray:
+    """confidence float32 (H, W), multiplied by ``EDGE_CONFIDENCE_FACTOR`` within ``radius`` px of a
+    jump of the frame's log depth larger than ``jump`` (the (2 radius + 1)^2 range) or of an invalid
+    pixel.
+
+    Flow-consistent triangulation marks a pixel confident whatever it straddles; at an occlusion
+    boundary the depth is a mix of the two surfaces (DIS's patches, the 3x3 median, the network's
+    smooth mesh), a few % to tens of % off. On the HoloLens walk the confident pixels within 2 px
+    of a 10 % jump are 10 % of them and carry 2.4x the error of the rest
+    (docs/log/2026-11-28-depth2.md). The depth itself is not changed."""
+    depth = np.asarray(depth, np.float32)
+    valid = depth > 0
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    ld = np.log(np.where(valid, depth, 1.0)).astype(np.float32)
+    ld_hi = cv2.dilate(np.where(valid, ld, -1e6).astype(np.float32), k)
+    ld_lo = cv2.erode(np.where(valid, ld, 1e6).astype(np.float32), k)
+    edge = valid & ((ld_hi - ld_lo) > jump)
+    edge |= valid & (cv2.dilate((~valid).astype(np.uint8), k) > 0)
+    conf = np.asarray(confidence, np.float32)
+    return np.where(edge, conf * np.float32(EDGE_CONFIDENCE_FACTOR), conf).astype(np.float32)
+
+
 def _spread_correction(guide: np.ndarray, log_d: np.ndarray, fused: np.ndarray, known: np.ndarray) -> np.ndarray:
     """log depth (H, W): ``fused`` where ``known``, elsewhere ``log_d`` plus the correction
     fused - log_d of the known pixels densified edge-aware over ``guide``."""
