@@ -207,6 +207,7 @@ def splat_consensus(
     ref_static: Sequence[np.ndarray | None] | None = None,
     keep_confidence: float | None = None,
     keep_edges: float | None = None,
+    ref_edge_jump: float | None = None,
 ) -> np.ndarray:
     """Frame i's depth float32 (H, W) corrected with its references' confident depth splatted
     forward into it (z-buffered), and the correction spread edge-aware over what no view covers.
@@ -244,6 +245,8 @@ def splat_consensus(
     pts = []
     for (depth_j, conf_j, pose_j), st in zip(refs, ref_static):
         dj = np.asarray(depth_j, np.float32)
+        if ref_edge_jump is not None:  # a reference's pixels straddling its occlusion boundaries
+            conf_j = edge_confidence(dj, conf_j, ref_edge_jump)
         wj = np.where((dj > 0) & (np.asarray(conf_j) >= min_confidence), np.asarray(conf_j, np.float64) ** 2, 0.0)
         if st is not None:
             wj = np.where(np.asarray(st) > 0, wj, 0.0)
