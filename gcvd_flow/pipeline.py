@@ -1260,7 +1260,8 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
         out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray,
                                               min_confidence=p.splat_min_confidence, front=p.splat_front,
                                               static=static[0], ref_static=[static[1 + k] for k in sel],
-                                              keep_confidence=p.splat_keep, keep_edges=p.splat_keep_edges or None)
+                                              keep_confidence=p.splat_keep, keep_edges=p.splat_keep_edges or None,
+                                              ref_edge_jump=p.splat_ref_edge_jump or None)
     if p.edge_jump > 0:
         conf = depth_consensus.edge_confidence(out, conf, p.edge_jump)
     return {"depth": out, "confidence": conf}

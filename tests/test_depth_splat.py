@@ -206,3 +206,22 @@ def test_the_stage_lowers_the_confidence_at_its_output_depth_edges():
     assert (on["confidence"][:, 58:62] < 0.5).all()
     np.testing.assert_array_equal(on["confidence"][:, 64:], conf[:, 64:])
     np.testing.assert_array_equal(off["confidence"], conf)
+
+
+def test_references_pixels_at_their_depth_edges_are_not_splatted():
+    """ref_edge_jump: the reference's confident pixels straddling the box's boundary carry a mix of
+    the two depths (as a flow patch or a 3x3 median leaves them); splatted, they put that mix into
+    frame i; left out (within 2 px of a > 10 % jump of the reference's own depth), frame i keeps its
+    depth there and the rest is corrected as before."""
+    truth, depth, conf = _step_frame()
+    ref_depth = truth.copy()
+    ref_depth[:, 59:61] = np.sqrt(truth[:, 50:51] * 1.5)  # the boundary's mixed depth
+    ref = (ref_depth, np.full((H, W), 0.9, np.float32), _pose(0.0))
+    free = splat_consensus(depth, conf, _pose(0.0), [ref], K)
+    clean = splat_consensus(depth, conf, _pose(0.0), [ref], K, ref_edge_jump=0.1)
+    mixed = np.zeros((H, W), bool)
+    mixed[:, 59:61] = True
+    assert np.abs(np.log(free[mixed] / truth[mixed])).mean() > 0.1  # the mix splatted in
+    np.testing.assert_array_equal(clean[mixed], depth[mixed])  # nothing lands there: its own depth
+    np.testing.assert_allclose(clean[:, 10:50], truth[:, 10:50], rtol=3e-3)
+    np.testing.assert_allclose(clean[:, 70:120], truth[:, 70:120], rtol=3e-3)

@@ -118,6 +118,9 @@ class DepthConsensusSettings:
     splat_keep: float = param(0.5, "frame i's pixels at least this confident keep their own depth; less confident "
                               "ones take the splat in proportion, (1 - (c / splat_keep)^2) (above 1: every pixel "
                               "blended as first built, ICL 0.048 -> 0.060)", ge=0)
+    splat_ref_edge_jump: float = param(0.1, "a reference's pixels within 2 px of a jump of its own log depth larger than "
+                                       "this are not splatted (at occlusion boundaries their depth mixes two "
+                                       "surfaces); 0 = off", ge=0)
     splat_keep_edges: float = param(0.0, "pixels within 2 px of a jump of frame i's own log depth larger than this "
                                     "keep their depth (0 = off)", ge=0)
     edge_jump: float = param(0.1, "the output confidence is scaled by 0.45 within 2 px of a jump of the output's log depth "
