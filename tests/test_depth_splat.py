@@ -113,7 +113,7 @@ def _stage_inputs(depth: np.ndarray, conf: np.ndarray, splat: bool) -> dict:
 
 def test_the_stage_splats_only_with_splat_offsets():
     """pipeline.run_depth_consensus: the item of depth_consensus.splat_offsets=[1] corrects the
-    far-off region; the default (carry only, offsets without 1) leaves it; the confidence is
+    far-off region; an item without splat_indices (splat_offsets=()) leaves it; the confidence is
     passed through either way."""
     from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
 
