@@ -162,7 +162,7 @@ def _consensus_rows(cam: _Camera, rows: slice, depth: np.ndarray, confidence: np
     return np.where(valid, np.exp(num / den), 0.0).astype(np.float32)
 
 
-# ------------------------------------------------------------------ forward splatting (opt-in: splat_offsets)
+# ------------------------------------------------------------------ forward splatting (splat_offsets)
 KEEP_POWER = 2.0
 SPLAT_FOOTPRINT = ((0, 0), (1, 0), (0, 1), (1, 1))  # a point covers the 4 pixels around where it lands
 
