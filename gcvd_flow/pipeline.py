@@ -1269,7 +1269,11 @@ def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: An
         gray = np.asarray(inputs["image"]["image"], np.float64).mean(axis=2) / 255.0
         out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray,
                                               min_confidence=p.splat_min_confidence, front=p.splat_front,
-                                              static=static[0], ref_static=[static[1 + k] for k in sel])
+                                              static=static[0], ref_static=[static[1 + k] for k in sel],
+                                              keep_confidence=p.splat_keep, keep_edges=p.splat_keep_edges or None,
+                                              ref_edge_jump=p.splat_ref_edge_jump or None)
+    if p.edge_jump > 0:
+        conf = depth_consensus.edge_confidence(out, conf, p.edge_jump)
     return {"depth": out, "confidence": conf}
 
 

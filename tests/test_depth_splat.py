@@ -113,7 +113,7 @@ def _stage_inputs(depth: np.ndarray, conf: np.ndarray, splat: bool) -> dict:
 
 def test_the_stage_splats_only_with_splat_offsets():
     """pipeline.run_depth_consensus: the item of depth_consensus.splat_offsets=[1] corrects the
-    far-off region; the default (carry only, offsets without 1) leaves it; the confidence is
+    far-off region; an item without splat_indices (splat_offsets=()) leaves it; the confidence is
     passed through either way."""
     from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
 
@@ -122,8 +122,106 @@ def test_the_stage_splats_only_with_splat_offsets():
     mask[REGION] = True
     before = _log_err(depth, mask)
     off = run_depth_consensus(_stage_inputs(depth, conf, False), DepthConsensusParams(offsets=(1,)), None)
-    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,)),
+    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,), splat_keep_edges=0.0),
                              None)
     assert _log_err(off["depth"], mask) > 0.9 * before
     assert _log_err(on["depth"], mask) < 0.05 * before
     np.testing.assert_array_equal(on["confidence"], conf)
+
+
+def test_confident_pixels_keep_their_depth_the_unconfident_take_the_splat():
+    """Ten references each 3 % too far (their own small errors): with keep_confidence the frame's
+    confident pixels keep their exact depth (without it they are outvoted and move), the
+    unconfident region is still corrected, and a pixel at half the keep confidence takes 3/4 of
+    the correction ((c / keep)^2 of its own depth)."""
+    depth, conf = _far_off_frame()
+    conf[5:10, 5:120] = 0.25
+    refs = [(d * 1.03, c, p) for d, c, p in _refs([-0.05, -0.04, -0.03, -0.02, -0.01, 0.01, 0.02, 0.03, 0.04, 0.05])]
+    mask = np.zeros((H, W), bool)
+    mask[REGION] = True
+    sure = conf >= 0.5
+    free = splat_consensus(depth, conf, _pose(0.0), refs, K)
+    kept = splat_consensus(depth, conf, _pose(0.0), refs, K, keep_confidence=0.5)
+    assert _log_err(free, sure) > 0.02  # outvoted: the references' 3 %
+    np.testing.assert_array_equal(kept[sure], depth[sure])
+    assert _log_err(kept, mask) < 0.1 * _log_err(depth, mask)
+    half = np.log(kept[5:10, 20:100] / depth[5:10, 20:100])
+    np.testing.assert_allclose(half, 0.75 * np.log(1.03), atol=0.004)
+
+
+def _step_frame() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box 1.5 m in front of the plane (cols 60+ of frame i, and where the references see it),
+    all of frame i unconfident, 8 % too far; the references confident and right."""
+    truth = _plane(0.0)
+    truth[:, 60:] = 1.5
+    conf = np.zeros((H, W), np.float32)
+    return truth, truth * 1.08, conf
+
+
+def test_pixels_at_a_depth_edge_of_the_frame_keep_their_depth():
+    """keep_edges: pixels within 2 px of a jump of the frame's own log depth keep their depth (the
+    2x2 footprint puts the box's points over the plane there); elsewhere the splat corrects."""
+    truth, depth, conf = _step_frame()
+    ref = (truth, np.full((H, W), 0.9, np.float32), _pose(0.0))
+    out = splat_consensus(depth, conf, _pose(0.0), [ref], K, keep_edges=0.05)
+    edge = np.zeros((H, W), bool)
+    edge[:, 58:62] = True
+    np.testing.assert_array_equal(out[edge], depth[edge])
+    np.testing.assert_allclose(out[:, 10:50], truth[:, 10:50], rtol=3e-3)
+    np.testing.assert_allclose(out[:, 70:120], truth[:, 70:120], rtol=3e-3)
+    free = splat_consensus(depth, conf, _pose(0.0), [ref], K)
+    assert not np.array_equal(free[edge], depth[edge])
+
+
+def test_confidence_drops_at_depth_edges_only():
+    """edge_confidence: within 2 px of a 10 % jump of the depth (the box in front of the plane) or
+    of an invalid pixel the confidence falls below 0.5; a smoothly tilted plane keeps all of its."""
+    from stages.depth.consensus import edge_confidence
+
+    truth, _, _ = _step_frame()
+    truth[90:, :10] = 0.0
+    conf = np.full((H, W), 0.9, np.float32)
+    conf[0, 0] = 1.0
+    out = edge_confidence(truth, conf, 0.1)
+    assert (out[:, 58:62] < 0.5).all() and (out[:88, 8:12] < 0.5).sum() == 0
+    assert (out[88:90, :12] < 0.5).all() and (out[90:, 10:12] < 0.5).all()  # next to the invalid corner
+    np.testing.assert_array_equal(out[:80, 12:56], conf[:80, 12:56])
+    np.testing.assert_array_equal(out[:, 64:], conf[:, 64:])
+    assert out[0, 0] == 1.0
+    np.testing.assert_array_equal(edge_confidence(_plane(0.0), conf, 0.1), conf)
+    one = np.ones((H, W), np.float32)
+    assert edge_confidence(truth, one, 0.1)[:, 59].max() < 0.5  # even confidence 1 is unconfident there
+
+
+def test_the_stage_lowers_the_confidence_at_its_output_depth_edges():
+    """pipeline.run_depth_consensus with edge_jump (default 0.1): the box's boundary is unconfident
+    in the output; edge_jump=0 passes the confidence through."""
+    from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
+
+    truth, _, _ = _step_frame()
+    conf = np.full((H, W), 0.9, np.float32)
+    inputs = _stage_inputs(truth, conf, False)
+    on = run_depth_consensus(inputs, DepthConsensusParams(offsets=(1,)), None)
+    off = run_depth_consensus(inputs, DepthConsensusParams(offsets=(1,), edge_jump=0.0), None)
+    assert (on["confidence"][:, 58:62] < 0.5).all()
+    np.testing.assert_array_equal(on["confidence"][:, 64:], conf[:, 64:])
+    np.testing.assert_array_equal(off["confidence"], conf)
+
+
+def test_references_pixels_at_their_depth_edges_are_not_splatted():
+    """ref_edge_jump: the reference's confident pixels straddling the box's boundary carry a mix of
+    the two depths (as a flow patch or a 3x3 median leaves them); splatted, they put that mix into
+    frame i; left out (within 2 px of a > 10 % jump of the reference's own depth), frame i keeps its
+    depth there and the rest is corrected as before."""
+    truth, depth, conf = _step_frame()
+    ref_depth = truth.copy()
+    ref_depth[:, 59:61] = np.sqrt(truth[:, 50:51] * 1.5)  # the boundary's mixed depth
+    ref = (ref_depth, np.full((H, W), 0.9, np.float32), _pose(0.0))
+    free = splat_consensus(depth, conf, _pose(0.0), [ref], K)
+    clean = splat_consensus(depth, conf, _pose(0.0), [ref], K, ref_edge_jump=0.1)
+    mixed = np.zeros((H, W), bool)
+    mixed[:, 59:61] = True
+    assert np.abs(np.log(free[mixed] / truth[mixed])).mean() > 0.1  # the mix splatted in
+    np.testing.assert_array_equal(clean[mixed], depth[mixed])  # nothing lands there: its own depth
+    np.testing.assert_allclose(clean[:, 10:50], truth[:, 10:50], rtol=3e-3)
+    np.testing.assert_allclose(clean[:, 70:120], truth[:, 70:120], rtol=3e-3)

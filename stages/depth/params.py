@@ -106,11 +106,22 @@ class DepthConsensusSettings:
                                "(an occlusion) and not used", gt=0)
     reproj_sigma_px: float = param(3.0, "round-trip reprojection error scale, px (weight exp(-(e / sigma)^2))",
                                    gt=0)
-    splat_offsets: tuple[int, ...] = param((), "opt-in: references (frames i - k and i + k) whose confident filtered "
-                                           "depth is splatted forward into frame i after the carry, the correction "
-                                           "spread edge-aware (stages.depth.consensus.splat_consensus); e.g. 1..12, "
-                                           "16, 20, 24, 32, 40, 48, 56, 64: HoloLens AbsRel 0.1465 -> 0.120, "
-                                           "but ICL 0.048 -> 0.060 (docs/log/2026-11-28-depth.md)", validator=_positive_offsets)
+    splat_offsets: tuple[int, ...] = param((1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 16, 20, 24, 32, 40, 48, 56, 64),
+                                           "references (frames i - k and i + k) whose confident filtered depth is "
+                                           "splatted forward into frame i after the carry, the correction spread "
+                                           "edge-aware (stages.depth.consensus.splat_consensus; () = off): AbsRel "
+                                           "HoloLens 0.1465 -> 0.121, ICL 0.048 -> 0.041, synthetic loop 0.037 -> "
+                                           "0.034, walk 0.079 -> 0.046 (docs/log/2026-11-28-depth2.md)", validator=_positive_offsets)
     splat_front: float = param(0.1, "splatted depths within this (relative) of the nearest one at a pixel are its "
                                "visible surface and averaged; the rest are occluded", gt=0)
     splat_min_confidence: float = param(0.5, "reference pixels at least this confident are splatted", ge=0, le=1)
+    splat_keep: float = param(0.5, "frame i's pixels at least this confident keep their own depth; less confident "
+                              "ones take the splat in proportion, (1 - (c / splat_keep)^2) (above 1: every pixel "
+                              "blended as first built, ICL 0.048 -> 0.060)", ge=0)
+    splat_ref_edge_jump: float = param(0.1, "a reference's pixels within 2 px of a jump of its own log depth larger than "
+                                       "this are not splatted (at occlusion boundaries their depth mixes two "
+                                       "surfaces); 0 = off", ge=0)
+    splat_keep_edges: float = param(0.0, "pixels within 2 px of a jump of frame i's own log depth larger than this "
+                                    "keep their depth (0 = off)", ge=0)
+    edge_jump: float = param(0.1, "the output confidence is scaled by 0.45 within 2 px of a jump of the output's log depth "
+                             "larger than this (an occlusion boundary: a mix of two surfaces); 0 = off", ge=0)
