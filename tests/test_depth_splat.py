@@ -225,3 +225,33 @@ def test_references_pixels_at_their_depth_edges_are_not_splatted():
     np.testing.assert_array_equal(clean[mixed], depth[mixed])  # nothing lands there: its own depth
     np.testing.assert_allclose(clean[:, 10:50], truth[:, 10:50], rtol=3e-3)
     np.testing.assert_allclose(clean[:, 70:120], truth[:, 70:120], rtol=3e-3)
+
+
+def test_kept_pixels_take_no_landings_and_the_output_is_the_same_bits(monkeypatch):
+    """The pixels that keep their own depth (confident) are left out of the splat's work: the
+    output is bit-identical to splatting every landing, and the points splatted are fewer."""
+    import stages.depth.consensus as consensus
+
+    depth, conf = _far_off_frame()
+    rng = np.random.default_rng(3)
+    conf = np.where(rng.random((H, W)) < 0.3, rng.random((H, W)) * 0.6, conf).astype(np.float32)
+    depth = (depth * (1 + 0.05 * rng.standard_normal((H, W)))).astype(np.float32)
+    refs = _refs([-0.2, -0.1, 0.1, 0.2])
+    args = dict(guide=_wall_guide(), keep_confidence=0.5, ref_edge_jump=0.1)
+    landed = []
+    real = consensus.splat_points
+
+    def counting(*a, **k):
+        out = real(*a, **k)
+        landed.append(len(out[0]))
+        return out
+
+    monkeypatch.setattr(consensus, "splat_points", counting)
+    fast = splat_consensus(depth, conf, _pose(0.0), refs, K, **args)
+    n_fast = sum(landed)
+    monkeypatch.setattr(consensus, "_splat_targets", lambda *a, **k: None)
+    landed.clear()
+    full = splat_consensus(depth, conf, _pose(0.0), refs, K, **args)
+    assert fast.tobytes() == full.tobytes()
+    assert n_fast < 0.6 * sum(landed)
+    assert np.abs(np.log(fast[REGION]) - np.log(depth[REGION])).mean() > 0.05  # the splat did change the region

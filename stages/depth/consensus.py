@@ -168,12 +168,14 @@ SPLAT_FOOTPRINT = ((0, 0), (1, 0), (0, 1), (1, 1))  # a point covers the 4 pixel
 
 
 def splat_points(K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray, depth_j: np.ndarray,
-                 weight_j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 weight_j: np.ndarray, target: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame j's pixels with weight > 0 moved into frame i (T_i_j maps j's camera coordinates to
     i's) and projected: (flat pixel index into i's (H, W) grid, depth in i, weight), each point
     covering the 4 pixels around its landing position (no holes between neighbours on a
-    receding surface); points behind i or outside its image are left out."""
+    receding surface); points behind i or outside its image are left out, and with ``target``
+    (bool (H, W)) the landings on pixels where it is False."""
     h, w = shape
+    tgt = None if target is None else np.asarray(target, bool).ravel()
     K = np.asarray(K, np.float64)
     vs, us = np.nonzero(weight_j > 0)
     z = np.asarray(depth_j, np.float64)[vs, us]
@@ -188,7 +190,11 @@ def splat_points(K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray, depth
     for du, dv in SPLAT_FOOTPRINT:
         u, v = uf + du, vf + dv
         ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        idx.append(v[ok] * w + u[ok])
+        flat = v[ok] * w + u[ok]
+        if tgt is not None:
+            ok[ok] = tgt[flat]
+            flat = flat[tgt[flat]]
+        idx.append(flat)
         zs.append(Y[2, ok])
         ws.append(wj[ok])
     return np.concatenate(idx), np.concatenate(zs), np.concatenate(ws)
@@ -242,6 +248,7 @@ def splat_consensus(
     T_i_w = np.linalg.inv(pose)
     if ref_static is None:
         ref_static = [None] * len(refs)
+    target = _splat_targets(conf, valid, min_confidence, keep_confidence, keep_edges, depth)
     pts = []
     for (depth_j, conf_j, pose_j), st in zip(refs, ref_static):
         dj = np.asarray(depth_j, np.float32)
@@ -251,7 +258,7 @@ def splat_consensus(
         if st is not None:
             wj = np.where(np.asarray(st) > 0, wj, 0.0)
         if wj.any():
-            pts.append(splat_points(K, (h, w), T_i_w @ np.asarray(pose_j, np.float64), dj, wj))
+            pts.append(splat_points(K, (h, w), T_i_w @ np.asarray(pose_j, np.float64), dj, wj, target))
     if not pts:
         return depth
     idx, z, wt = (np.concatenate(a) for a in zip(*pts))
@@ -274,6 +281,23 @@ def splat_consensus(
     if static is not None:
         out = np.where(np.asarray(static) > 0, out, depth)
     return out
+
+
+def _splat_targets(conf: np.ndarray, valid: np.ndarray, min_confidence: float, keep_confidence: float | None,
+                   keep_edges: float | None, depth: np.ndarray) -> np.ndarray | None:
+    """bool (H, W): the pixels of frame i whose output a landing can change (None: all). A pixel
+    that keeps its own depth (confidence >= ``keep_confidence``, or at its own depth edge with
+    ``keep_edges``) and is confident (so it anchors the spread whatever lands on it) takes no
+    landing: leaving its landings out gives the same bits (each pixel's z-buffer and sums are its
+    own) and skips most of the work on a well-measured clip (ICL: ~90 % of the pixels)."""
+    if keep_confidence is None and keep_edges is None:
+        return None
+    kept = np.zeros(conf.shape, bool)
+    if keep_confidence is not None:
+        kept |= conf >= max(keep_confidence, 1e-6)
+    if keep_edges is not None:
+        kept |= _near_depth_edge(np.log(np.where(valid, depth, 1.0).astype(np.float64)), valid, keep_edges)
+    return ~(kept & valid & (conf >= min_confidence))
 
 
 def _near_depth_edge(log_d: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
