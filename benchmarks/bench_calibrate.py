@@ -27,8 +27,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from stages.frontend import calibrate
-from stages.frontend.ingest import prepare_frame, working_size
+from gcvd_flow.stages.frontend import calibrate
+from gcvd_flow.stages.frontend.ingest import prepare_frame, working_size
 
 EXTS = {".png", ".jpg", ".jpeg"}
 

@@ -21,8 +21,8 @@ import numpy as np
 from gcvd_flow.engine import api
 from gcvd_flow.io.formats import read_depth_png
 from gcvd_flow.pipeline import _far_flow
-from stages.depth import fusion
-from stages.frontend import flow as flow_mod
+from gcvd_flow.stages.depth import fusion
+from gcvd_flow.stages.frontend import flow as flow_mod
 
 NEAR = {"none (optimised depth)": [], "+-8": [-8, 8], "+-4,8": [-8, -4, 4, 8], "+-2,4,8": [-8, -4, -2, 2, 4, 8],
         "+-1,2,4,8": [-8, -4, -2, -1, 1, 2, 4, 8], "+-4": [-4, 4], "+-2": [-2, 2], "+-1": [-1, 1]}

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import torch  # noqa: E402
 
 from gcvd_flow import cli  # noqa: E402
-from stages.optimize import (
+from gcvd_flow.stages.optimize import (
     keyframes as KF,  # noqa: E402
     solver as S,  # noqa: E402
 )

@@ -21,8 +21,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gcvd_flow import cli  # noqa: E402
-from stages.models import depth_net  # noqa: E402
-from stages.optimize import solver  # noqa: E402
+from gcvd_flow.stages.models import depth_net  # noqa: E402
+from gcvd_flow.stages.optimize import solver  # noqa: E402
 
 TOTALS = {"decode": 0.0, "loss": 0.0, "backward_step": 0.0, "split_step": 0.0, "steps": 0}
 

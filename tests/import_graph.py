@@ -10,18 +10,22 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PROJECT = ("gcvd_flow", "stages", "artifacts_schema")
+PROJECT = ("gcvd_flow",)
+# the card's top-level folders, installed (and symlinked in the checkout) as parts of gcvd_flow
+FOLDERS = {"gcvd_flow": "gcvd_flow", "stages": "gcvd_flow.stages", "artifacts_schema": "gcvd_flow.artifacts_schema"}
 
 
 def project_modules() -> dict[str, Path]:
     """Dotted module name -> source file of every project module (packages by their name)."""
     out: dict[str, Path] = {}
-    for pkg in PROJECT:
-        for f in sorted((ROOT / pkg).rglob("*.py")):
-            parts = list(f.relative_to(ROOT).with_suffix("").parts)
+    for folder, pkg in FOLDERS.items():
+        for f in sorted((ROOT / folder).rglob("*.py")):
+            parts = list(f.relative_to(ROOT / folder).with_suffix("").parts)
             if parts[-1] == "__init__":
                 parts = parts[:-1]
-            out[".".join(parts)] = f
+            if folder == "gcvd_flow" and parts and parts[0] in ("stages", "artifacts_schema"):
+                continue  # the symlinks: listed once, from the folder itself
+            out[".".join([pkg, *parts])] = f
     return out
 
 

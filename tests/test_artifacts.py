@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-import artifacts_schema
+from gcvd_flow import artifacts_schema
 from gcvd_flow.engine.artifacts import ArtifactError, Encoder, Tensors, load_manifest, load_value, register_schema_dir, validate
 
 register_schema_dir(artifacts_schema.SCHEMA_DIR)  # what a pipeline spec does when it is loaded
@@ -93,8 +93,7 @@ def test_the_engines_schemas_bite_without_any_pipeline_schemas(store, monkeypatc
 
 
 def test_product_schemas_resolve_the_engines_common_definitions(store):
-    import artifacts_schema
-
+    from gcvd_flow import artifacts_schema
     assert not (artifacts_schema.SCHEMA_DIR / "common.json").exists()
     with pytest.raises(ArtifactError, match="depth artifact does not match"):
         validate("depth", {"kind": "depth", "value": {"depth": {"$npy": "x" * 64, "dtype": "<f4", "shape": [2, 2]}}})

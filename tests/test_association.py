@@ -14,8 +14,8 @@ from geometry_ref import rigid_flow
 
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.io.weights import open_model
-from stages.frontend.flow import compute_pair_flow
-from stages.graph.association import (
+from gcvd_flow.stages.frontend.flow import compute_pair_flow
+from gcvd_flow.stages.graph.association import (
     DEFAULT_SIMILARITY_THRESHOLD,
     build_graph,
     candidate_pairs,
@@ -24,8 +24,8 @@ from stages.graph.association import (
     keyframe_pair_flow,
     verify_pair,
 )
-from stages.graph.keyframes import keyframe_pair_flows, pair_motion, select_keyframes
-from stages.models.resnet import ResNet18, resnet_descriptor
+from gcvd_flow.stages.graph.keyframes import keyframe_pair_flows, pair_motion, select_keyframes
+from gcvd_flow.stages.models.resnet import ResNet18, resnet_descriptor
 
 SIZE = (160, 120)
 

@@ -15,8 +15,8 @@ import torch
 from safetensors.torch import save_file
 
 from gcvd_flow.io.weights import open_model
-from stages.models.midas import MidasNet, midas_prior, network_size
-from stages.models.raft import RAFT, CorrPyramid, coords_grid, raft_flow, upsample_flow_convex
+from gcvd_flow.stages.models.midas import MidasNet, midas_prior, network_size
+from gcvd_flow.stages.models.raft import RAFT, CorrPyramid, coords_grid, raft_flow, upsample_flow_convex
 
 
 def _save_safetensors(model: torch.nn.Module, path: Path) -> Path:

@@ -9,9 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from gcvd_flow.evaluate.metrics import ate
 from gcvd_flow.evaluate.synth import render_clip
-from stages.geometry import se3
-from stages.optimize import ba_solver
-from stages.optimize.bundle_adjustment import build_tracks, bundle_adjust, gtsam_graph, inverse_depth_landmark, solve_gtsam
+from gcvd_flow.stages.geometry import se3
+from gcvd_flow.stages.optimize import ba_solver
+from gcvd_flow.stages.optimize.bundle_adjustment import build_tracks, bundle_adjust, gtsam_graph, inverse_depth_landmark, solve_gtsam
 
 
 def _pair_flow(clip, a: int, b: int) -> dict[str, np.ndarray]:
@@ -273,7 +273,7 @@ def test_analytic_jacobians_match_finite_differences():
 def test_schur_step_solves_the_full_damped_system():
     """One damped step of the Schur solver equals the dense solve of (H + lam D) d = -g built
     from the public Jacobians (IRLS-weighted reprojection terms plus the pose priors)."""
-    from stages.optimize.ba_solver import _damped_step, _linearize, _sorted_problem
+    from gcvd_flow.stages.optimize.ba_solver import _damped_step, _linearize, _sorted_problem
 
     prob, _, T0, lm0, _ = _synthetic_problem(n_lm=120)
     p, order, layout = _sorted_problem(prob)
@@ -321,7 +321,7 @@ def test_bundle_adjustment_stage_runs_numpy_blas_on_one_thread(monkeypatch):
     from threadpoolctl import threadpool_info, threadpool_limits
 
     from gcvd_flow import pipeline
-    from stages.optimize import bundle_adjustment as ba_mod
+    from gcvd_flow.stages.optimize import bundle_adjustment as ba_mod
 
     def blas_threads() -> list[int]:
         return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]

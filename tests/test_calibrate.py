@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gcvd_flow.evaluate.synth import default_intrinsics, render_clip
-from stages.frontend.calibrate import estimate_focal
+from gcvd_flow.stages.frontend.calibrate import estimate_focal
 
 SIZE = (160, 120)
 
@@ -48,7 +48,7 @@ def test_forward_motion_keeps_the_guess_and_says_why():
 
 
 def test_forward_share_of_poses():
-    from stages.frontend.calibrate import forward_share
+    from gcvd_flow.stages.frontend.calibrate import forward_share
 
     def T_c_w(c, yaw=0.0):  # camera at c (world), turned by yaw about y; world-to-camera
         R = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]])
@@ -137,7 +137,7 @@ def test_calibrate_stage_with_given_intrinsics_does_nothing():
 
 
 def test_select_tracks_caps_each_frame_and_keeps_the_image_covered():
-    from stages.frontend.calibrate import select_tracks
+    from gcvd_flow.stages.frontend.calibrate import select_tracks
 
     rng = np.random.default_rng(0)
     W, H = 160, 120
@@ -180,7 +180,7 @@ def _side_patch_clip():
 def test_no_feature_on_or_next_to_a_user_masked_pixel():
     """--masks reaches calibrate's features (hence every pair, track and bundle adjustment): none lies
     on a masked pixel or within MASK_DILATE_PX of one; without a mask the features are as before."""
-    from stages.frontend import calibrate as cal
+    from gcvd_flow.stages.frontend import calibrate as cal
 
     clip, _, frames, masked = _side_patch_clip()
     keep = [(~m).astype(np.uint8) for m in masked]

@@ -19,8 +19,8 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.io import formats
 from gcvd_flow.io.sources import open_source
-from stages.frontend import lens
-from stages.frontend.ingest import undistort_frame
+from gcvd_flow.stages.frontend import lens
+from gcvd_flow.stages.frontend.ingest import undistort_frame
 
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 ICL = "525,525,319.5,239.5"

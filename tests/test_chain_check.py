@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stages.optimize.chain_check import (
+from gcvd_flow.stages.optimize.chain_check import (
     checked_pair_poses,
     repair_pairs,
     rotation_deg,
@@ -16,7 +16,7 @@ from stages.optimize.chain_check import (
     triplet_gaps,
     triplet_poses,
 )
-from stages.optimize.init import chain_pair_poses, essential_chain
+from gcvd_flow.stages.optimize.init import chain_pair_poses, essential_chain
 
 K = np.array([[50.0, 0, 47.5], [0, 50.0, 35.5], [0, 0, 1]])
 H, W = 72, 96

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.depth import consensus
-from stages.depth.consensus import carry_depth, consensus_depth
+from gcvd_flow.stages.depth import consensus
+from gcvd_flow.stages.depth.consensus import carry_depth, consensus_depth
 
 F = 100.0
 W, H = 128, 96

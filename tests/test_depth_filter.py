@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from geometry_ref import rigid_flow
 
-from stages.depth.filter import chain_flow, filter_depth
+from gcvd_flow.stages.depth.filter import chain_flow, filter_depth
 
 F = 100.0
 W, H = 128, 96
@@ -109,8 +109,8 @@ def test_past_neighbours_count_as_much_as_future_ones() -> None:
 def test_one_walk_per_side_equals_chaining_to_each_neighbour() -> None:
     """filter_depth tracks to all neighbours of a side in one walk; each track must equal
     chaining from the centre to that neighbour on its own, step by step, to the bit."""
-    from stages.depth.filter import _sample, _walk, chain_flow
-    from stages.geometry.image import inside_image
+    from gcvd_flow.stages.depth.filter import _sample, _walk, chain_flow
+    from gcvd_flow.stages.geometry.image import inside_image
 
     def chained(fwd, bwd, start, end, x, y):
         inside = inside_image(x, y, w, h, 0.0)
@@ -138,7 +138,7 @@ def test_one_walk_per_side_equals_chaining_to_each_neighbour() -> None:
 def test_fill_uncertain_follows_the_confident_surface_along_image_edges():
     """A low-confidence blob with wrong depth on the right plane takes the right plane's depth
     (not the left one's across the image edge); confident pixels and invalid zeros stay."""
-    from stages.depth.filter import fill_uncertain
+    from gcvd_flow.stages.depth.filter import fill_uncertain
 
     h, w = 48, 64
     gray = np.full((h, w), 0.2)

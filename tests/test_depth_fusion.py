@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from gcvd_flow.evaluate.synth import render_clip
-from stages.depth.fusion import fuse_depth
+from gcvd_flow.stages.depth.fusion import fuse_depth
 
 
 def _absrel(z: np.ndarray, gt: np.ndarray) -> float:

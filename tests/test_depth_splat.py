@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from test_depth_consensus import REGION, H, K, W, _log_err, _plane, _pose, _refs
 
-from stages.depth.consensus import consensus_depth, splat_consensus, splat_points
+from gcvd_flow.stages.depth.consensus import consensus_depth, splat_consensus, splat_points
 
 
 def _far_off_frame(factor: float = 1.4) -> tuple[np.ndarray, np.ndarray]:
@@ -176,7 +176,7 @@ def test_pixels_at_a_depth_edge_of_the_frame_keep_their_depth():
 def test_confidence_drops_at_depth_edges_only():
     """edge_confidence: within 2 px of a 10 % jump of the depth (the box in front of the plane) or
     of an invalid pixel the confidence falls below 0.5; a smoothly tilted plane keeps all of its."""
-    from stages.depth.consensus import edge_confidence
+    from gcvd_flow.stages.depth.consensus import edge_confidence
 
     truth, _, _ = _step_frame()
     truth[90:, :10] = 0.0
@@ -230,7 +230,7 @@ def test_references_pixels_at_their_depth_edges_are_not_splatted():
 def test_kept_pixels_take_no_landings_and_the_output_is_the_same_bits(monkeypatch):
     """The pixels that keep their own depth (confident) are left out of the splat's work: the
     output is bit-identical to splatting every landing, and the points splatted are fewer."""
-    import stages.depth.consensus as consensus
+    import gcvd_flow.stages.depth.consensus as consensus
 
     depth, conf = _far_off_frame()
     rng = np.random.default_rng(3)

@@ -12,8 +12,8 @@ from gcvd_flow import pipeline
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt
 from gcvd_flow.io.sources import open_source
-from stages.frontend.ingest import undistort_frame
-from stages.frontend.lens import parse_camera
+from gcvd_flow.stages.frontend.ingest import undistort_frame
+from gcvd_flow.stages.frontend.lens import parse_camera
 
 DIST = (-0.28, 0.08, 0.001, -0.0005)
 

@@ -7,7 +7,7 @@ import pytest
 from geometry_ref import rigid_flow
 
 from gcvd_flow.evaluate.synth import render_clip
-from stages.frontend.flow import chain_flows, compute_pair_flow, fb_consistency, warp_sample
+from gcvd_flow.stages.frontend.flow import chain_flows, compute_pair_flow, fb_consistency, warp_sample
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +138,7 @@ def test_warp_sample_and_chain_are_bit_identical_to_the_plain_formula():
 def test_the_initialisations_sampler_is_warp_sample_with_its_clamp():
     # stages.optimize.init.sample_np was a copy of warp_sample's arithmetic with its own clamp;
     # it now calls warp_sample and must give the copy's bits (results unchanged by the merge)
-    from stages.optimize.init import sample_np
+    from gcvd_flow.stages.optimize.init import sample_np
 
     def copy(img, uv):  # the former body
         h, w = img.shape

@@ -17,7 +17,7 @@ import pytest
 from conftest import by_stage, cli, cli_json
 
 from gcvd_flow import api, pipeline as gp
-from stages.frontend import flow as flow_mod, priors as priors_mod
+from gcvd_flow.stages.frontend import flow as flow_mod, priors as priors_mod
 
 N = 24
 

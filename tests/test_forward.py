@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.frontend.ingest import working_size
-from stages.optimize.init import two_view_pose
+from gcvd_flow.stages.frontend.ingest import working_size
+from gcvd_flow.stages.optimize.init import two_view_pose
 
 
 def test_wide_frames_keep_half_the_long_side_as_rows() -> None:
@@ -87,9 +87,9 @@ def test_sequential_flows_without_prewarp_keep_bundle_adjustment_scale(prewarp: 
 
     from gcvd_flow.evaluate.metrics import ate
     from gcvd_flow.io.formats import read_intrinsics_txt, read_tum_poses
-    from stages.frontend.ingest import make_camera, prepare_frame
-    from stages.graph.association import build_graph
-    from stages.optimize.bundle_adjustment import bundle_adjust
+    from gcvd_flow.stages.frontend.ingest import make_camera, prepare_frame
+    from gcvd_flow.stages.graph.association import build_graph
+    from gcvd_flow.stages.optimize.bundle_adjustment import bundle_adjust
 
     frames = list(range(39, 100, 2))
     w, h = working_size(1226, 370, 256, 0.5)
@@ -127,7 +127,7 @@ def test_prewarp_auto_turns_off_for_forward_motion_only(trajectory: str, forward
     the orbit and the loop are not. Only the forward clip's graph records the decision, and its
     consecutive flows are then the plain DIS flows (homography identity)."""
     from gcvd_flow.evaluate.synth import render_clip
-    from stages.graph.association import build_graph
+    from gcvd_flow.stages.graph.association import build_graph
 
     clip = render_clip(n_frames=25, trajectory=trajectory, size=(160, 120), seed=0)
     kfs = list(range(0, 25, 4))

@@ -17,9 +17,10 @@ import pytest
 from conftest import by_stage, cli, cli_json
 
 from gcvd_flow import api, pipeline as gp
-from stages.depth import fusion
-from stages.frontend import flow as flow_mod
-from stages.graph import references as R
+from gcvd_flow.stages.depth import fusion
+from gcvd_flow.stages.depth.params import FusionReferencesSettings
+from gcvd_flow.stages.frontend import flow as flow_mod
+from gcvd_flow.stages.graph import references as R
 
 K = np.array([[100.0, 0, 63.5], [0, 100.0, 47.5], [0, 0, 1]])
 SIZE = (128, 96)
@@ -55,7 +56,7 @@ def test_a_pause_gets_references_outside_it_not_fixed_offsets():
     # 10 frames moving 2 cm each, a 20-frame pause, then 10 frames moving again
     xs = np.concatenate([np.arange(10) * 0.02, np.full(20, 0.18), 0.18 + np.arange(1, 11) * 0.02])
     poses = _poses(xs)
-    rule = R.ReferenceRule(max_new=2)
+    rule = FusionReferencesSettings(max_new_flows=2)
     refs, new = R.baseline_references(poses, _samples(len(xs)), K, SIZE, rule)
     for i, js in enumerate(refs):
         assert 0 < len(js) <= rule.max_refs, (i, js)
@@ -69,7 +70,7 @@ def test_a_pause_gets_references_outside_it_not_fixed_offsets():
     # spread on both sides when both sides move
     assert min(refs[mid]) < mid < max(refs[mid])
     # the number of flows is bounded and every new pair is used by a frame
-    assert len(new) <= rule.max_new * len(xs) and len(set(new)) == len(new)
+    assert len(new) <= rule.max_new_flows * len(xs) and len(set(new)) == len(new)
     used = {(min(i, j), max(i, j)) for i, js in enumerate(refs) for j in js}
     assert set(new) <= used and all(b - a > 1 for a, b in new)
 
@@ -77,8 +78,8 @@ def test_a_pause_gets_references_outside_it_not_fixed_offsets():
 def test_slow_motion_reaches_further_and_fast_motion_stays_near():
     slow = _poses(np.arange(40) * 0.004)  # 0.1 deg per frame at 2 m
     fast = _poses(np.arange(40) * 0.06)  # 1.7 deg per frame
-    rs, _ = R.baseline_references(slow, _samples(40), K, SIZE, R.ReferenceRule())
-    rf, _ = R.baseline_references(fast, _samples(40), K, SIZE, R.ReferenceRule())
+    rs, _ = R.baseline_references(slow, _samples(40), K, SIZE, FusionReferencesSettings())
+    rf, _ = R.baseline_references(fast, _samples(40), K, SIZE, FusionReferencesSettings())
     gap_slow = np.median([abs(j - 20) for j in rs[20]])
     gap_fast = np.median([abs(j - 20) for j in rf[20]])
     assert gap_slow >= 10 and gap_fast <= 4, (rs[20], rf[20])
@@ -88,14 +89,14 @@ def test_existing_flows_are_preferred_and_shared():
     xs = np.arange(60) * 0.01
     poses, samples = _poses(xs), _samples(60)
     free = [(a, a + k) for k in (4, 8) for a in range(60 - k)]  # the priors' pairs
-    rule = R.ReferenceRule()
+    rule = FusionReferencesSettings()
     _, new_free = R.baseline_references(poses, samples, K, SIZE, rule, free)
     refs, new_none = R.baseline_references(poses, samples, K, SIZE, rule)
     assert len(new_free) < len(new_none) and not set(new_free) & set(free)
     # at most max_new per frame, each new pair computed once and read by both its frames
-    assert len(new_none) <= len(xs) * rule.max_new and len(set(new_none)) == len(new_none)
+    assert len(new_none) <= len(xs) * rule.max_new_flows and len(set(new_none)) == len(new_none)
     assert sum(i in refs[j] for i, js in enumerate(refs) for j in js if j > i) > len(xs) // 2
-    zero = R.ReferenceRule(max_new=0)
+    zero = FusionReferencesSettings(max_new_flows=0)
     refs0, new0 = R.baseline_references(poses, samples, K, SIZE, zero, free)
     assert new0 == [] and all((min(i, j), max(i, j)) in set(free) or abs(i - j) == 1
                               for i, js in enumerate(refs0) for j in js)
@@ -104,8 +105,8 @@ def test_existing_flows_are_preferred_and_shared():
 def test_deterministic():
     rng = np.random.default_rng(3)
     poses = _poses(np.cumsum(rng.uniform(0, 0.03, 30)))
-    a = R.baseline_references(poses, _samples(30), K, SIZE, R.ReferenceRule())
-    b = R.baseline_references(poses.copy(), _samples(30), K, SIZE, R.ReferenceRule())
+    a = R.baseline_references(poses, _samples(30), K, SIZE, FusionReferencesSettings())
+    b = R.baseline_references(poses.copy(), _samples(30), K, SIZE, FusionReferencesSettings())
     assert a == b
 
 
@@ -168,7 +169,7 @@ def test_pipeline_reads_each_reference_from_its_flow(walk_run):
     assert np.array_equal(fused[i]["depth"], d) and np.array_equal(fused[i]["confidence"], c)
     # chosen by view geometry at the run's poses and depths: every reference sees 80 % of the
     # frame at a usable angle (fixed offsets do not: compared below)
-    rule = gp._reference_rule(gp.FusionReferencesParams())
+    rule = gp.FusionReferencesParams()
     samples = [R.view_samples(np.asarray(seg["depths"][k]), Kc) for k in range(N)]
     size = (fused[0]["depth"].shape[1], fused[0]["depth"].shape[0])
     for k, js in enumerate(refs):

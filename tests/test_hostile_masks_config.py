@@ -30,7 +30,7 @@ from PIL import Image
 from gcvd_flow import pipeline
 from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io.formats import DatasetError, read_user_mask_png
-from stages.frontend import solvable
+from gcvd_flow.stages.frontend import solvable
 
 H, W = 48, 64
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.frontend.flow import compute_pair_flow
-from stages.graph.keyframes import pair_motion, select_keyframes
+from gcvd_flow.stages.frontend.flow import compute_pair_flow
+from gcvd_flow.stages.graph.keyframes import pair_motion, select_keyframes
 
 
 def test_pair_motion_masks() -> None:

@@ -76,7 +76,7 @@ def _pipeline_libraries() -> dict[str, set[str]]:
     from import_graph import closure, project_graph, third_party_imports
 
     graph = project_graph()
-    reached = closure(["gcvd_flow.pipeline"] + [m for m in graph if m.split(".")[0] == "stages"], graph)
+    reached = closure(["gcvd_flow.pipeline"] + [m for m in graph if m.startswith("gcvd_flow.stages")], graph)
     dists = importlib.metadata.packages_distributions()
     out: dict[str, set[str]] = {}
     for top, importers in third_party_imports(reached).items():
@@ -210,3 +210,62 @@ def test_imports_inside_the_function_count(tmp_path, monkeypatch):
     (pkg / "algo.py").write_text("def solve(x):\n    return x + 2\n")
     assert fp()[0] != fp0
     _forget("lpkg")
+
+
+def test_helpers_in_other_adapter_modules_are_followed_function_by_function(tmp_path, monkeypatch):
+    """Adapters split over several modules (gcvd_flow/pipeline/*.py): a helper moved to a shared
+    adapter module stays in its stages' keys one function at a time, as in the stage's own module,
+    so the split makes no key coarser; without ``adapters`` that module would enter whole."""
+    pkg = _make_package(tmp_path, "apkg", {
+        "algo.py": "def solve(x):\n    return x + 1\n",
+        "shared.py": textwrap.dedent('''
+            from apkg import algo
+
+
+            def helper(x):
+                return algo.solve(x) * 2
+
+
+            class Holder:
+                def get(self, x):
+                    return x
+
+
+            def unrelated():
+                return 0
+        '''),
+        "step.py": textwrap.dedent('''
+            from apkg.shared import Holder, helper as _helper
+
+
+            def run(inputs, params, ctx):
+                return _helper(Holder().get(inputs))
+
+
+            def neighbour():
+                return 1
+        '''),
+    }, monkeypatch)
+
+    def fp(adapters=("apkg.shared", "apkg.step")):
+        _forget("apkg")
+        return keys.code_fingerprint(importlib.import_module("apkg.step").run, ("apkg",), adapters)
+
+    fp0, files = fp()
+    names = [f for f, _ in files]
+    assert "apkg.shared:helper" in names and "apkg.shared:Holder" in names
+    assert "apkg/algo.py" in names and "apkg/shared.py" not in names  # stages-like code: whole modules
+    src = (pkg / "shared.py").read_text()
+    (pkg / "shared.py").write_text(src.replace("return 0", "return 5"))
+    assert fp()[0] == fp0, "editing an unrelated helper of the shared adapter module must not invalidate"
+    coarse = fp(adapters=())[0]
+    (pkg / "shared.py").write_text(src)
+    assert fp(adapters=())[0] != coarse, "without adapters the shared module enters whole"
+    (pkg / "shared.py").write_text(src.replace("* 2", "* 3"))
+    assert fp()[0] != fp0, "editing the moved helper must change the key"
+    (pkg / "shared.py").write_text(src.replace("return x\n", "return x + 0\n"))
+    assert fp()[0] != fp0, "editing a method of a moved helper class must change the key"
+    (pkg / "shared.py").write_text(src)
+    (pkg / "algo.py").write_text("def solve(x):\n    return x + 2\n")
+    assert fp()[0] != fp0, "what the moved helper uses from other project modules still counts"
+    _forget("apkg")

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from gcvd_flow.evaluate.synth import render_clip
-from stages.geometry import torch_ops as G
-from stages.optimize import losses as L
+from gcvd_flow.stages.geometry import torch_ops as G
+from gcvd_flow.stages.optimize import losses as L
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from conftest import by_stage, cli, cli_json
 from safetensors.torch import save_file
 
 from gcvd_flow.io.weights import open_model
-from stages.models.maskrcnn import (
+from gcvd_flow.stages.models.maskrcnn import (
     DYNAMIC_COCO_CLASSES,
     MaskRCNN,
     batched_nms,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from gcvd_flow.evaluate.synth import impair, render_clip
-from stages.frontend.flow import chain_flows, compute_pair_flow
-from stages.frontend.masks import motion_masks, motion_static_mask, texture_weight
+from gcvd_flow.stages.frontend.flow import chain_flows, compute_pair_flow
+from gcvd_flow.stages.frontend.masks import motion_masks, motion_static_mask, texture_weight
 
 N = 20
 FRAMES = (7, 12, 18)
@@ -113,7 +113,7 @@ def test_motion_masks_fit_each_flow_once(monkeypatch):
     """The static and solve masks threshold the same epipolar residuals at two sigmas: each
     neighbour flow's static-scene model is fitted once per frame (not once per mask), and the
     masks are those of fitting it for each (motion_static_mask, which fits its own)."""
-    from stages.frontend import masks as masks_mod
+    from gcvd_flow.stages.frontend import masks as masks_mod
 
     clip = render_clip(N, "orbit", size=(256, 192), seed=1)
     clip.frames[:] = impair(clip.frames, clip.depth, clip.poses, clip.K, noise=3, blur=0.5, exposure=0.15)

@@ -6,9 +6,9 @@ import numpy as np
 import torch
 from geometry_ref import rigid_flow as rigid_flow_np
 
-from stages.geometry import torch_ops as G
-from stages.models.depth_net import DepthNet, mesh_shape, upsample_mesh
-from stages.models.pose_net import DirectPoses, PoseNet, positional_encoding
+from gcvd_flow.stages.geometry import torch_ops as G
+from gcvd_flow.stages.models.depth_net import DepthNet, mesh_shape, upsample_mesh
+from gcvd_flow.stages.models.pose_net import DirectPoses, PoseNet, positional_encoding
 
 
 def _rand_twists(n: int, seed: int = 0, rot: float = 0.6) -> torch.Tensor:
@@ -30,7 +30,7 @@ def test_se3_exp_log_roundtrip() -> None:
 
 def test_one_twist_order_in_torch_and_numpy() -> None:
     # stages.geometry.torch_ops and stages.geometry.se3 (gtsam's Pose3.Expmap) read (w, v) alike
-    from stages.geometry import se3
+    from gcvd_flow.stages.geometry import se3
 
     xi = _rand_twists(16, 7)
     np.testing.assert_allclose(G.se3_exp(xi).numpy(), se3.se3_exp(xi.numpy()), atol=1e-12)
@@ -213,7 +213,7 @@ def test_backbones_are_seeded() -> None:
 
 
 def test_loop_disagreement_is_the_rotation_between_measurement_and_odometry() -> None:
-    from stages.geometry import se3
+    from gcvd_flow.stages.geometry import se3
 
     T_w_a, T_w_b = G.se3_exp(0.3 * _rand_twists(1, 8))[0].numpy(), G.se3_exp(0.3 * _rand_twists(1, 9))[0].numpy()
     T_b_a = np.linalg.inv(T_w_b) @ T_w_a

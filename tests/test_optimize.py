@@ -13,12 +13,12 @@ import pytest
 import torch
 
 from gcvd_flow.evaluate.synth import render_clip
-from stages.frontend.flow import compute_pair_flow
-from stages.optimize.edges import optimize_edge, optimize_edge_call
-from stages.optimize.init import two_view_pose
-from stages.optimize.keyframes import optimize_keyframes
-from stages.optimize.params import DepthModel, EdgeSettings, KeyframeSettings, LossWeights, SegmentSettings
-from stages.optimize.segments import optimize_segments
+from gcvd_flow.stages.frontend.flow import compute_pair_flow
+from gcvd_flow.stages.optimize.edges import optimize_edge, optimize_edge_call
+from gcvd_flow.stages.optimize.init import two_view_pose
+from gcvd_flow.stages.optimize.keyframes import optimize_keyframes
+from gcvd_flow.stages.optimize.params import DepthModel, EdgeSettings, KeyframeSettings, LossWeights, SegmentSettings
+from gcvd_flow.stages.optimize.segments import optimize_segments
 
 # one thread: on 2 cores shared with other jobs, torch's intra-op threads oversubscribe badly
 torch.set_num_threads(1)
@@ -179,7 +179,7 @@ def test_keyframe_windows_are_independent_and_placed_onto_the_overlap(tiny: dict
 def test_rigid_fit_recovers_a_rigid_motion_of_the_overlap() -> None:
     from scipy.spatial.transform import Rotation
 
-    from stages.optimize.keyframes import _rigid_fit
+    from gcvd_flow.stages.optimize.keyframes import _rigid_fit
 
     rng = np.random.default_rng(0)
     src = np.tile(np.eye(4), (5, 1, 1))
@@ -230,7 +230,7 @@ def test_plateau_stop_resumes_to_the_same_step(tiny: dict) -> None:
 def test_solver_plateau_criterion() -> None:
     """Mean of the last ``stop_every`` losses against the mean of the ``stop_every`` before, checked
     at multiples of ``stop_every`` only."""
-    from stages.optimize.solver import Solver
+    from gcvd_flow.stages.optimize.solver import Solver
 
     s = Solver.__new__(Solver)
     s.stop_every, s.stop_rel = 4, 0.01
@@ -250,7 +250,7 @@ def test_solver_plateau_criterion() -> None:
 def test_points_in_proportion_to_pair_weight(tiny: dict) -> None:
     """points_by_weight: a pair of weight 1/tau draws points / tau points per step (at least 8), the
     sampled index tensors have those sizes, and the stage records the points drawn per step."""
-    from stages.optimize.solver import _points_per_pair
+    from gcvd_flow.stages.optimize.solver import _points_per_pair
 
     assert _points_per_pair([1.0, 0.5, 0.25, 0.125], 128, True) == [128, 64, 32, 16]
     assert _points_per_pair([1.0, 0.5, 0.25, 0.125], 128, False) == [128] * 4
@@ -280,7 +280,7 @@ def test_keyframes_pose_net_and_ablation_switches(tiny: dict) -> None:
 def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
     """photo_warp="centre": each 3x3 patch lands in frame b as its centre's projection plus the
     pixel offsets (the paper's "pixel" warps every patch pixel with its own depth); both train."""
-    from stages.optimize.solver import Solver
+    from gcvd_flow.stages.optimize.solver import Solver
 
     captured = {}
     orig = Solver._warp
@@ -306,10 +306,10 @@ def test_photo_warp_centre_shifts_the_patch_with_its_centre(tiny: dict) -> None:
 
 def _window_solver(t: dict, pair_blocks: int, taus: tuple[int, ...] = (1, 2, 4), by_weight: bool = False, **stop):
     """A Solver over the tiny clip's 8 keyframes (one window, first pose fixed), seeded by 0."""
-    from stages.models.depth_net import DepthNet, mesh_shape
-    from stages.optimize.frames import flows_at_loss_res, loss_size, prepare_frames
-    from stages.optimize.keyframes import _keyframe_pairs
-    from stages.optimize.solver import Solver, Window
+    from gcvd_flow.stages.models.depth_net import DepthNet, mesh_shape
+    from gcvd_flow.stages.optimize.frames import flows_at_loss_res, loss_size, prepare_frames
+    from gcvd_flow.stages.optimize.keyframes import _keyframe_pairs
+    from gcvd_flow.stages.optimize.solver import Solver, Window
 
     c, kf = t["clip"], t["kf"]
     n = len(kf)

@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import ast
 import re
+import shutil
+import subprocess
 import sys
 import tomllib
+import zipfile
 from importlib import metadata
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-OWN = {"gcvd_flow", "stages", "artifacts_schema"}
+OWN = {"gcvd_flow"}
 
 
 def _norm(name: str) -> str:
@@ -111,3 +114,60 @@ def test_a_missing_module_is_one_line_naming_it(monkeypatch, capsys, tmp_path):
     assert main(["report", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'matplotlib' is not installed" in err[0]
+
+
+def _wheel(tmp_path: Path) -> Path:
+    """The wheel `pip install .` installs, built from a copy of the checkout (symlinks kept)."""
+    src = tmp_path / "src"
+    skip = shutil.ignore_patterns(".git", ".venv*", "build", "*.egg-info", "__pycache__", "out", "demo-out", "bench-out")
+    shutil.copytree(ROOT, src, symlinks=True, ignore=skip)
+    p = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
+                        "--disable-pip-version-check", "-w", str(tmp_path / "dist"), str(src)],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    (whl,) = (tmp_path / "dist").glob("gcvd_flow-*.whl")
+    return whl
+
+
+def test_pip_install_installs_one_top_level_package_and_no_stages_module(tmp_path):
+    """`pip install .` puts gcvd_flow alone into site-packages: the card's top-level stages/ and
+    artifacts_schema/ folders are gcvd_flow.stages and gcvd_flow.artifacts_schema there, so another
+    project's `stages` module cannot collide with ours (issue 39)."""
+    whl = _wheel(tmp_path)
+    names = zipfile.ZipFile(whl).namelist()
+    assert {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")} == {"gcvd_flow"}
+    for f in ("gcvd_flow/stages/__init__.py", "gcvd_flow/stages/optimize/params.py",
+              "gcvd_flow/artifacts_schema/__init__.py", "gcvd_flow/artifacts_schema/depth.json"):
+        assert f in names, f
+    target = tmp_path / "site"
+    p = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--disable-pip-version-check",
+                        "--target", str(target), str(whl)], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    # no site-packages (-S: this venv's editable install maps `stages` to a checkout), outside the checkout
+    code = (f"import sys; sys.path[:0] = [{str(target)!r}]\n"
+            "import gcvd_flow.stages, gcvd_flow.artifacts_schema as a\n"
+            "assert (a.SCHEMA_DIR / 'depth.json').is_file()\n"
+            "for name in ('stages', 'artifacts_schema'):\n"
+            "    try:\n"
+            "        __import__(name)\n"
+            "    except ModuleNotFoundError:\n"
+            "        print('no', name)\n")
+    p = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                       env={"PATH": "/usr/bin:/bin"})
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split("\n")[:2] == ["no stages", "no artifacts_schema"], p.stdout
+
+
+def test_the_checkout_maps_the_card_folders_into_the_package():
+    """In the checkout gcvd_flow/stages and gcvd_flow/artifacts_schema are the top-level folders
+    (what the wheel installs), and no code imports them by their old top-level names."""
+    for name in ("stages", "artifacts_schema"):
+        link = ROOT / "gcvd_flow" / name
+        assert link.is_symlink() and link.resolve() == (ROOT / name).resolve(), link
+    old = [f"{f.relative_to(ROOT)}: {n}" for d in ("gcvd_flow", "stages", "tests", "benchmarks", "tools")
+           for f in sorted((ROOT / d).rglob("*.py")) if "gcvd_flow/stages" not in str(f.relative_to(ROOT))
+           for node in ast.walk(ast.parse(f.read_text(), str(f)))
+           for n in ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+           if n.split(".")[0] in ("stages", "artifacts_schema")]
+    assert not old, "imports of the old top-level names (run tools/relayout.py): " + "; ".join(old)

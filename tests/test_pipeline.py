@@ -159,7 +159,7 @@ def test_weights_backend_through_the_cli_keys_by_content(clip, tmp_path):
     import torch
     from safetensors.torch import save_file
 
-    from stages.models.raft import RAFT
+    from gcvd_flow.stages.models.raft import RAFT
 
     torch.manual_seed(0)
     model = RAFT()

@@ -10,7 +10,10 @@ import pytest
 
 from gcvd_flow import pipeline as gp
 from gcvd_flow.engine.dag import ItemRef, MapStage, PartRef, Pipeline, PipelineError, Stage
-from stages.graph import references as R
+from gcvd_flow.stages.depth import params as depth_params
+from gcvd_flow.stages.frontend import params as frontend_params
+from gcvd_flow.stages.graph import params as graph_params, references as R
+from gcvd_flow.stages.optimize import params as opt_params
 
 
 def _noop(inputs, p, ctx):
@@ -45,7 +48,7 @@ def test_every_section_is_derived_from_a_stage_dataclass():
     # the defaults live in stages/: a section's default is its dataclass's
     for name, section in gp._SECTIONS.items():
         fields = section.model_fields
-        owners = [c for mod in (gp.frontend_params, gp.graph_params, gp.depth_params, gp.opt_params)
+        owners = [c for mod in (frontend_params, graph_params, depth_params, opt_params)
                   for c in vars(mod).values() if dataclasses.is_dataclass(c) and isinstance(c, type)
                   and {f.name for f in dataclasses.fields(c)} == set(fields)]
         assert owners, f"section {name!r} has no parameter dataclass in stages/"

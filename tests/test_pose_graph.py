@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stages.optimize.pose_graph import edge_measurement, optimize_pose_graph
+from gcvd_flow.stages.optimize.pose_graph import edge_measurement, optimize_pose_graph
 
 
 def _look_at_circle(n: int, radius: float = 2.0, span: float = 2 * np.pi * 0.95) -> np.ndarray:

@@ -8,7 +8,7 @@ from geometry_ref import rigid_flow
 from scipy.stats import spearmanr
 
 from gcvd_flow.evaluate.synth import render_clip
-from stages.frontend import flow, masks, priors
+from gcvd_flow.stages.frontend import flow, masks, priors
 
 
 @pytest.fixture(scope="module")

@@ -6,8 +6,8 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from gcvd_flow.evaluate.synth import render_clip
-from stages.frontend.flow import compute_pair_flow
-from stages.frontend.priors import geometric_prior
+from gcvd_flow.stages.frontend.flow import compute_pair_flow
+from gcvd_flow.stages.frontend.priors import geometric_prior
 
 N = 16
 

@@ -10,8 +10,8 @@ import pytest
 
 import gcvd_flow.evaluate.synth as synth
 from gcvd_flow.evaluate import revisits
-from stages.graph import retrieval
-from stages.graph.association import _sift_features, build_graph, candidate_pairs, global_descriptor, suppress_loops
+from gcvd_flow.stages.graph import retrieval
+from gcvd_flow.stages.graph.association import _sift_features, build_graph, candidate_pairs, global_descriptor, suppress_loops
 
 SIZE = (160, 120)
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from conftest import make_toy_input
 
-import artifacts_schema
+from gcvd_flow import artifacts_schema
 from gcvd_flow.engine.api import PipelineSpec
 from gcvd_flow.engine.artifacts import ArtifactError, validate
 from gcvd_flow.engine.dag import ItemRef, MapStage, Pipeline, PipelineError, Stage

@@ -7,7 +7,7 @@ import pytest
 from conftest import cli
 
 from gcvd_flow import pipeline
-from stages.frontend.ingest import FrameError
+from gcvd_flow.stages.frontend.ingest import FrameError
 
 
 def test_user_mask_zeroes_the_static_mask_at_working_resolution():
@@ -79,7 +79,7 @@ TUM_SYNTH = [[206.9, 206.9, 127.5, 95.5], [0.2624, -0.9531, -0.0054, 0.0026, 1.1
 
 
 def test_only_a_lens_that_leaves_a_black_border_gets_one():
-    from stages.frontend import user_masks
+    from gcvd_flow.stages.frontend import user_masks
 
     assert user_masks.lens_border(TUM_SYNTH, (256, 192))  # its corners fall outside the frame
     assert not user_masks.lens_border([[200, 200, 127.5, 95.5], [0.03, -0.01, 0.004, -0.001], "OPENCV_FISHEYE"], (256, 192))
@@ -93,7 +93,7 @@ def test_the_lens_black_border_is_left_out_as_a_user_mask_would_be():
     summary says so); a pinhole clip's items stay as they were (no user_keep)."""
     from types import SimpleNamespace
 
-    from stages.frontend import lens
+    from gcvd_flow.stages.frontend import lens
 
     src = SimpleNamespace(size=(256, 192))
     lensed = {"frame_indices": [0, 1], "width": 256, "height": 192, "distortion_intrinsics": TUM_SYNTH[0],

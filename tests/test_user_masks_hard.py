@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from gcvd_flow import pipeline
-from stages.frontend import user_masks
-from stages.optimize import losses as L
-from stages.optimize.frames import keep_resize, loss_size, prepare_frames
+from gcvd_flow.stages.frontend import user_masks
+from gcvd_flow.stages.optimize import losses as L
+from gcvd_flow.stages.optimize.frames import keep_resize, loss_size, prepare_frames
 
 RNG = np.random.default_rng(7)
 
@@ -31,7 +31,7 @@ def _blob_masks(n: int, h: int, w: int) -> np.ndarray:
 def test_loss_resolution_keep_is_a_min_pool_of_each_cells_footprint(hw, scale):
     """prepare_frames: keep and the static weight are 0 at every loss-resolution cell whose area
     footprint (the pixels the area resize averages) holds a user-masked pixel, 1 elsewhere."""
-    from stages.models.depth_net import DepthNet
+    from gcvd_flow.stages.models.depth_net import DepthNet
 
     H, W = hw
     masks = _blob_masks(2, H, W)
@@ -99,9 +99,9 @@ def _scrambled(sc):
 def _losses(sc, hard: bool = True):
     """Every term of the window's loss (all pixels of every pair, the depth-gradient term) and its
     gradients w.r.t. depth and poses."""
-    from stages.models.depth_net import DepthNet, Encoded
-    from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
-    from stages.optimize.solver import Pair, Solver, Window
+    from gcvd_flow.stages.models.depth_net import DepthNet, Encoded
+    from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
+    from gcvd_flow.stages.optimize.solver import Pair, Solver, Window
 
     pairs = [Pair(a, b, 1, 1.0, torch.as_tensor(f), torch.ones(HL, WL)) for (a, b), f in sc["flows"].items()]
     pairs += [Pair(0, 2, 2, 0.5), Pair(2, 0, 2, 0.5)]
@@ -148,7 +148,7 @@ def test_prior_gradient_weights_are_zero_wherever_a_scale_meets_a_masked_pixel()
 
 # ------------------------------------------------------------------------------ geometry stages
 def test_bundle_adjustment_tracks_never_touch_a_masked_pixel():
-    from stages.optimize.bundle_adjustment import build_tracks
+    from gcvd_flow.stages.optimize.bundle_adjustment import build_tracks
 
     h, w = 48, 64
     flow = np.zeros((h, w, 2), np.float32)
@@ -386,8 +386,8 @@ def test_a_masked_run_hands_the_users_masks_to_every_stage_that_samples(tmp_path
     from conftest import cli
 
     from gcvd_flow import api
-    from stages.geometry import torch_ops
-    from stages.optimize import bundle_adjustment as ba_mod
+    from gcvd_flow.stages.geometry import torch_ops
+    from gcvd_flow.stages.optimize import bundle_adjustment as ba_mod
 
     clip = tmp_path / "clip"
     cli("synth", str(clip), "--frames", "12", "--size", "96x72", "--trajectory", "loop", "--moving-object", check=True)
@@ -402,7 +402,9 @@ def test_a_masked_run_hands_the_users_masks_to_every_stage_that_samples(tmp_path
     monkeypatch.setattr(user_masks, "flow_target_kept", spy("targets", user_masks.flow_target_kept))
     monkeypatch.setattr(ba_mod, "footprint_kept", spy("tracks", ba_mod.footprint_kept))
     monkeypatch.setattr(torch_ops, "footprint_kept", spy("losses", torch_ops.footprint_kept))
-    monkeypatch.setattr(pipeline, "_eroded_keep", spy("depth reads", pipeline._eroded_keep))
+    from gcvd_flow.pipeline import depth as depth_blocks  # the module whose adapters read it
+
+    monkeypatch.setattr(depth_blocks, "_eroded_keep", spy("depth reads", pipeline._eroded_keep))
     sets = [f"masks.user_dir={clip / 'gt' / 'dynamic'}", "optimize_keyframes.steps=4", "optimize_edges.steps=2",
             "optimize_segments.steps=2"]
     api.run(api.Invocation(input=str(clip), out=str(tmp_path / "run"), cache=str(tmp_path / "cache"), profile="fast",

@@ -97,8 +97,8 @@ class Stage:
     name: str
     fn: Callable[..., Any]
     # the stages this one reads, by declaration (the objects ``declare`` returned, as hloc passes
-    # handles) or by name; held as names
-    deps: tuple[str, ...] = ()
+    # handles) or by name; held as names (``__post_init__``: str), hence Any for mypy
+    deps: tuple[Any, ...] = ()
     params: str | tuple[str, ...] | None = None  # config section(s) of this stage's parameters
     kind: str = "generic"  # artifact schema kind of the output
     version: int = 0  # bump to force invalidation without a code change
@@ -136,6 +136,9 @@ class Pipeline:
     """The stage graph plus what the engine must know about the code behind it.
 
     ``packages``: modules (or package prefixes) whose source enters code fingerprints;
+    ``adapters``: those of them (names or prefixes) holding the stage functions and their helpers:
+    their functions and classes enter a stage's fingerprint one by one, as those of the stage
+    function's own module do (adapters split over several modules keep keys as fine as one module's);
     ``numeric_libraries``: (label, (distribution, alternatives...)) whose versions enter every key;
     ``numeric_settings``: further (name, value) pairs that change numerics (device, dtype);
     ``worker_init``: picklable callable run once in every worker process (e.g. to pin the
@@ -144,6 +147,7 @@ class Pipeline:
 
     stages: list[Stage] = field(default_factory=list)
     packages: tuple[str, ...] = ()
+    adapters: tuple[str, ...] = ()
     numeric_libraries: tuple[tuple[str, tuple[str, ...]], ...] = ()
     numeric_settings: tuple[tuple[str, Any], ...] = ()
     worker_init: Callable[[], None] | None = None

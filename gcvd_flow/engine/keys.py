@@ -273,20 +273,23 @@ def _local_imports(obj: Any, own_module: str, packages: Packages) -> set[str]:
     return _project_imports(tree, own_module.rpartition(".")[0], packages)
 
 
-def code_fingerprint(fn: Callable, packages: Packages) -> tuple[str, tuple[tuple[str, str], ...]]:
+def code_fingerprint(fn: Callable, packages: Packages,
+                     adapters: Packages = ()) -> tuple[str, tuple[tuple[str, str], ...]]:
     """Fingerprint of a stage function: its own AST plus the code it uses from ``packages``
     (module names or prefixes, e.g. ``("stages", "gcvd_flow.pipeline")``).
 
     Returns (digest, ((name, AST digest), ...)); the per-file digests let `why` name what
-    changed. Helpers in the function's own module are followed function by function (so an
-    unrelated edit in that module does not invalidate it); other project modules it uses are
-    included whole, with everything they import inside the project, transitively.
+    changed. Helpers in the function's own module, and in the modules ``adapters`` names (module
+    names or prefixes: a pipeline's adapters split over several modules), are followed function by
+    function (so an unrelated edit in those modules does not invalidate it); other project modules
+    it uses are included whole, with everything they import inside the project, transitively.
     """
-    return _code_fingerprint_cached(fn, tuple(packages))
+    return _code_fingerprint_cached(fn, tuple(packages), tuple(adapters))
 
 
 @functools.lru_cache(maxsize=None)
-def _code_fingerprint_cached(fn: Callable, packages: Packages) -> tuple[str, tuple[tuple[str, str], ...]]:
+def _code_fingerprint_cached(fn: Callable, packages: Packages,
+                             adapters: Packages) -> tuple[str, tuple[tuple[str, str], ...]]:
     own_module = fn.__module__
     files: dict[str, str] = {}
     modules: set[str] = set()
@@ -300,19 +303,20 @@ def _code_fingerprint_cached(fn: Callable, packages: Packages) -> tuple[str, tup
         digest = _source_digest(obj)
         if digest is None:
             raise EncodingError(f"cannot fingerprint {obj!r}: its source is not available")
-        files[f"{own_module}:{obj.__qualname__}"] = digest
-        modules.update(_local_imports(obj, own_module, packages))
+        obj_module = _object_module(obj) or own_module
+        files[f"{obj_module}:{obj.__qualname__}"] = digest
+        modules.update(_local_imports(obj, obj_module, packages))
         code_objs = [obj] if inspect.isfunction(obj) else [
             m for m in vars(obj).values() if inspect.isfunction(m)
         ]
-        g = getattr(obj, "__globals__", None) or vars(sys.modules[own_module])
+        g = getattr(obj, "__globals__", None) or vars(sys.modules[obj_module])
         for f in code_objs:
             for name in _code_names(f):
                 ref = g.get(name)
                 mod = _object_module(ref)
                 if mod is None or not _is_project_module(mod, packages):
                     continue
-                if mod == own_module and not isinstance(ref, types.ModuleType):
+                if (mod == own_module or _is_project_module(mod, adapters)) and not isinstance(ref, types.ModuleType):
                     if inspect.isfunction(ref) or inspect.isclass(ref):
                         todo.append(ref)
                 else:

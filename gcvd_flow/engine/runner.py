@@ -353,9 +353,9 @@ class Runner:
         return decode_tree(self.store, node)
 
     def _key_fields(self, stage: Stage, inputs: Mapping[str, str | None]) -> dict[str, Any]:
-        fp, files = keys.code_fingerprint(stage.fn, self.pipeline.packages)
+        fp, files = keys.code_fingerprint(stage.fn, self.pipeline.packages, self.pipeline.adapters)
         for name, opener in sorted(stage.resources.items()):  # e.g. the code that builds a model
-            rfp, rfiles = keys.code_fingerprint(opener, self.pipeline.packages)
+            rfp, rfiles = keys.code_fingerprint(opener, self.pipeline.packages, self.pipeline.adapters)
             fp, files = keys.key_of([fp, name, rfp]), tuple(sorted(set(files) | set(rfiles)))
         params = params_for_key(self.stage_params(stage))
         return {"code": fp, "code_files": {k: v for k, v in files}, "version": stage.version,

@@ -86,9 +86,13 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
     return {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state.items()}
 
 
-def open_model(name: str, path: str | Path, **options: Any) -> Any:
-    """Read ``path`` and build the weights backend ``name`` (stages.models registry) from it."""
-    from stages.models import load_model
+def open_model(name: str, path: str | Path | None, **options: Any) -> Any:
+    """Read ``path`` and build the weights backend ``name`` (stages.models registry) from it
+    (None: the section's check lets no backend that needs weights run without a file)."""
+    from gcvd_flow.stages.models import load_model
+
+    if path is None:
+        raise WeightsError(f"{name}: no weights file given")
 
     state = read_state_dict(path)
     try:

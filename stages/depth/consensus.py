@@ -37,7 +37,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from stages.depth.params import DepthConsensusSettings
+from gcvd_flow.stages.depth.params import DepthConsensusSettings
 
 PRIOR_WEIGHT = 0.01  # weight of an estimate with confidence 0: it counts only where no view is sure
 CONFIDENCE_POWER = 2  # a view at confidence 0.9 outweighs one at 0.5 by 3.2
@@ -246,19 +246,8 @@ def splat_consensus(
     conf = np.asarray(confidence, np.float64)
     pose = np.asarray(pose, np.float64)
     T_i_w = np.linalg.inv(pose)
-    if ref_static is None:
-        ref_static = [None] * len(refs)
     target = _splat_targets(conf, valid, min_confidence, keep_confidence, keep_edges, depth)
-    pts = []
-    for (depth_j, conf_j, pose_j), st in zip(refs, ref_static):
-        dj = np.asarray(depth_j, np.float32)
-        if ref_edge_jump is not None:  # a reference's pixels straddling its occlusion boundaries
-            conf_j = edge_confidence(dj, conf_j, ref_edge_jump)
-        wj = np.where((dj > 0) & (np.asarray(conf_j) >= min_confidence), np.asarray(conf_j, np.float64) ** 2, 0.0)
-        if st is not None:
-            wj = np.where(np.asarray(st) > 0, wj, 0.0)
-        if wj.any():
-            pts.append(splat_points(K, (h, w), T_i_w @ np.asarray(pose_j, np.float64), dj, wj, target))
+    pts = _landings(refs, ref_static, T_i_w, K, (h, w), min_confidence, ref_edge_jump, target)
     if not pts:
         return depth
     idx, z, wt = (np.concatenate(a) for a in zip(*pts))
@@ -281,6 +270,25 @@ def splat_consensus(
     if static is not None:
         out = np.where(np.asarray(static) > 0, out, depth)
     return out
+
+
+def _landings(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], ref_static: Sequence[np.ndarray | None] | None,
+              T_i_w: np.ndarray, K: np.ndarray, shape: tuple[int, int], min_confidence: float,
+              ref_edge_jump: float | None, target: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """splat_points of every reference's confident static pixels (weight confidence^2) into frame i
+    (T_i_w: world to frame i's camera)."""
+    pts = []
+    for k, (depth_j, conf_j, pose_j) in enumerate(refs):
+        st = None if ref_static is None else ref_static[k]
+        dj = np.asarray(depth_j, np.float32)
+        if ref_edge_jump is not None:  # a reference's pixels straddling its occlusion boundaries
+            conf_j = edge_confidence(dj, conf_j, ref_edge_jump)
+        wj = np.where((dj > 0) & (np.asarray(conf_j) >= min_confidence), np.asarray(conf_j, np.float64) ** 2, 0.0)
+        if st is not None:
+            wj = np.where(np.asarray(st) > 0, wj, 0.0)
+        if wj.any():
+            pts.append(splat_points(K, shape, T_i_w @ np.asarray(pose_j, np.float64), dj, wj, target))
+    return pts
 
 
 def _splat_targets(conf: np.ndarray, valid: np.ndarray, min_confidence: float, keep_confidence: float | None,
@@ -338,7 +346,7 @@ def edge_confidence(depth: np.ndarray, confidence: np.ndarray, jump: float, radi
 def _spread_correction(guide: np.ndarray, log_d: np.ndarray, fused: np.ndarray, known: np.ndarray) -> np.ndarray:
     """log depth (H, W): ``fused`` where ``known``, elsewhere ``log_d`` plus the correction
     fused - log_d of the known pixels densified edge-aware over ``guide``."""
-    from stages.frontend.priors import densify
+    from gcvd_flow.stages.frontend.priors import densify
 
     if known.sum() < 16 or known.all():
         return fused

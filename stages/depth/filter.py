@@ -27,8 +27,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from stages.depth.params import DepthFilterSettings
-from stages.geometry.image import inside_image
+from gcvd_flow.stages.depth.params import DepthFilterSettings
+from gcvd_flow.stages.geometry.image import inside_image
 
 _DEFAULTS = DepthFilterSettings()  # the stage's parameters (stages/depth/params.py)
 
@@ -199,7 +199,7 @@ def fill_uncertain(gray: np.ndarray, depth: np.ndarray, confidence: np.ndarray, 
 
     gray (H, W) in [0, 1]; depth (H, W) metres up to scale, 0 = invalid; confidence (H, W) in
     [0, 1]. ``full`` <= 0 returns the depth unchanged."""
-    from stages.frontend.priors import densify
+    from gcvd_flow.stages.frontend.priors import densify
 
     depth = np.asarray(depth, np.float32)
     valid = depth > 0

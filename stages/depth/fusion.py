@@ -34,9 +34,9 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from stages.depth.params import DepthFusionSettings
-from stages.frontend import flow as flow_mod
-from stages.geometry.two_view import triangulate_depths
+from gcvd_flow.stages.depth.params import DepthFusionSettings
+from gcvd_flow.stages.frontend import flow as flow_mod
+from gcvd_flow.stages.geometry.two_view import triangulate_depths
 
 MIN_MEASUREMENTS = 30  # per reference: fewer triangulated pixels say nothing about the scale
 ANGLE_SCALE_DEG = 1.0  # a 1 deg triangulation angle gives confidence 0.63 (x agreement, coverage)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from stages.params import param
+from gcvd_flow.stages.params import param
 
 
 def _positive_offsets(v: tuple[int, ...]) -> tuple[int, ...]:

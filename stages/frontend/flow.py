@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from stages.geometry.image import inside_image, to_gray
+from gcvd_flow.stages.geometry.image import inside_image, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +181,7 @@ def compute_pair_flow(
     elif backend == "raft":
         if model is None:
             raise ValueError("backend='raft' needs model=load_raft(path)")
-        from stages.models.raft import raft_flow
+        from gcvd_flow.stages.models.raft import raft_flow
 
         fwd = raft_flow(model, img_a, img_b)
         bwd = raft_flow(model, img_b, img_a)

@@ -13,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from stages.frontend import lens
+from gcvd_flow.stages.frontend import lens
 
 DEFAULT_FOCAL_PER_LONG_SIDE = 300.0 / 384.0
 

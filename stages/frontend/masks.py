@@ -22,7 +22,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from stages.frontend.params import MasksSettings
+from gcvd_flow.stages.frontend.params import MasksSettings
 
 log = logging.getLogger(__name__)
 

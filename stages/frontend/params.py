@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from stages.frontend.lens import parse_camera
-from stages.params import USER_DIR, WEIGHTS_FILE, param
+from gcvd_flow.stages.frontend.lens import parse_camera
+from gcvd_flow.stages.params import USER_DIR, WEIGHTS_FILE, param
 
 DisPreset = Literal["ultrafast", "fast", "medium", "fine"]
 

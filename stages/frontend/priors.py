@@ -21,8 +21,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from stages.frontend.flow import chain_flows
-from stages.geometry.two_view import relative_pose, rotation_from_homography, triangulate_depths
+from gcvd_flow.stages.frontend.flow import chain_flows
+from gcvd_flow.stages.geometry.two_view import relative_pose, rotation_from_homography, triangulate_depths
 
 log = logging.getLogger(__name__)
 

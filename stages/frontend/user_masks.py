@@ -19,7 +19,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from stages.frontend import lens
+from gcvd_flow.stages.frontend import lens
 
 __all__ = [
     "source_to_working",

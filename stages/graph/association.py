@@ -39,10 +39,10 @@ import cv2
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from stages.frontend.flow import dis_flow, fb_consistency
-from stages.geometry.image import to_gray
-from stages.geometry.two_view import pose_from_essential
-from stages.graph import retrieval as retrieval_mod
+from gcvd_flow.stages.frontend.flow import dis_flow, fb_consistency
+from gcvd_flow.stages.geometry.image import to_gray
+from gcvd_flow.stages.geometry.two_view import pose_from_essential
+from gcvd_flow.stages.graph import retrieval as retrieval_mod
 
 log = logging.getLogger(__name__)
 

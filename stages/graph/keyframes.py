@@ -15,7 +15,7 @@ from typing import Any, Iterable, Mapping, TypedDict
 
 import numpy as np
 
-from stages.graph.params import KeyframesSettings
+from gcvd_flow.stages.graph.params import KeyframesSettings
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from stages.params import WEIGHTS_FILE, param
+from gcvd_flow.stages.params import WEIGHTS_FILE, param
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,12 @@ change when frames are appended (once the clip is long enough), except where not
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from gcvd_flow.stages.depth.params import FusionReferencesSettings
 
 FarPair = tuple[int, int, str, float]  # (a, b) with a < b, DIS preset, forward-backward threshold px
 
@@ -89,28 +92,6 @@ def far_pairs(n: int, consumers: Sequence[tuple[Callable[[int], list[int]], str,
 # sees, neither of which an index offset says on a clip whose speed varies.
 
 
-@dataclass(frozen=True)
-class ReferenceRule:
-    """How frame i's fusion references are chosen (``DepthFusionSettings`` holds the values).
-
-    max_refs: references per frame; max_gap: |j - i| searched; target_angle_deg: the median
-    triangulation angle aimed at (a candidate's cost is |log(angle / target)|);
-    min_angle_deg / max_angle_deg: the usable range of that median angle; min_overlap: the
-    fraction of frame i's sampled points that must project into frame j (in front, inside);
-    new_flow_cost: added to the cost of a pair whose flow is not computed anyway (log 2: a free
-    pair at twice or half the target angle is as good as a new one at the target);
-    max_new: new flows a frame may add (the bound on the cost)."""
-
-    max_refs: int = 3
-    max_gap: int = 12
-    target_angle_deg: float = 2.0
-    min_angle_deg: float = 0.5
-    max_angle_deg: float = 20.0
-    min_overlap: float = 0.8
-    new_flow_cost: float = 0.69
-    max_new: int = 1
-
-
 def view_samples(depth: np.ndarray, K: np.ndarray, grid: int = 16) -> np.ndarray:
     """Points (M, 3) in camera coordinates (depth units) of a ``grid``-column lattice of pixel
     centres (rows in proportion) of depth (H, W) with positive depth; K (3, 3). M <= grid^2."""
@@ -170,17 +151,17 @@ def _take(i: int, c: tuple[float, int, bool], chosen: list[int], have: set[tuple
 
 
 def baseline_references(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.ndarray, size: tuple[int, int],
-                        rule: ReferenceRule, free: Iterable[tuple[int, int]] = ()
+                        rule: FusionReferencesSettings, free: Iterable[tuple[int, int]] = ()
                         ) -> tuple[list[list[int]], list[tuple[int, int]]]:
     """Each frame's fusion references chosen by view geometry, and the new flow pairs they need.
 
     Frame i's candidates are the frames within ``rule.max_gap`` whose overlap and median
-    triangulation angle (``view_geometry``) are usable (``ReferenceRule``); each costs
+    triangulation angle (``view_geometry``) are usable (``FusionReferencesSettings``: its fields, documented there); each costs
     |log(angle / target)| plus ``new_flow_cost`` unless its pair's flow exists: adjacent pairs
     (the flow stage's), ``free`` pairs (a, b), a < b (e.g. flow_far's for the priors) and pairs
     an earlier frame already chose. The cheapest candidate on each side comes first (both sides
     see the occlusions the other misses), then the cheapest others, up to ``rule.max_refs``;
-    at most ``rule.max_new`` of them new pairs. (Topping a frame with fewer than 2 up from views
+    at most ``rule.max_new_flows`` of them new pairs. (Topping a frame with fewer than 2 up from views
     that see 40-80 % of it lowered the HoloLens confident share, 44.5 % -> 37 %: not done.) Frames are visited
     in order, then once more to fill each frame's free
     places with usable pairs that later frames added (no new flow), so the choice is
@@ -208,13 +189,13 @@ def baseline_references(poses: np.ndarray, samples: Sequence[np.ndarray], K: np.
         chosen: list[int] = []
         n_new = 0
         for side in (-1, 1):  # the cheapest usable candidate on each side first
-            best = next((c for c in cand if (c[1] - i) * side > 0 and (c[2] or n_new < rule.max_new)), None)
+            best = next((c for c in cand if (c[1] - i) * side > 0 and (c[2] or n_new < rule.max_new_flows)), None)
             if best is not None and len(chosen) < rule.max_refs:
                 n_new += _take(i, best, chosen, have, new)
         for c in cand:
             if len(chosen) >= rule.max_refs:
                 break
-            if c[1] not in chosen and (c[2] or n_new < rule.max_new):
+            if c[1] not in chosen and (c[2] or n_new < rule.max_new_flows):
                 n_new += _take(i, c, chosen, have, new)
         refs.append(chosen)
     # pass 2: the pairs later frames added are there for earlier frames too; each frame keeps

@@ -13,10 +13,10 @@ from typing import Any
 
 # name -> (module, loader function); loaders take (state dict, source label, **options)
 REGISTRY: dict[str, tuple[str, str]] = {
-    "raft": ("stages.models.raft", "load_raft"),
-    "midas": ("stages.models.midas", "load_midas"),
-    "resnet18": ("stages.models.resnet", "load_resnet18"),
-    "maskrcnn": ("stages.models.maskrcnn", "load_maskrcnn"),
+    "raft": ("gcvd_flow.stages.models.raft", "load_raft"),
+    "midas": ("gcvd_flow.stages.models.midas", "load_midas"),
+    "resnet18": ("gcvd_flow.stages.models.resnet", "load_resnet18"),
+    "maskrcnn": ("gcvd_flow.stages.models.maskrcnn", "load_maskrcnn"),
 }
 
 

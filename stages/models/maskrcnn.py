@@ -67,8 +67,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from stages.models.resnet import IMAGENET_MEAN, IMAGENET_STD
-from stages.models.weights import load_strict
+from gcvd_flow.stages.models.resnet import IMAGENET_MEAN, IMAGENET_STD
+from gcvd_flow.stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 

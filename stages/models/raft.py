@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from stages.models.weights import load_strict
+from gcvd_flow.stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 

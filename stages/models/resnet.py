@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from stages.models.weights import load_strict
+from gcvd_flow.stages.models.weights import load_strict
 
 log = logging.getLogger(__name__)
 

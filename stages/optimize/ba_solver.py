@@ -37,7 +37,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
-from stages.geometry.se3 import se3_dlog, se3_exp, se3_log
+from gcvd_flow.stages.geometry.se3 import se3_dlog, se3_exp, se3_log
 
 MIN_DIAGONAL, MAX_DIAGONAL = 1e-6, 1e32  # clamp of the Marquardt damping diagonal (gtsam's defaults)
 MIN_MODEL_FIDELITY = 1e-3  # a step is kept when it achieves this fraction of the predicted decrease

@@ -32,9 +32,9 @@ from typing import TYPE_CHECKING, Literal, Mapping, Sequence, TypedDict
 
 import numpy as np
 
-from stages.frontend.user_masks import footprint_kept
-from stages.optimize import ba_solver
-from stages.optimize.params import BundleAdjustmentSettings
+from gcvd_flow.stages.frontend.user_masks import footprint_kept
+from gcvd_flow.stages.optimize import ba_solver
+from gcvd_flow.stages.optimize.params import BundleAdjustmentSettings
 
 if TYPE_CHECKING:
     import gtsam

@@ -23,8 +23,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from stages.frontend.flow import chain_flows
-from stages.optimize.init import chain_pair_poses, pair_masks, rays, triangulate, two_view_pose
+from gcvd_flow.stages.frontend.flow import chain_flows
+from gcvd_flow.stages.optimize.init import chain_pair_poses, pair_masks, rays, triangulate, two_view_pose
 
 __all__ = ["rotation_deg", "triplet_poses", "triplet_gaps", "rotation_medoid", "translation_given_rotation",
            "repair_pairs", "checked_pair_poses"]

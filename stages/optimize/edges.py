@@ -13,12 +13,12 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from stages.frontend.user_masks import flow_target_kept, user_keep
-from stages.models.depth_net import DepthNet, mesh_shape
-from stages.optimize.frames import flow_at_loss_res, init_depth_full, loss_size, prepare_frames
-from stages.optimize.init import sample_np, triangulate, two_view_pose
-from stages.optimize.params import DepthModel, EdgeSettings, KeyframeSettings, LossWeights
-from stages.optimize.solver import Pair, Solver, Window, deterministic, run_solver, torch_threads
+from gcvd_flow.stages.frontend.user_masks import flow_target_kept, user_keep
+from gcvd_flow.stages.models.depth_net import DepthNet, mesh_shape
+from gcvd_flow.stages.optimize.frames import flow_at_loss_res, init_depth_full, loss_size, prepare_frames
+from gcvd_flow.stages.optimize.init import sample_np, triangulate, two_view_pose
+from gcvd_flow.stages.optimize.params import DepthModel, EdgeSettings, KeyframeSettings, LossWeights
+from gcvd_flow.stages.optimize.solver import Pair, Solver, Window, deterministic, run_solver, torch_threads
 
 __all__ = ["optimize_edge", "optimize_edge_call"]
 

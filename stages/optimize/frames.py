@@ -16,8 +16,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stages.frontend.user_masks import user_keep
-from stages.models.depth_net import DEPTH_MAX, DEPTH_MIN, DepthNet, Encoded, upsample_mesh
+from gcvd_flow.stages.frontend.user_masks import user_keep
+from gcvd_flow.stages.models.depth_net import DEPTH_MAX, DEPTH_MIN, DepthNet, Encoded, upsample_mesh
 
 __all__ = [
     "FlowPair",
@@ -151,7 +151,7 @@ def chained_flow(flows_lr: Mapping[int, FlowPair], a: int, tau: int) -> FlowPair
         return None
     if tau == 1:
         return flows_lr[a]
-    from stages.frontend.flow import chain_flows
+    from gcvd_flow.stages.frontend.flow import chain_flows
 
     fw = chain_flows([(flows_lr[k][0][0].numpy(), flows_lr[k][0][1].numpy() > 0.5) for k in range(a, a + tau)])
     bw = chain_flows([(flows_lr[k][1][0].numpy(), flows_lr[k][1][1].numpy() > 0.5) for k in reversed(range(a, a + tau))])

@@ -22,10 +22,10 @@ from typing import Mapping, Sequence
 import cv2
 import numpy as np
 
-from stages.frontend.flow import warp_sample
-from stages.frontend.user_masks import flow_target_kept, user_keep
-from stages.geometry.two_view import pose_from_essential, rotation_from_homography
-from stages.optimize.frames import normalised_prior
+from gcvd_flow.stages.frontend.flow import warp_sample
+from gcvd_flow.stages.frontend.user_masks import flow_target_kept, user_keep
+from gcvd_flow.stages.geometry.two_view import pose_from_essential, rotation_from_homography
+from gcvd_flow.stages.optimize.frames import normalised_prior
 
 __all__ = [
     "rays",

@@ -23,10 +23,10 @@ from typing import Any, Callable, Iterable, Iterator, Mapping
 import numpy as np
 import torch
 
-from stages.models.depth_net import DepthNet, Encoded, mesh_shape
-from stages.models.pose_net import PoseNet
-from stages.optimize.chain_check import checked_pair_poses
-from stages.optimize.frames import (
+from gcvd_flow.stages.models.depth_net import DepthNet, Encoded, mesh_shape
+from gcvd_flow.stages.models.pose_net import PoseNet
+from gcvd_flow.stages.optimize.chain_check import checked_pair_poses
+from gcvd_flow.stages.optimize.frames import (
     FlowPair,
     Frames,
     chained_flow,
@@ -36,9 +36,9 @@ from stages.optimize.frames import (
     loss_size,
     prepare_frames,
 )
-from stages.optimize.init import essential_chain
-from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
-from stages.optimize.solver import (
+from gcvd_flow.stages.optimize.init import essential_chain
+from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
+from gcvd_flow.stages.optimize.solver import (
     Checkpointer,
     Pair,
     Solver,

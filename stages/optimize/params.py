@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from stages.params import param as _f
+from gcvd_flow.stages.params import param as _f
 
 
 def _frame_distances(v: tuple[int, ...]) -> tuple[int, ...]:

@@ -25,8 +25,8 @@ from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 import numpy as np
 import torch
 
-from stages.models.depth_net import DepthNet, mesh_shape
-from stages.optimize.frames import (
+from gcvd_flow.stages.models.depth_net import DepthNet, mesh_shape
+from gcvd_flow.stages.optimize.frames import (
     FlowPair,
     area_resize,
     chained_flow,
@@ -37,9 +37,9 @@ from stages.optimize.frames import (
     loss_size,
     prepare_frames,
 )
-from stages.optimize.init import interp_pose, pnp_init, transfer_depths
-from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights, SegmentSettings
-from stages.optimize.solver import (
+from gcvd_flow.stages.optimize.init import interp_pose, pnp_init, transfer_depths
+from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights, SegmentSettings
+from gcvd_flow.stages.optimize.solver import (
     Checkpointer,
     Pair,
     Solver,

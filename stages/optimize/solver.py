@@ -48,11 +48,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stages.geometry import torch_ops as G
-from stages.models.depth_net import DepthNet, Encoded
-from stages.models.pose_net import PoseNet
-from stages.optimize import losses as L
-from stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
+from gcvd_flow.stages.geometry import torch_ops as G
+from gcvd_flow.stages.models.depth_net import DepthNet, Encoded
+from gcvd_flow.stages.models.pose_net import PoseNet
+from gcvd_flow.stages.optimize import losses as L
+from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
 
 __all__ = [
     "Checkpointer",

@@ -1,0 +1,82 @@
+"""Block priors (stages/frontend/priors.py)."""
+
+from __future__ import annotations
+
+import typing
+from typing import Any
+
+import numpy as np
+
+from gcvd_flow.engine.dag import ItemRef, MapStage, PartRef
+from gcvd_flow.io.weights import open_model
+from gcvd_flow.pipeline.context import ItemContext
+from gcvd_flow.pipeline.frontend import CALIBRATE, FLOW_FAR, INGEST, _far_index, _far_refs
+from gcvd_flow.pipeline.masks import MASKS, _has_user_masks, _user_mask_refs
+from gcvd_flow.pipeline.registry import declare, section
+from gcvd_flow.pipeline.shared import _far_flow, _prior_refs
+from gcvd_flow.stages.frontend import (
+    params as frontend_params,
+    priors as priors_mod,
+    user_masks,
+)
+
+# ============================================================================== priors
+if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
+    PriorsParams = frontend_params.PriorsSettings
+else:
+    PriorsParams = section("priors", frontend_params.PriorsSettings)
+
+
+def _prior_items(view, p: PriorsParams):
+    # Reference frames span back and span forward (priors.references=symmetric: each pair serves
+    # the two frames it joins), or span and span/2 back (references=back): the prior
+    # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
+    # link, which on ICL turned 2-view poses off by degrees (AbsRel 0.25 vs 0.085 direct).
+    # The direct flows are flow_far's items (shared with depth_fusion).
+    n = view.len(INGEST)
+    index = _far_index(view) if p.backend == "geometric" else {}
+    user = p.backend == "geometric" and _has_user_masks(view)
+    out = []
+    for i in range(n):
+        it: dict[str, Any] = {"image": ItemRef(INGEST, i), "K": PartRef(CALIBRATE, ("K",))}
+        js = _prior_refs(i, n, p)
+        if js:
+            it.update(_far_refs(index, i, js, p.preset, p.fb_thresh), **_user_mask_refs(user, [i, *js]))
+        out.append(it)
+    return out
+
+
+def _open_midas(p: PriorsParams) -> Any:
+    return open_model("midas", p.weights)
+
+
+def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: ItemContext) -> dict[str, Any]:
+    """Frame i -> {inv_depth float32 (H, W) median 1, confidence float32 (H, W)}."""
+    image = inputs["image"]["image"]
+    if p.backend == "midas":
+        from gcvd_flow.stages.models.midas import midas_prior
+
+        inv = midas_prior(ctx.resource("model"), image)
+        return {"inv_depth": inv.astype(np.float32), "confidence": np.ones_like(inv, np.float32)}
+    K = np.asarray(inputs["K"])
+    # direct flows to the far reference (more parallax) and the near one (sees what the far
+    # one lost); the prior fuses both (stages.frontend.priors.geometric_prior)
+    flows = []
+    keep = [np.asarray(m["user_keep"]) > 0 for m in inputs.get("user_masks", [])]  # --masks: frame i's, the refs'
+    for k, (fl, direction) in enumerate(zip(inputs.get("refs", []), inputs.get("ref_dirs", []))):
+        fwd, valid = _far_flow(fl, direction)
+        if valid.mean() >= priors_mod.MIN_VALID_FRACTION:
+            if keep:  # no triangulation of, or from, a user-masked pixel
+                valid = valid & keep[0] & user_masks.flow_target_kept(fwd, keep[k + 1])
+            flows.append((fwd, valid))
+    out = priors_mod.geometric_prior(image, K, flows[:1], extra=flows[1:]) if flows else None
+    if out is None:
+        h, w = image.shape[:2]
+        out = {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
+    return {"inv_depth": out["inv_depth"].astype(np.float32),
+            "confidence": out["confidence"].astype(np.float32)}
+
+
+PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, CALIBRATE, FLOW_FAR, MASKS), params="priors", kind="prior",
+                  items=_prior_items, resources={"model": _open_midas},
+                  description="MiDaS-shaped relative inverse depth"))
