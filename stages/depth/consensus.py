@@ -186,6 +186,10 @@ def splat_points(K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray, depth
     Y, wj = Y[:, front], np.asarray(weight_j, np.float64)[vs[front], us[front]]
     q = K @ Y
     uf, vf = np.floor(q[0] / q[2]).astype(np.int64), np.floor(q[1] / q[2]).astype(np.int64)
+    if tgt is not None:  # first drop the points whose whole footprint misses the targets (same landings)
+        near = np.flatnonzero((uf >= -1) & (uf < w) & (vf >= -1) & (vf < h))
+        sel = near[_footprint_reach(np.asarray(target, bool))[vf[near] + 1, uf[near] + 1]]
+        uf, vf, Y, wj = uf[sel], vf[sel], Y[:, sel], wj[sel]
     idx, zs, ws = [], [], []
     for du, dv in SPLAT_FOOTPRINT:
         u, v = uf + du, vf + dv
@@ -198,6 +202,18 @@ def splat_points(K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray, depth
         zs.append(Y[2, ok])
         ws.append(wj[ok])
     return np.concatenate(idx), np.concatenate(zs), np.concatenate(ws)
+
+
+def _footprint_reach(target: np.ndarray) -> np.ndarray:
+    """bool (H + 1, W + 1): [v + 1, u + 1] is True when a point landing at (u, v) (floor, -1 <= u < W,
+    -1 <= v < H) covers a target pixel with its SPLAT_FOOTPRINT (offsets 0 or 1)."""
+    h, w = target.shape
+    pad = np.zeros((h + 2, w + 2), bool)
+    pad[1:h + 1, 1:w + 1] = target
+    reach = np.zeros((h + 1, w + 1), bool)
+    for du, dv in SPLAT_FOOTPRINT:
+        reach |= pad[dv:dv + h + 1, du:du + w + 1]
+    return reach
 
 
 def splat_consensus(
