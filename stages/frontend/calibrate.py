@@ -47,6 +47,8 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from gcvd_flow.stages.frontend.params import CalibrateSettings, settings_with
+
 log = logging.getLogger(__name__)
 
 RANSAC_SEED = 1234
@@ -795,13 +797,11 @@ def _chosen(feat: Any, n: int, target: float, knn: _Knn) -> list[int]:
 
 
 # long: the calibration steps in order (frames, tracks, SfM, focal, principal point): issue 39 splits it
-def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
-                   n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
-                   robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
-                   passes: int = 4, motion_frac: float = 0.05, tracks_per_frame: int = 150,
-                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8,
-                   keep: Sequence[np.ndarray] | None = None, pp_mode: str = "auto", pp_max_sigma: float = 0.01,
-                   pp_prior: float = 0.05, pp_use_all: bool = False) -> dict[str, Any]:
+def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: CalibrateSettings | None = None, *,
+                   min_pairs: int = 6, robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
+                   passes: int = 4, motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
+                   keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False,
+                   **overrides: Any) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f: the spread over leave-one-block-out re-estimates, :func:`_jackknife`),
@@ -821,7 +821,13 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
 
     ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
     no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle
-    adjustment sees one (:func:`_features`)."""
+    adjustment sees one (:func:`_features`).
+
+    ``settings``: the calibrate stage's :class:`CalibrateSettings` (None: its defaults), with
+    ``overrides`` by field name; ``mode`` is the caller's (whether to estimate at all)."""
+    cfg = settings_with(CalibrateSettings, settings, overrides)
+    max_frames, n_features, max_rel_sigma = cfg.max_frames, cfg.features, cfg.max_rel_sigma
+    tracks_per_frame, pp_frac, pp_mode, pp_max_sigma = cfg.tracks_per_frame, cfg.pp_frac, cfg.principal_point, cfg.pp_max_sigma
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
     knn = _Knn()
