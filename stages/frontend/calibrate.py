@@ -96,10 +96,10 @@ def _features(img: np.ndarray, n_features: int, keep: np.ndarray | None = None) 
     area would otherwise take the budget; here the cap comes after the mask."""
     gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY)
     if keep is None:
-        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
+        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)  # type: ignore[attr-defined]
         kp, des = sift.detectAndCompute(gray, None)
         return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
-    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)  # type: ignore[attr-defined]
     ok = usable(keep)
     kp = sift.detect(gray, ok)
     if kp:
@@ -245,8 +245,7 @@ def _init_pose(g: PairGeometry, f: float, c: np.ndarray) -> tuple[np.ndarray, np
         return cv2.Rodrigues(R)[0].ravel(), None
     E = K.T @ g.F @ K
     _, R, t, _ = cv2.recoverPose(E, g.x1, g.x2, K)
-    t = t.ravel() / max(np.linalg.norm(t), 1e-12)
-    return cv2.Rodrigues(R)[0].ravel(), t
+    return cv2.Rodrigues(R)[0].ravel(), t.ravel() / max(float(np.linalg.norm(t)), 1e-12)
 
 
 class _Problem:
@@ -606,11 +605,11 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     if len(frames) < 3 or not obs:
         return {"focal": float(K[0, 0]), "pp": np.asarray(K)[:2, 2].copy(), "median_px": 0.0, "observations": 0,
                 "points": 0, "frames": len(frames), "iterations": 0, "T": {}, "pts": {}, "errors": np.zeros(0)}
-    for f in frames:
-        vals.insert(C(f), gtsam.Pose3(np.linalg.inv(T[f])))
+    for fr in frames:
+        vals.insert(C(fr), gtsam.Pose3(np.linalg.inv(T[fr])))
     if pp_prior is None:
         vals.insert(KEY, gtsam.Cal3f(float(K[0, 0]), float(K[0, 2]), float(K[1, 2])))
-        factor = gtsam.GeneralSFMFactor2Cal3f
+        factor: Any = gtsam.GeneralSFMFactor2Cal3f
     else:
         vals.insert(KEY, gtsam.Cal3_S2(float(K[0, 0]), float(K[0, 0]), 0.0, float(K[0, 2]), float(K[1, 2])))
         factor = gtsam.GeneralSFMFactor2Cal3_S2
@@ -619,8 +618,8 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     ids = sorted(obs)
     for i in ids:
         vals.insert(P(i), gtsam.Point3(*pts[i]))
-        for f, uv in obs[i]:
-            graph.add(factor(gtsam.Point2(*uv), noise, C(f), P(i), KEY))
+        for fr, uv in obs[i]:
+            graph.add(factor(gtsam.Point2(*uv), noise, C(fr), P(i), KEY))
             n_obs += 1
     model_frames: dict[int, set[int]] = {}
     for i in ids:
@@ -1062,7 +1061,8 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
     out's block_focals, pp_focals, rel_sigma_blocks, rel_sigma_pp, rel_sigma_formal."""
     fs, iters = _jackknife(tracks, ba, K, robust_px, blocks)
     rel_b = _jackknife_rel(fs)
-    pp_fs, sens = [], []
+    pp_fs: list[float] = []
+    sens: list[float] = []
     for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]])):
         pair = []
         for sign in (1.0, -1.0):  # central difference: both runs gated and converged alike
@@ -1073,7 +1073,7 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
             pair.append(float(res["focal"]) if res["T"] else float("nan"))
         pp_fs += pair
         sens.append(abs(np.log(pair[0] / pair[1])) / 2 if all(np.isfinite(pair)) else float("inf"))
-    rel_pp = float(np.hypot(*sens))
+    rel_pp = float(np.hypot(sens[0], sens[1]))  # x, y
     formal = _adjust(tracks, ba["T"], ba["pts"], _K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
                      marginal=True)
     rel_f = float(formal.get("rel_sigma_formal", float("inf")))
@@ -1084,7 +1084,7 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
 
 def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, blocks: int,
                max_px: float = 2.0, iterations: int = 10,
-               pp_prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[float], int]:
+               pp_prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[Any], int]:
     """The final bundle adjustment repeated ``blocks`` times (from its solution), each time without
     one contiguous block of the registered frames. The spread of these focal lengths is the
     estimate's uncertainty: it reflects how much f depends on which motion the clip happens to have

@@ -137,7 +137,7 @@ def settings_with(cls: type[_S], settings: Any, overrides: dict[str, Any]) -> _S
     written once, in ``cls``; the algorithm reads every field from the result."""
     base = cls() if settings is None else settings
     if not overrides:
-        return base  # type: ignore[no-any-return]
+        return base
     values = {f.name: getattr(base, f.name) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(overrides) - set(values))
     if unknown:

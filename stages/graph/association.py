@@ -214,7 +214,7 @@ SiftFeatures = tuple[np.ndarray, np.ndarray | None]  # keypoint positions (K, 2)
 def _sift_features(img: np.ndarray) -> SiftFeatures:
     """SIFT keypoint positions and descriptors of one image (a keyframe takes part in several
     pairs: its features are computed once)."""
-    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)
+    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)  # type: ignore[attr-defined]
     kp, des = sift.detectAndCompute(to_gray(img), None)
     return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
 
