@@ -192,10 +192,7 @@ def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: StageContext)
     from gcvd_flow.stages.frontend import calibrate as calibrate_mod
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
-        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, max_frames=p.max_frames,
-                                           n_features=p.features, max_rel_sigma=p.max_rel_sigma,
-                                           tracks_per_frame=p.tracks_per_frame, pp_frac=p.pp_frac, keep=keep,
-                                           pp_mode=p.principal_point, pp_max_sigma=p.pp_max_sigma)
+        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep)
     out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]), method=res["method"],
                median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]),
                iterations=int(res["iterations"]))

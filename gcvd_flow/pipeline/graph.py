@@ -64,15 +64,7 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[s
     frames = inputs["ingest"]
     K = np.asarray(inputs["calibrate"]["K"])
     images = [frames[i]["image"] for i in kf]
-    kw: dict[str, Any] = dict(nms=p.nms, min_separation=p.min_separation,
-                              min_inlier_ratio=p.min_inlier_ratio, min_consistent=p.min_consistent,
-                              verify=p.verify, min_inliers=p.min_inliers, min_epipolar=p.min_epipolar,
-                              per_keyframe=p.per_keyframe, max_candidates=p.max_candidates, retrieval=p.retrieval,
-                              words=p.words, top_k=p.top_k, min_ratio=p.min_ratio, window=p.window,
-                              loop_nms=p.loop_nms, min_departure=p.min_departure,
-                              prewarp_sequential=p.prewarp_sequential)
-    if p.threshold is not None:
-        kw["similarity_threshold"] = p.threshold
+    kw: dict[str, Any] = {}  # the settings travel whole (p); these are the backend's and enabled's
     if p.backend == "resnet18":
         from gcvd_flow.stages.models.resnet import resnet_descriptor
 
@@ -81,7 +73,7 @@ def run_association(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[s
     if not p.enabled:
         kw["descriptors"] = np.eye(len(kf), dtype=np.float32)  # nothing similar: no loop edges
         kw["similarity_threshold"] = 2.0
-    graph, edge_flows = association_mod.build_graph(kf, images, K, inputs["keyframes"]["threshold_px"] or 1e9,
+    graph, edge_flows = association_mod.build_graph(kf, images, K, inputs["keyframes"]["threshold_px"] or 1e9, p,
                                                     call_map=ctx.map, **kw)
     flows_out = [{"i": int(a), "j": int(b), **{k: v for k, v in fl.items() if k in ("fwd", "bwd", "fwd_valid", "bwd_valid")}}
                  for (a, b), fl in sorted(edge_flows.items())]

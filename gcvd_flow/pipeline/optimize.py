@@ -175,11 +175,8 @@ def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx
     # the machine's core count (OpenBLAS's default thread count changed the poses' bits)
     with native_stdout_silenced(), threadpool_limits(limits=1, user_api="blas"):
         res = ba_mod.bundle_adjust(T_w_k, [np.asarray(d) for d in okf["depths"]], edges, list(okf["keyframes"]),
-                                   np.asarray(inputs["calibrate"]["K"]), stride=p.stride,
-                                   track_length=p.track_length, min_views=p.min_views, robust_px=p.robust_px,
-                                   prior_rot_sigma=p.prior_rot_sigma, prior_trans_frac=p.prior_trans_frac,
-                                   max_iterations=p.max_iterations, consistent_px=p.consistent_px,
-                                   solver=p.solver, keep=_user_keeps(inputs["masks"], okf["keyframes"]))
+                                   np.asarray(inputs["calibrate"]["K"]), p,
+                                   keep=_user_keeps(inputs["masks"], okf["keyframes"]))
     ctx.log(f"{res['landmarks']} tracks, {res['observations']} observations, median reprojection error "
             f"{res['initial_median_px']:.2f} -> {res['final_median_px']:.2f} px"
             + (" (poses kept: already consistent with the tracks)" if res["skipped"] and res["landmarks"] else ""))

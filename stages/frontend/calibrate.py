@@ -47,6 +47,8 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from gcvd_flow.stages.frontend.params import CalibrateSettings, settings_with
+
 log = logging.getLogger(__name__)
 
 RANSAC_SEED = 1234
@@ -94,10 +96,10 @@ def _features(img: np.ndarray, n_features: int, keep: np.ndarray | None = None) 
     area would otherwise take the budget; here the cap comes after the mask."""
     gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY)
     if keep is None:
-        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)
+        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)  # type: ignore[attr-defined]
         kp, des = sift.detectAndCompute(gray, None)
         return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
-    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)  # type: ignore[attr-defined]
     ok = usable(keep)
     kp = sift.detect(gray, ok)
     if kp:
@@ -243,8 +245,7 @@ def _init_pose(g: PairGeometry, f: float, c: np.ndarray) -> tuple[np.ndarray, np
         return cv2.Rodrigues(R)[0].ravel(), None
     E = K.T @ g.F @ K
     _, R, t, _ = cv2.recoverPose(E, g.x1, g.x2, K)
-    t = t.ravel() / max(np.linalg.norm(t), 1e-12)
-    return cv2.Rodrigues(R)[0].ravel(), t
+    return cv2.Rodrigues(R)[0].ravel(), t.ravel() / max(float(np.linalg.norm(t)), 1e-12)
 
 
 class _Problem:
@@ -604,11 +605,11 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     if len(frames) < 3 or not obs:
         return {"focal": float(K[0, 0]), "pp": np.asarray(K)[:2, 2].copy(), "median_px": 0.0, "observations": 0,
                 "points": 0, "frames": len(frames), "iterations": 0, "T": {}, "pts": {}, "errors": np.zeros(0)}
-    for f in frames:
-        vals.insert(C(f), gtsam.Pose3(np.linalg.inv(T[f])))
+    for fr in frames:
+        vals.insert(C(fr), gtsam.Pose3(np.linalg.inv(T[fr])))
     if pp_prior is None:
         vals.insert(KEY, gtsam.Cal3f(float(K[0, 0]), float(K[0, 2]), float(K[1, 2])))
-        factor = gtsam.GeneralSFMFactor2Cal3f
+        factor: Any = gtsam.GeneralSFMFactor2Cal3f
     else:
         vals.insert(KEY, gtsam.Cal3_S2(float(K[0, 0]), float(K[0, 0]), 0.0, float(K[0, 2]), float(K[1, 2])))
         factor = gtsam.GeneralSFMFactor2Cal3_S2
@@ -617,8 +618,8 @@ def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.
     ids = sorted(obs)
     for i in ids:
         vals.insert(P(i), gtsam.Point3(*pts[i]))
-        for f, uv in obs[i]:
-            graph.add(factor(gtsam.Point2(*uv), noise, C(f), P(i), KEY))
+        for fr, uv in obs[i]:
+            graph.add(factor(gtsam.Point2(*uv), noise, C(fr), P(i), KEY))
             n_obs += 1
     model_frames: dict[int, set[int]] = {}
     for i in ids:
@@ -794,14 +795,11 @@ def _chosen(feat: Any, n: int, target: float, knn: _Knn) -> list[int]:
     return chosen
 
 
-# long: the calibration steps in order (frames, tracks, SfM, focal, principal point): issue 39 splits it
-def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_frames: int = 48,
-                   n_features: int = 1000, min_pairs: int = 6, max_rel_sigma: float = 0.03,
-                   robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
-                   passes: int = 4, motion_frac: float = 0.05, tracks_per_frame: int = 150,
-                   blocks: int = 5, pp_frac: float = 0.02, max_forward_share: float = 0.8,
-                   keep: Sequence[np.ndarray] | None = None, pp_mode: str = "auto", pp_max_sigma: float = 0.01,
-                   pp_prior: float = 0.05, pp_use_all: bool = False) -> dict[str, Any]:
+def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: CalibrateSettings | None = None, *,
+                   min_pairs: int = 6, robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
+                   passes: int = 4, motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
+                   keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False,
+                   **overrides: Any) -> dict[str, Any]:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
     focal (px, working resolution; the guess when not determined), determined (bool),
     rel_sigma (std of f / f: the spread over leave-one-block-out re-estimates, :func:`_jackknife`),
@@ -821,11 +819,47 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
 
     ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
     no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle
-    adjustment sees one (:func:`_features`)."""
+    adjustment sees one (:func:`_features`).
+
+    ``settings``: the calibrate stage's :class:`CalibrateSettings` (None: its defaults), with
+    ``overrides`` by field name; ``mode`` is the caller's (whether to estimate at all)."""
+    cfg = settings_with(CalibrateSettings, settings, overrides)
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
     knn = _Knn()
-    sel, feats = _select_by_motion(images, max_frames, n_features, motion_frac, knn=knn, keep=keep)
+    sel, feats = _select_by_motion(images, cfg.max_frames, cfg.features, motion_frac, knn=knn, keep=keep)
+    pairs = _frame_pairs(sel, feats, knn, ransac_px)
+    n_rot = sum(g.kind == "rotation" for g in pairs)
+    out: dict[str, Any] = {"focal": f_guess, "determined": False, "rel_sigma": float("inf"), "pairs": len(pairs),
+                           "rotation_pairs": n_rot, "frames": 0, "points": 0, "tracks": 0, "median_px": 0.0,
+                           "method": "", "iterations": 0, "block_focals": [], "pp_frac": cfg.pp_frac,
+                           "principal_point": [float(v) for v in c], "pp_estimated": False, "pp_sigma": None,
+                           "pp_reason": "not estimated: the focal length is not determined"}
+    if len(pairs) < min_pairs:
+        out["reason"] = (f"only {len(pairs)} frame pair(s) with enough matched motion (need {min_pairs}): "
+                         "the camera hardly moves")
+        return out
+    size = np.asarray(images[sel[0]]).shape[1::-1]
+    if n_rot >= rotation_share * len(pairs):
+        f, rel = _rotation_focal([g for g in pairs if g.kind == "rotation"], c, f_guess, blocks, cfg.pp_frac, size, out)
+        out.update(frames=len(sel))
+    else:
+        f, rel = _tracks_focal(feats, len(sel), c, f_guess, size, cfg, out, ransac_px=ransac_px, knn=knn,
+                               robust_px=robust_px, passes=passes, blocks=blocks)
+    out["rel_sigma"] = rel
+    ba, polish = out.pop("_ba", None), out.pop("_polish", None)
+    if _focal_determined(f, rel, f_guess, out, cfg.max_rel_sigma, max_forward_share):
+        out.update(focal=float(f), determined=True, reason="")
+        _principal_point_step(polish if pp_use_all and polish is not None else ba, f, c, size, cfg, out,
+                              robust_px=robust_px, blocks=blocks, pp_prior=pp_prior)
+    else:
+        _not_determined(f, rel, out, max_forward_share)
+    return out
+
+
+def _frame_pairs(sel: list[int], feats: list[Any], knn: Any, ransac_px: float) -> list[PairGeometry]:
+    """The two-view geometry of each selected frame with its next and next-but-one (the pairs
+    with enough matched motion; :func:`pair_geometry`)."""
     pairs = []
     for p in range(len(sel)):
         for off in (1, 2):
@@ -833,30 +867,30 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
                 g = pair_geometry(p, p + off, *_match(feats[p], feats[p + off], knn), ransac_px=ransac_px)
                 if g is not None:
                     pairs.append(g)
-    n_rot = sum(g.kind == "rotation" for g in pairs)
-    out: dict[str, Any] = {"focal": f_guess, "determined": False, "rel_sigma": float("inf"), "pairs": len(pairs),
-                           "rotation_pairs": n_rot, "frames": 0, "points": 0, "tracks": 0, "median_px": 0.0,
-                           "method": "", "iterations": 0, "block_focals": [], "pp_frac": pp_frac,
-                           "principal_point": [float(v) for v in c], "pp_estimated": False, "pp_sigma": None,
-                           "pp_reason": "not estimated: the focal length is not determined"}
-    if len(pairs) < min_pairs:
-        out["reason"] = (f"only {len(pairs)} frame pair(s) with enough matched motion (need {min_pairs}): "
-                         "the camera hardly moves")
-        return out
-    if n_rot >= rotation_share * len(pairs):
-        size = np.asarray(images[sel[0]]).shape[1::-1]
-        f, rel = _rotation_focal([g for g in pairs if g.kind == "rotation"], c, f_guess, blocks, pp_frac, size, out)
-        out.update(frames=len(sel))
-    else:
-        size = np.asarray(images[sel[0]]).shape[1::-1]
-        all_tracks = build_tracks(feats, ransac_px=ransac_px, knn=knn)
-        tracks = select_tracks(all_tracks, size, tracks_per_frame)
-        out["tracks"] = len(tracks)
-        f, rel = _sfm_focal(tracks, all_tracks, len(sel), c, f_guess, robust_px, passes, 0.04 * max(size), blocks,
-                            pp_frac, size, out)
-        if out["frames"] < max(3, 0.25 * len(sel)):
-            rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
-    out["rel_sigma"] = rel
+    return pairs
+
+
+def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, size: Any, cfg: CalibrateSettings,
+                  out: dict[str, Any], *, ransac_px: float, knn: Any, robust_px: float, passes: int,
+                  blocks: int) -> tuple[float, float]:
+    """(focal, rel_sigma) from tracks over the selected frames: a small structure from motion and
+    a bundle adjustment with the focal length free (:func:`_sfm_focal`); rel_sigma inf when it
+    registered fewer than max(3, a quarter of) the frames."""
+    all_tracks = build_tracks(feats, ransac_px=ransac_px, knn=knn)
+    tracks = select_tracks(all_tracks, size, cfg.tracks_per_frame)
+    out["tracks"] = len(tracks)
+    f, rel = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, passes, 0.04 * max(size), blocks,
+                        cfg.pp_frac, size, out)
+    if out["frames"] < max(3, 0.25 * n_sel):
+        rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
+    return f, rel
+
+
+def _focal_determined(f: float, rel: float, f_guess: float, out: dict[str, Any], max_rel_sigma: float,
+                      max_forward_share: float) -> bool:
+    """Whether the estimate f is used: the motion's uncertainty (blocks and formal terms; recorded
+    as out's rel_sigma_motion) within ``max_rel_sigma``, f within 0.3-3 x the guess, and the
+    camera not moving forward only."""
     in_range = 0.3 * f_guess < f < 3.0 * f_guess
     forward = out.get("forward_share", 0.0) >= max_forward_share
     # the decision rests on what the motion says (blocks, formal); the principal-point term is the same
@@ -865,27 +899,32 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, *, max_fra
     motion_rel = float(np.hypot(out.get("rel_sigma_blocks", 0.0), out.get("rel_sigma_formal", 0.0)))
     motion_rel = motion_rel if np.isfinite(rel) else float("inf")
     out["rel_sigma_motion"] = motion_rel
-    ba, polish = out.pop("_ba", None), out.pop("_polish", None)
-    if motion_rel <= max_rel_sigma and in_range and not forward:
-        out.update(focal=float(f), determined=True, reason="")
-        if pp_mode == "auto" and ba is not None:
-            _estimate_pp(polish if pp_use_all and polish is not None else ba, _K(f, c), size, robust_px, blocks,
-                         pp_max_sigma, pp_prior, out)
-        elif pp_mode == "auto":
-            out["pp_reason"] = (f"not estimated from a rotating camera's homographies (method {out['method']}); "
-                                "assumed at the image centre")
-        else:
-            out["pp_reason"] = ""
+    return bool(motion_rel <= max_rel_sigma and in_range and not forward)
+
+
+def _principal_point_step(ba: Any, f: float, c: np.ndarray, size: Any, cfg: CalibrateSettings, out: dict[str, Any],
+                          *, robust_px: float, blocks: int, pp_prior: float) -> None:
+    """With the focal length determined: the principal point per ``cfg.principal_point``
+    (:func:`_estimate_pp` from the adjustment ``ba``; none from a rotating camera's homographies)."""
+    if cfg.principal_point == "auto" and ba is not None:
+        _estimate_pp(ba, _K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, pp_prior, out)
+    elif cfg.principal_point == "auto":
+        out["pp_reason"] = (f"not estimated from a rotating camera's homographies (method {out['method']}); "
+                            "assumed at the image centre")
     else:
-        out["estimate"] = float(f)
-        if forward:
-            out["reason"] = (f"the camera only moves forward ({100 * out['forward_share']:.0f} % of the steps along "
-                             "the optical axis): the focal length cannot be separated from the principal point "
-                             f"(assumed at the image centre; estimate {f:.1f} px +- {100 * rel:.0f} %)")
-        else:
-            out["reason"] = (f"the motion does not determine the focal length (estimate {f:.1f} px +- "
-                             f"{100 * rel:.0f} %: forward-only or near-static motion?)")
-    return out
+        out["pp_reason"] = ""
+
+
+def _not_determined(f: float, rel: float, out: dict[str, Any], max_forward_share: float) -> None:
+    """out's estimate and reason when the focal length is not used."""
+    out["estimate"] = float(f)
+    if out.get("forward_share", 0.0) >= max_forward_share:
+        out["reason"] = (f"the camera only moves forward ({100 * out['forward_share']:.0f} % of the steps along "
+                         "the optical axis): the focal length cannot be separated from the principal point "
+                         f"(assumed at the image centre; estimate {f:.1f} px +- {100 * rel:.0f} %)")
+    else:
+        out["reason"] = (f"the motion does not determine the focal length (estimate {f:.1f} px +- "
+                         f"{100 * rel:.0f} %: forward-only or near-static motion?)")
 
 
 def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tuple[int, int], robust_px: float,
@@ -1056,7 +1095,8 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
     out's block_focals, pp_focals, rel_sigma_blocks, rel_sigma_pp, rel_sigma_formal."""
     fs, iters = _jackknife(tracks, ba, K, robust_px, blocks)
     rel_b = _jackknife_rel(fs)
-    pp_fs, sens = [], []
+    pp_fs: list[float] = []
+    sens: list[float] = []
     for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]])):
         pair = []
         for sign in (1.0, -1.0):  # central difference: both runs gated and converged alike
@@ -1067,7 +1107,7 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
             pair.append(float(res["focal"]) if res["T"] else float("nan"))
         pp_fs += pair
         sens.append(abs(np.log(pair[0] / pair[1])) / 2 if all(np.isfinite(pair)) else float("inf"))
-    rel_pp = float(np.hypot(*sens))
+    rel_pp = float(np.hypot(sens[0], sens[1]))  # x, y
     formal = _adjust(tracks, ba["T"], ba["pts"], _K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
                      marginal=True)
     rel_f = float(formal.get("rel_sigma_formal", float("inf")))
@@ -1078,7 +1118,7 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
 
 def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, blocks: int,
                max_px: float = 2.0, iterations: int = 10,
-               pp_prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[float], int]:
+               pp_prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[Any], int]:
     """The final bundle adjustment repeated ``blocks`` times (from its solution), each time without
     one contiguous block of the registered frames. The spread of these focal lengths is the
     estimate's uncertainty: it reflects how much f depends on which motion the clip happens to have

@@ -3,8 +3,9 @@ stage; the pipeline derives each config section from it (``stages/params.py``)."
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, TypeVar
 
 from gcvd_flow.stages.frontend.lens import parse_camera
 from gcvd_flow.stages.params import USER_DIR, WEIGHTS_FILE, param
@@ -124,3 +125,21 @@ class PriorsSettings:
     def check(self) -> None:
         if self.backend == "midas" and not self.weights:
             raise ValueError("priors.backend=midas needs priors.weights=FILE (MiDaS v2.1 small, .pt or .safetensors)")
+
+
+_S = TypeVar("_S")
+
+
+def settings_with(cls: type[_S], settings: Any, overrides: dict[str, Any]) -> _S:
+    """A stage's settings as the algorithm reads them: ``settings`` (the dataclass ``cls`` or the
+    pipeline's config section of it, whose fields are the same; None: the dataclass's defaults)
+    with ``overrides`` (field names; a name that is no field: TypeError). The defaults are
+    written once, in ``cls``; the algorithm reads every field from the result."""
+    base = cls() if settings is None else settings
+    if not overrides:
+        return base
+    values = {f.name: getattr(base, f.name) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(overrides) - set(values))
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no field {', '.join(unknown)}")
+    return cls(**{**values, **overrides})

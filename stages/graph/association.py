@@ -40,9 +40,11 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 
 from gcvd_flow.stages.frontend.flow import dis_flow, fb_consistency
+from gcvd_flow.stages.frontend.params import settings_with
 from gcvd_flow.stages.geometry.image import to_gray
 from gcvd_flow.stages.geometry.two_view import pose_from_essential
 from gcvd_flow.stages.graph import retrieval as retrieval_mod
+from gcvd_flow.stages.graph.params import AssociationSettings
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +214,7 @@ SiftFeatures = tuple[np.ndarray, np.ndarray | None]  # keypoint positions (K, 2)
 def _sift_features(img: np.ndarray) -> SiftFeatures:
     """SIFT keypoint positions and descriptors of one image (a keyframe takes part in several
     pairs: its features are computed once)."""
-    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)
+    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)  # type: ignore[attr-defined]
     kp, des = sift.detectAndCompute(to_gray(img), None)
     return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
 
@@ -600,30 +602,16 @@ def build_graph(
     kf_images: list[np.ndarray] | np.ndarray,
     K: np.ndarray,
     keyframe_threshold_px: float,
+    settings: AssociationSettings | None = None,
+    *,
     taus: tuple[int, ...] = (1, 2, 4, 8),
-    similarity_threshold: float = DEFAULT_SIMILARITY_THRESHOLD,
-    nms: int = 8,
-    min_separation: int | None = None,
+    similarity_threshold: float | None = None,
     descriptors: np.ndarray | None = None,
     descriptor_fn: Callable[[np.ndarray], np.ndarray] | None = None,
-    min_inlier_ratio: float = 0.5,
-    min_consistent: float = 0.1,
     fb_thresh: float = 2.0,
     call_map: CallMap = map,
-    verify: VerifyMode = "geometric",
-    min_inliers: int = 20,
-    min_epipolar: float = 0.5,
-    per_keyframe: int = 0,
-    max_candidates: int | None = None,
-    retrieval: RetrievalMode = "global",
-    words: int = retrieval_mod.DEFAULT_WORDS,
-    top_k: int = 5,
-    min_ratio: float = 0.1,
-    window: int = 1,
     seed: int = 0,
-    loop_nms: int = 8,
-    min_departure: float | None = 0.5,
-    prewarp_sequential: PrewarpMode = "auto",
+    **overrides: Any,
 ) -> tuple[dict[str, Any], dict[tuple[int, int], dict[str, np.ndarray]]]:
     """Build the keyframe graph: sequential edges + verified non-sequential edges.
 
@@ -632,6 +620,11 @@ def build_graph(
         kf_images: uint8 (H, W, 3) RGB image of each keyframe.
         K: (3, 3) intrinsics.
         keyframe_threshold_px: threshold used for keyframe selection (``threshold_px``).
+        settings: the association stage's :class:`AssociationSettings` (None: its defaults),
+            ``overrides`` replacing fields by name; every argument below named like a field
+            (nms, min_separation, verify, ...) is that field. ``enabled``, ``backend`` and
+            ``weights`` are the caller's (it passes ``descriptors`` / ``descriptor_fn``).
+        similarity_threshold: None: the settings' ``threshold``, or DEFAULT_SIMILARITY_THRESHOLD.
         taus: keyframe distances of sequential edges (weight 1/tau).
         similarity_threshold: descriptor threshold (default calibrated for
             :func:`global_descriptor`; use ``RESNET_SIMILARITY_THRESHOLD`` for ResNet).
@@ -677,6 +670,13 @@ def build_graph(
         indices. ``edge_flows[(i, j)]`` is the :func:`keyframe_pair_flow` dict of every tau = 1
         sequential edge and every accepted non-sequential edge.
     """
+    cfg = settings_with(AssociationSettings, settings, overrides)
+    nms, min_separation, min_inlier_ratio, min_consistent = cfg.nms, cfg.min_separation, cfg.min_inlier_ratio, cfg.min_consistent
+    verify, min_inliers, min_epipolar, per_keyframe = cfg.verify, cfg.min_inliers, cfg.min_epipolar, cfg.per_keyframe
+    max_candidates, retrieval, words, top_k, min_ratio = cfg.max_candidates, cfg.retrieval, cfg.words, cfg.top_k, cfg.min_ratio
+    window, loop_nms, min_departure, prewarp_sequential = cfg.window, cfg.loop_nms, cfg.min_departure, cfg.prewarp_sequential
+    if similarity_threshold is None:  # the settings' threshold (None there: the default descriptor's)
+        similarity_threshold = DEFAULT_SIMILARITY_THRESHOLD if cfg.threshold is None else cfg.threshold
     kfs = [int(i) for i in kf_indices]
     n = len(kfs)
     if len(kf_images) != n:

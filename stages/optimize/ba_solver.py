@@ -32,7 +32,7 @@ Arrays: poses (K, 4, 4) float64 camera-to-world, OpenCV axes; landmarks (L, 3) f
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple, overload
 
 import numpy as np
 import scipy.linalg
@@ -151,6 +151,15 @@ def _ranges(n: int) -> list[slice]:
     return [slice(i, min(i + CHUNK_OBS, n)) for i in range(0, n, CHUNK_OBS)]
 
 
+@overload
+def reprojection(problem: Problem, poses: np.ndarray, landmarks: np.ndarray, jacobians: Literal[False] = False
+                 ) -> np.ndarray: ...
+@overload
+def reprojection(problem: Problem, poses: np.ndarray, landmarks: np.ndarray, jacobians: Literal[True]
+                 ) -> Linearization: ...
+@overload
+def reprojection(problem: Problem, poses: np.ndarray, landmarks: np.ndarray, jacobians: bool = False
+                 ) -> Linearization | np.ndarray: ...
 def reprojection(problem: Problem, poses: np.ndarray, landmarks: np.ndarray, jacobians: bool = False
                  ) -> Linearization | np.ndarray:
     """Residuals (2, M) px of all observations; with ``jacobians`` a :class:`Linearization` (see
@@ -332,6 +341,7 @@ def _linearize(p: Problem, layout: _Layout, poses: np.ndarray, landmarks: np.nda
     np.add.at(g, pa, G[:, :6, 12])
     np.add.at(g, pk, G[:, 6:12, 12])
     e, J = prior_terms(p, poses, jacobians=True)
+    assert J is not None  # jacobians=True
     JtI = J.transpose(0, 2, 1) * p.prior_info[:, None, :]
     H[np.arange(n), np.arange(n)] += JtI @ J
     g += np.einsum("kij,kj->ki", JtI, e)

@@ -28,10 +28,11 @@ poses T_w_k (K, 4, 4) camera-to-world, OpenCV axes.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Literal, Mapping, Sequence, TypedDict
+from typing import TYPE_CHECKING, Any, Mapping, Sequence, TypedDict
 
 import numpy as np
 
+from gcvd_flow.stages.frontend.params import settings_with
 from gcvd_flow.stages.frontend.user_masks import footprint_kept
 from gcvd_flow.stages.optimize import ba_solver
 from gcvd_flow.stages.optimize.params import BundleAdjustmentSettings
@@ -39,7 +40,6 @@ from gcvd_flow.stages.optimize.params import BundleAdjustmentSettings
 if TYPE_CHECKING:
     import gtsam
 
-_DEFAULTS = BundleAdjustmentSettings()  # the stage's parameters (stages/optimize/params.py)
 
 log = logging.getLogger(__name__)
 
@@ -193,13 +193,8 @@ def _median_error(problem: ba_solver.Problem, poses: np.ndarray, landmarks: np.n
 
 def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                         edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
-                        K: np.ndarray, stride: int = _DEFAULTS.stride, track_length: int = _DEFAULTS.track_length,
-                        min_views: int = _DEFAULTS.min_views, robust_px: float = _DEFAULTS.robust_px,
-                        prior_rot_sigma: float = _DEFAULTS.prior_rot_sigma,
-                        prior_trans_frac: float = _DEFAULTS.prior_trans_frac,
-                        max_iterations: int = _DEFAULTS.max_iterations, consistent_px: float = _DEFAULTS.consistent_px,
-                        solver: Literal["schur", "gtsam"] = _DEFAULTS.solver,
-                        keep: Sequence[np.ndarray] | None = None) -> BundleResult:
+                        K: np.ndarray, settings: BundleAdjustmentSettings | None = None, *,
+                        keep: Sequence[np.ndarray] | None = None, **overrides: Any) -> BundleResult:
     """Refine keyframe poses T_w_k (K, 4, 4) over tracks of the keyframe graph
     (:func:`build_tracks`), landmarks as inverse depth in their first keyframe.
 
@@ -212,7 +207,13 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     ``solver``: "schur" (:mod:`stages.optimize.ba_solver`: analytic Jacobians, Schur complement;
     >10x faster on keyframe-heavy clips) or "gtsam" (the same factor graph in gtsam's
     Levenberg-Marquardt, the reference). ``keep``: the user's (--masks) kept pixels per keyframe
-    (bool (H, W)) or None (:func:`build_tracks`)."""
+    (bool (H, W)) or None (:func:`build_tracks`). ``settings``: the stage's
+    :class:`BundleAdjustmentSettings` (None: its defaults) with ``overrides`` by field name;
+    ``enabled`` is the caller's."""
+    cfg = settings_with(BundleAdjustmentSettings, settings, overrides)
+    stride, track_length, min_views, robust_px = cfg.stride, cfg.track_length, cfg.min_views, cfg.robust_px
+    prior_rot_sigma, prior_trans_frac, max_iterations = cfg.prior_rot_sigma, cfg.prior_trans_frac, cfg.max_iterations
+    consistent_px, solver = cfg.consistent_px, cfg.solver
     if solver not in ("schur", "gtsam"):
         raise ValueError(f"unknown bundle adjustment solver {solver!r}")
     T_w_k = np.asarray(T_w_k, np.float64)

@@ -70,7 +70,7 @@ def optimize_segments(
     adjacent_flows: Sequence[Mapping[str, np.ndarray]],
     keyframe_indices: Sequence[int],
     keyframe_poses: np.ndarray,
-    keyframe_depths: np.ndarray,
+    keyframe_depths: Sequence[np.ndarray],
     depth: DepthModel = DepthModel(),
     losses: LossWeights = LossWeights(),
     kf: KeyframeSettings = KeyframeSettings(),
@@ -213,7 +213,7 @@ def _transfer_mesh_init(net: DepthNet, pri_w: np.ndarray, hw: tuple[int, int], g
     frame: the same whichever frames are fitted together)."""
     h, w = hw
     target = torch.as_tensor(1.0 / pri_w)
-    ref = torch.as_tensor(init_depth_full(net, None, pri_w))
+    ref = torch.as_tensor(init_depth_full(net, None, pri_w))  # type: ignore[arg-type]  # images: unused
     ratio = torch.log(target.clamp(min=1e-6) / ref.clamp(min=1e-6))
     return fit_mesh(area_resize(ratio.numpy(), h, w), gshape)
 
