@@ -235,8 +235,7 @@ def essential_chain(
         fwd, bwd = d_fwd[k], d_bwd[k]
         if fwd is not None:
             assert bwd is not None  # a pair's two depth maps are None together (above)
-            prev_bwd = d_bwd[k - 1] if k > 0 else None
-            if prev_bwd is not None and known:
+            if k > 0 and (prev_bwd := d_bwd[k - 1]) is not None and known:
                 # same-pixel ratio: depth of frame k (previous pair, already scaled) / (this pair)
                 prev = prev_bwd * prev_scale
                 both = np.isfinite(prev) & np.isfinite(fwd)
