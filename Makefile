@@ -46,7 +46,7 @@ demo: $(STAMP)
 test: $(STAMP) testdeps lint
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
-# ruff (pyflakes, import order, bugbear, numpy rules) on everything; mypy on the engine and gcvd_flow/pipeline
+# ruff (pyflakes, import order, bugbear, numpy rules) and mypy (pyproject.toml [tool.mypy]) on the whole package
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m mypy

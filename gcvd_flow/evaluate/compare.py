@@ -125,9 +125,9 @@ def _map_diff(sa: Any, sb: Any, da: str, db: str, max_items: int) -> dict[str, A
                 acc.setdefault(m, []).append(v)
     res["items_compared"] = len(set(pick))
     for m, vals in acc.items():
-        v = np.asarray(vals, np.float64)
-        res[m] = float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
-        worst = np.nanmin(v) if m == "mask_iou" else np.nanmax(v)
+        arr = np.asarray(vals, np.float64)
+        res[m] = float(np.nanmean(arr)) if np.isfinite(arr).any() else float("nan")
+        worst = np.nanmin(arr) if m == "mask_iou" else np.nanmax(arr)
         res[m + ("_min" if m == "mask_iou" else "_max")] = float(worst)
     return res
 

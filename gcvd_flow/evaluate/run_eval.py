@@ -380,7 +380,7 @@ def compare_to_baseline(res: dict[str, Any], base: dict[str, Any], tolerance: fl
             continue
         if not _number(base[k]):
             raise UsageError(f"{where}: baseline metric {k} is {_show(base[k])}, not a number")
-        new = res.get(k)
+        new: Any = res.get(k)  # float() only where _number(new) holds
         new_ok = _number(new) and bool(np.isfinite(float(new)))
         if not np.isfinite(float(base[k])):
             if new_ok:

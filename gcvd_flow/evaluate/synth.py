@@ -236,8 +236,8 @@ def _box_mesh(lo, hi, yaw: float = 0.0, inward: bool = False) -> o3d.t.geometry.
     if inward:  # flip winding so the room's normals face inwards
         t = t[:, [0, 2, 1]]
     mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(v.astype(np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(t.astype(np.int32))
+    mesh.vertex.positions = o3d.core.Tensor(v.astype(np.float32))  # type: ignore[call-overload]  # open3d's stubs make dtype and device required
+    mesh.triangle.indices = o3d.core.Tensor(t.astype(np.int32))  # type: ignore[call-overload]  # open3d's stubs make dtype and device required
     return mesh
 
 
@@ -356,11 +356,96 @@ def _rays(K: np.ndarray, pose: np.ndarray, size: tuple[int, int]) -> tuple[np.nd
 
 def _cast(scene: o3d.t.geometry.RaycastingScene, o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
     rays = np.concatenate([o, d], axis=1).astype(np.float32)
-    r = scene.cast_rays(o3d.core.Tensor(rays))
+    r = scene.cast_rays(o3d.core.Tensor(rays))  # type: ignore[call-overload]  # open3d's stubs make dtype and device required
     return {k: r[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_normals")}
 
 
-# long: one ray-cast loop over the frames (static scene, moving cube, shading), clearer in one piece
+@dataclass
+class _Scenes:
+    """What every frame is ray cast against and shaded with."""
+
+    static: o3d.t.geometry.RaycastingScene  # the room and its furniture, world frame
+    tex: _Texture
+    obj: o3d.t.geometry.RaycastingScene | None  # the moving cube in its own frame, or None
+    obj_poses: np.ndarray | None  # (N, 4, 4) the cube's poses, or None
+
+
+@dataclass
+class _Hits:
+    """One frame's surface hits, one per ray (M rays)."""
+
+    t: np.ndarray  # (M,) float32 z-depth (t_hit)
+    geom: np.ndarray  # (M,) int64 palette index
+    n_world: np.ndarray  # (M, 3) float32 world normals (lighting)
+    n_tex: np.ndarray  # (M, 3) float32 normals in texture space (the face's base colour)
+    p_tex: np.ndarray  # (M, 3) float32 texture-space points [m]
+
+
+def _static_hits(scene: o3d.t.geometry.RaycastingScene, o: np.ndarray, d: np.ndarray) -> _Hits:
+    hit = _cast(scene, o, d)
+    t = hit["t_hit"]
+    n_world = hit["primitive_normals"]
+    # World-space texture coordinates for the static scene.
+    p_tex = (o + t[:, None].astype(np.float64) * d).astype(np.float32)
+    return _Hits(t, hit["geometry_ids"].astype(np.int64), n_world, n_world, p_tex)
+
+
+def _add_object(hits: _Hits, obj_scene: o3d.t.geometry.RaycastingScene, To: np.ndarray, o: np.ndarray,
+                d: np.ndarray, geom_id: int) -> np.ndarray:
+    """The cube at pose ``To`` takes the rays it hits before the static scene (palette ``geom_id``,
+    object-local texture); returns that mask (M,) bool.
+
+    Ray cast the cube in its own frame: a rigid transform of (o, d) keeps the direction length,
+    so t_hit stays comparable (z-depth) with the static hits."""
+    o_l = (o - To[:3, 3]) @ To[:3, :3]
+    d_l = d @ To[:3, :3]
+    oh = _cast(obj_scene, o_l, d_l)
+    m = oh["t_hit"] < hits.t
+    hits.t = np.where(m, oh["t_hit"], hits.t)
+    hits.geom = np.where(m, geom_id, hits.geom)
+    n_obj_local = oh["primitive_normals"]
+    hits.p_tex[m] = (o_l[m] + oh["t_hit"][m, None].astype(np.float64) * d_l[m]).astype(np.float32)
+    hits.n_tex = np.where(m[:, None], n_obj_local, hits.n_world)
+    hits.n_world = np.where(m[:, None], (n_obj_local.astype(np.float64) @ To[:3, :3].T).astype(np.float32),
+                            hits.n_world)
+    return m
+
+
+def _shade_hits(tex: _Texture, hits: _Hits, d: np.ndarray, f: np.float32, texture: float) -> np.ndarray:
+    """uint8 (M, 3) colours of the hits seen along directions d (M, 3); f: focal length [px]."""
+    if not np.all(np.isfinite(hits.t)):
+        raise RuntimeError("a ray left the closed room; camera outside the scene?")
+    # Metres per pixel across the surface: z / f, stretched at grazing angles.
+    d_unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+    cos = np.abs(np.sum(d_unit * hits.n_world, axis=1)).astype(np.float32)
+    footprint = hits.t / f / np.maximum(cos, 0.25)
+    rgb = _shade(tex, hits.p_tex, hits.n_tex, hits.n_world, hits.geom, footprint, texture)
+    return np.round(rgb * 255.0).astype(np.uint8)
+
+
+def _render_frames(K: np.ndarray, poses: np.ndarray, size: tuple[int, int], scenes: _Scenes,
+                   texture: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Ray cast and shade every pose: (frames uint8 (N, H, W, 3), depth float32 (N, H, W),
+    dynamic bool (N, H, W) or None without a moving object)."""
+    w, h = size
+    n = len(poses)
+    frames = np.empty((n, h, w, 3), np.uint8)
+    depth = np.empty((n, h, w), np.float32)
+    dynamic = np.zeros((n, h, w), bool) if scenes.obj is not None else None
+    f = np.float32(K[0, 0])
+    n_static = 1 + len(_FURNITURE)  # the moving object's palette entry
+    for i in range(n):
+        o, d = _rays(K, poses[i], (w, h))
+        hits = _static_hits(scenes.static, o, d)
+        if scenes.obj is not None and scenes.obj_poses is not None and dynamic is not None:
+            m = _add_object(hits, scenes.obj, scenes.obj_poses[i], o, d, n_static)
+            dynamic[i] = m.reshape(h, w)
+        rgb = _shade_hits(scenes.tex, hits, d, f, texture)
+        depth[i] = hits.t.reshape(h, w)
+        frames[i] = rgb.reshape(h, w, 3)
+    return frames, depth, dynamic
+
+
 def render_clip(
     n_frames: int = 60,
     trajectory: str = "orbit",
@@ -393,6 +478,7 @@ def render_clip(
     if principal_point is not None and lensed:
         raise ValueError("a principal point off the centre is not rendered with lens distortion")
     if lensed:
+        assert distortion is not None  # lensed implies it
         return _distorted_clip(n_frames, trajectory, (w, h), moving_object, seed, noise, blur, exposure, texture,
                                focal, tuple(float(v) for v in distortion), distortion_model)
     K = default_intrinsics((w, h))
@@ -401,53 +487,13 @@ def render_clip(
     if principal_point is not None:
         K[0, 2], K[1, 2] = float(principal_point[0]), float(principal_point[1])
     poses = make_trajectory(trajectory, n_frames)
-    static = _static_scene()
     n_static = 1 + len(_FURNITURE)
-    tex = _make_texture(seed, n_static + 1)  # last palette entry: the moving object
-    obj_scene = _object_scene() if moving_object else None
-    obj_poses = _object_poses(poses) if moving_object else None
-
-    n = len(poses)
-    frames = np.empty((n, h, w, 3), np.uint8)
-    depth = np.empty((n, h, w), np.float32)
-    dynamic = np.zeros((n, h, w), bool) if moving_object else None
-    f = np.float32(K[0, 0])
-    for i in range(n):
-        o, d = _rays(K, poses[i], (w, h))
-        hit = _cast(static, o, d)
-        t = hit["t_hit"]
-        geom = hit["geometry_ids"].astype(np.int64)
-        n_world = hit["primitive_normals"]
-        # World-space texture coordinates for the static scene.
-        p_tex = (o + t[:, None].astype(np.float64) * d).astype(np.float32)
-        n_tex = n_world
-        if obj_scene is not None:
-            # Ray cast the cube in its own frame: a rigid transform of (o, d) keeps the
-            # direction length, so t_hit stays comparable (z-depth) with the static hits.
-            To = obj_poses[i]
-            o_l = (o - To[:3, 3]) @ To[:3, :3]
-            d_l = d @ To[:3, :3]
-            oh = _cast(obj_scene, o_l, d_l)
-            m = oh["t_hit"] < t
-            dynamic[i] = m.reshape(h, w)
-            t = np.where(m, oh["t_hit"], t)
-            geom = np.where(m, n_static, geom)
-            n_obj_local = oh["primitive_normals"]
-            p_tex[m] = (o_l[m] + oh["t_hit"][m, None].astype(np.float64) * d_l[m]).astype(np.float32)
-            n_tex = np.where(m[:, None], n_obj_local, n_world)
-            n_world = np.where(m[:, None], (n_obj_local.astype(np.float64) @ To[:3, :3].T).astype(np.float32), n_world)
-        if not np.all(np.isfinite(t)):
-            raise RuntimeError("a ray left the closed room; camera outside the scene?")
-        # Metres per pixel across the surface: z / f, stretched at grazing angles.
-        d_unit = d / np.linalg.norm(d, axis=1, keepdims=True)
-        cos = np.abs(np.sum(d_unit * n_world, axis=1)).astype(np.float32)
-        footprint = t / f / np.maximum(cos, 0.25)
-        rgb = _shade(tex, p_tex, n_tex, n_world, geom, footprint, texture)
-        depth[i] = t.reshape(h, w)
-        frames[i] = np.round(rgb * 255.0).astype(np.uint8).reshape(h, w, 3)
+    scenes = _Scenes(_static_scene(), _make_texture(seed, n_static + 1),  # last palette entry: the moving object
+                     _object_scene() if moving_object else None, _object_poses(poses) if moving_object else None)
+    frames, depth, dynamic = _render_frames(K, poses, (w, h), scenes, texture)
     if noise or blur or exposure:
         frames = impair(frames, depth, poses, K, noise=noise, blur=blur, exposure=exposure, seed=seed)
-    log.debug("rendered %d frames (%s, %dx%d, moving_object=%s)", n, trajectory, w, h, moving_object)
+    log.debug("rendered %d frames (%s, %dx%d, moving_object=%s)", len(poses), trajectory, w, h, moving_object)
     return SynthClip(frames=frames, depth=depth, poses=poses, K=K, dynamic=dynamic, trajectory=trajectory, seed=int(seed))
 
 

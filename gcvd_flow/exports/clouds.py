@@ -45,10 +45,10 @@ def backproject_frame(depth: np.ndarray, K: np.ndarray, T_w_c: np.ndarray, image
     Returns (points float64 (M, 3) in the world frame, colours uint8 (M, 3) or None).
     """
     d = np.asarray(depth, np.float32)[::stride, ::stride]
-    v, u = np.nonzero(valid_depth(d))
-    z = d[v, u].astype(np.float64)
-    u = u.astype(np.float64) * stride
-    v = v.astype(np.float64) * stride
+    vi, ui = np.nonzero(valid_depth(d))
+    z = d[vi, ui].astype(np.float64)
+    u = ui.astype(np.float64) * stride
+    v = vi.astype(np.float64) * stride
     pts = pixels_to_world(u, v, z, K, T_w_c)
     cols = None
     if image is not None:
@@ -141,7 +141,7 @@ def default_voxel(median: float) -> float:
 
 def tsdf_mesh(depths: Sequence[np.ndarray], images: Sequence[np.ndarray], poses: np.ndarray, K: np.ndarray,
               voxel_length: float, sdf_trunc: float | None = None, depth_trunc: float | None = None,
-              every: int = 1, min_weight: float | None = None) -> dict[str, np.ndarray]:
+              every: int = 1, min_weight: float | None = None) -> dict[str, Any]:
     """Fuse depth + colour of every ``every``-th frame into a TSDF and extract a triangle mesh.
 
     open3d's tensor ``VoxelBlockGrid`` (TSDF, weight and colour per voxel; blocks of 8^3
@@ -162,18 +162,19 @@ def tsdf_mesh(depths: Sequence[np.ndarray], images: Sequence[np.ndarray], poses:
     depth_max = 1e30 if depth_trunc is None else float(depth_trunc)
     vbg = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-        attr_channels=(1, 1, 3), voxel_size=float(voxel_length), block_resolution=8, block_count=20000,
-        device=o3c.Device("CPU:0"))
-    Kt = o3c.Tensor(np.asarray(K, np.float64))
+        # open3d's stubs want SizeVectors for attr_channels; it takes ints
+        attr_channels=(1, 1, 3), voxel_size=float(voxel_length),  # type: ignore[arg-type]
+        block_resolution=8, block_count=20000, device=o3c.Device("CPU:0"))
+    Kt = o3c.Tensor(np.asarray(K, np.float64))  # type: ignore[call-overload]  # stubs: dtype, device required
     n = 0
     for k in range(0, len(poses), max(1, int(every))):
         d = np.asarray(depths[k], np.float32)
         ok = valid_depth(d) & (d <= depth_max)
         if not ok.any():
             continue
-        depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(np.where(ok, d, 0), np.float32)))
-        color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(images[k], np.float32) / 255.0))
-        ext = o3c.Tensor(rigid_inverse(np.asarray(poses[k], np.float64)))
+        depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(np.where(ok, d, 0), np.float32)))  # type: ignore[call-overload]  # stubs: dtype, device required
+        color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(images[k], np.float32) / 255.0))  # type: ignore[call-overload]  # stubs: dtype, device required
+        ext = o3c.Tensor(rigid_inverse(np.asarray(poses[k], np.float64)))  # type: ignore[call-overload]  # stubs: dtype, device required
         try:
             blocks = vbg.compute_unique_block_coordinates(depth, Kt, ext, 1.0, depth_max, mult)
         except RuntimeError:  # no block touched (e.g. all depth behind depth_trunc)
@@ -249,7 +250,8 @@ def write_ply(ctx: ExportContext) -> dict[str, Any]:
     pcd.colors = o3d.utility.Vector3dVector(cols.astype(np.float64) / 255.0)
     dst = ctx.out / "points.ply"
     with _atomic(dst) as tmp:
-        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
+        # open3d's stubs say PathLike; it takes str
+        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):  # type: ignore[arg-type]
             raise OSError(f"{dst}: open3d could not write the point cloud")
     return {"file": str(dst), "points": int(len(pts)), "every": ctx.opt.every, "voxel": ctx.opt.voxel,
             "min_confidence": ctx.opt.min_confidence if ctx.run.has_confidence else None}
@@ -271,7 +273,8 @@ def write_tsdf(ctx: ExportContext) -> dict[str, Any]:
     mesh.vertex_colors = o3d.utility.Vector3dVector(m["colors"].astype(np.float64) / 255.0)
     dst = ctx.out / "mesh.ply"
     with _atomic(dst) as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
+        # open3d's stubs say PathLike; it takes str
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):  # type: ignore[arg-type]
             raise OSError(f"{dst}: open3d could not write the mesh")
     return {"file": str(dst), "vertices": int(len(m["vertices"])), "triangles": int(len(m["triangles"])),
             "voxel_length": voxel, "sdf_trunc": 4 * voxel, "frames_integrated": int(m["frames"]),

@@ -160,6 +160,7 @@ def _point_cloud_msg(t_ns: int, pts: np.ndarray, cols: np.ndarray) -> dict[str, 
     buf = np.zeros(len(pts), dt)
     buf["x"], buf["y"], buf["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     buf["red"], buf["green"], buf["blue"], buf["alpha"] = cols[:, 0], cols[:, 1], cols[:, 2], 255
+    assert dt.fields is not None and dt.names is not None  # a structured dtype
     fields = [{"name": n, "offset": dt.fields[n][1], "type": 7 if n in "xyz" else 1}
               for n in dt.names]  # foxglove.NumericType: 7 FLOAT32, 1 UINT8
     return {"timestamp": _stamp(t_ns), "frame_id": "world",

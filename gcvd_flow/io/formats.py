@@ -225,6 +225,7 @@ def read_camera_txt(path: PathLike) -> tuple[np.ndarray, str, tuple[float, ...]]
     except ValueError:
         raise DatasetError(path, f"not numeric: {' '.join(tokens)[:80]!r}; expected {_CAMERA_SYNTAX}") from None
     model = _camera_model(path, name, vals)
+    coeffs: tuple[float, ...]
     if model == "MATRIX":
         K, coeffs, model = np.array(vals, dtype=np.float64).reshape(3, 3), (), "PINHOLE"
     else:

@@ -50,6 +50,7 @@ def read_state_dict(path: str | Path) -> dict[str, Any]:
     p = Path(path).expanduser()
     if not p.is_file():
         raise WeightsError(f"{p}: weights file not found" if not p.exists() else f"{p}: not a regular file")
+    state: Any
     try:
         if p.suffix == ".safetensors":
             from safetensors import SafetensorError

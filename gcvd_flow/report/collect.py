@@ -59,7 +59,7 @@ def recorded_part(doc: dict[str, Any], store: Any, stage: str, path: tuple = ())
     digest = ((doc.get("stages") or {}).get(stage) or {}).get("output")
     if not digest or store is None:
         raise UsageError(f"no output of stage {stage!r} recorded or no cache")
-    node = load_manifest(store, digest).get("value")
+    node: Any = load_manifest(store, digest).get("value")
     for p in path:
         node = node[p]
     return decode_tree(store, node)

@@ -157,6 +157,7 @@ def render(d: ReportData) -> str:
     cams = d.cams
     title = f"gcvd-flow report: {d.run.run_dir.name}"
     unit = "m, ground truth's" if d.gt_positions is not None else "run units: one unknown global scale"
+    assert d.est_positions is not None  # collect() sets it
     traj = figures.trajectory_png(d.est_positions, d.gt_positions, d.keyframes, d.loops, unit=unit)
     sub = (f"{_e(d.run.run_dir)} · {len(d.run)} frames at {cams.get('width')}x{cams.get('height')} · "
            f"fx {cams.get('fx', float(d.run.K[0, 0])):.1f}{' (guessed)' if cams.get('intrinsics_guessed') else ''}"

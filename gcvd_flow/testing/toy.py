@@ -91,7 +91,7 @@ def report(inputs: dict[str, Any], params: Any, ctx: Any) -> dict[str, Any]:
 class DecodeParams(Section):
     start: int = 0
     end: int | None = None
-    stride: int = Field(1, ge=1)
+    stride: int = Field(default=1, ge=1)
 
 
 class TransformParams(Section):

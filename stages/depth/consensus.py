@@ -126,12 +126,11 @@ def consensus_depth(
     confidence = np.asarray(confidence, np.float32)
     cam = _Camera(K, *depth.shape)
     pose = np.asarray(pose, np.float64)
-    if ref_static is None:
-        ref_static = [None] * len(refs)
-    views = [(np.linalg.inv(np.asarray(pose_j, np.float64)) @ pose, np.asarray(depth_j, np.float32),
+    statics: Sequence[np.ndarray | None] = [None] * len(refs) if ref_static is None else ref_static
+    views: list[tuple[np.ndarray, ...]] = [(np.linalg.inv(np.asarray(pose_j, np.float64)) @ pose, np.asarray(depth_j, np.float32),
               np.asarray(conf_j, np.float32),
               ((np.asarray(depth_j) > 0) & (True if st is None else np.asarray(st) > 0)).astype(np.float32))
-             for (depth_j, conf_j, pose_j), st in zip(refs, ref_static)]
+             for (depth_j, conf_j, pose_j), st in zip(refs, statics)]
     out = np.zeros_like(depth)
     # blocks of rows: every temporary stays small (heap-allocated, in cache); whole 256x192
     # temporaries are fresh pages on every allocation (page faults) and took ~1.4x as long

@@ -48,7 +48,7 @@ def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np
     """
     if preset not in DIS_PRESETS:
         raise ValueError(f"unknown DIS preset {preset!r}; choose one of {sorted(DIS_PRESETS)}")
-    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])  # type: ignore[attr-defined]  # in cv2, not in its stubs
     if preset in FINEST_SCALE:
         dis.setFinestScale(FINEST_SCALE[preset])
     flow = dis.calc(to_gray(img_a), to_gray(img_b), None)
@@ -84,7 +84,7 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
     # f[y0, x0] * (1 - ax) * (1 - ay) + f[y0, x1] * ax * (1 - ay) + ...
     ff = np.ascontiguousarray(f.reshape(h * w, -1).T, dtype=np.float64)
     r0, r1 = y0 * w, y1 * w
-    out = None
+    out: np.ndarray | None = None
     for rows, cols, wx, wy in ((r0, x0, bx, by), (r0, x1, ax, by), (r1, x0, bx, ay), (r1, x1, ax, ay)):
         term = ff.take(rows + cols, axis=1)
         term *= wx
@@ -93,6 +93,7 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
             out = term
         else:
             out += term
+    assert out is not None  # four terms
     dtype = np.float32 if f.dtype != np.float64 else np.float64
     if squeeze:
         return out[0].astype(dtype)

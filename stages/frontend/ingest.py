@@ -61,8 +61,8 @@ def undistort_frame(rgb: np.ndarray, intrinsics: tuple[float, float, float, floa
     OPENCV_FISHEYE: k1..k4; stages.frontend.lens) -> the pinhole image of the same intrinsics
     (fx, fy, cx, cy, source pixels): each output pixel samples the input where the distortion
     moves it (bilinear; outside the frame: black)."""
-    return lens.undistort_image(rgb, lens.Camera(*(float(v) for v in intrinsics), model,
-                                                 tuple(float(v) for v in distortion)))
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    return lens.undistort_image(rgb, lens.Camera(fx, fy, cx, cy, model, tuple(float(v) for v in distortion)))
 
 
 def make_camera(src_w: int, src_h: int, work_w: int, work_h: int,

@@ -137,10 +137,11 @@ def parse_camera(text: str) -> Camera:
         bad = next(t for t in tokens if not _is_float(t))
         raise ValueError(f"{bad!r} is not a number; expected {SYNTAX}") from None
     model = _model_of(name, len(vals), vals)
+    intr: tuple[float, float, float, float]
     if model == "MATRIX":
         intr, model, coeffs = (vals[0], vals[4], vals[2], vals[5]), "PINHOLE", []
     else:
-        intr, coeffs = tuple(vals[:4]), vals[4:]
+        intr, coeffs = (vals[0], vals[1], vals[2], vals[3]), vals[4:]
     names = ("fx", "fy", "cx", "cy") + COEFF_NAMES[model]
     for n, v in zip(names, list(intr) + coeffs):
         if not math.isfinite(v):

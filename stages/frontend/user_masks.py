@@ -41,10 +41,11 @@ def source_to_working(out: np.ndarray, size: tuple[int, int],
     mask goes through the same remap (bilinear, so an output pixel is out when any of the four
     source pixels it mixes is). Then the area resize of ingest: a working pixel is out when any
     source pixel it covers is."""
-    m = np.asarray(out, np.float32)
+    m: np.ndarray = np.asarray(out, np.float32)
     if undistort is not None:
         model = str(undistort[2]) if len(undistort) > 2 else "OPENCV"
-        cam = lens.Camera(*(float(v) for v in undistort[0]), model, tuple(float(v) for v in undistort[1]))
+        fx, fy, cx, cy = (float(v) for v in undistort[0])
+        cam = lens.Camera(fx, fy, cx, cy, model, tuple(float(v) for v in undistort[1]))
         h0, w0 = m.shape
         mx, my = lens.undistort_maps(cam, (w0, h0))
         # cv2.remap's bilinear weights are 1/32-quantised: a tap with a weight under 1/32 may get

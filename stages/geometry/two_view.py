@@ -39,7 +39,7 @@ def triangulate_depths(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R: np.ndar
 def pose_from_essential(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """(R, t unit, number of points in front) with x_b = R x_a + t; pa, pb (N, 2) inliers."""
     R1, R2, t = cv2.decomposeEssentialMat(E)
-    best = (np.eye(3), np.zeros(3), -1)
+    best: tuple[np.ndarray, np.ndarray, int] = (np.eye(3), np.zeros(3), -1)
     for R in (R1, R2):
         for s in (1.0, -1.0):
             tt = s * t.ravel()

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 import torch.nn as nn
@@ -70,6 +71,7 @@ class UNetBackbone(nn.Module):
                 if isinstance(m, nn.Conv2d):
                     fan_in = m.in_channels * m.kernel_size[0] * m.kernel_size[1]
                     m.weight.copy_(torch.randn(m.weight.shape, generator=g) * math.sqrt(2.0 / fan_in))
+                    assert m.bias is not None  # every Conv2d here has a bias
                     m.bias.zero_()
         for p in self.parameters():
             p.requires_grad_(False)
@@ -124,13 +126,15 @@ class DepthNet(nn.Module):
                 p.requires_grad_(False)
         g = torch.Generator().manual_seed(seed + 1)
         self.head = nn.Sequential(nn.Conv2d(feat_ch + 1, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, 1, 1))
+        h0, h2 = cast(nn.Conv2d, self.head[0]), cast(nn.Conv2d, self.head[2])
         with torch.no_grad():
-            w0 = self.head[0].weight
+            w0 = h0.weight
             w0.copy_(torch.randn(w0.shape, generator=g) * math.sqrt(2.0 / (feat_ch + 1)))
-            self.head[0].bias.zero_()
+            assert h0.bias is not None and h2.bias is not None  # both built with bias=True
+            h0.bias.zero_()
             # zero last layer: the untrained network outputs the prior exactly
-            self.head[2].weight.zero_()
-            self.head[2].bias.zero_()
+            h2.weight.zero_()
+            h2.bias.zero_()
 
     @torch.no_grad()
     def encode(self, images: torch.Tensor, prior: torch.Tensor | None) -> Encoded:
@@ -167,7 +171,8 @@ class DepthNet(nn.Module):
         inverse-depth residuals. As two matrix products rather than ``self.head``'s convolutions:
         the same arithmetic, at a fifth of the convolutions' forward + backward time on CPU
         (their backward dominated a solver step)."""
-        l0, l2 = self.head[0], self.head[2]
+        l0, l2 = cast(nn.Conv2d, self.head[0]), cast(nn.Conv2d, self.head[2])
+        assert l0.bias is not None and l2.bias is not None  # both built with bias=True
         hidden = torch.addmm(l0.bias, x, l0.weight.flatten(1).t()).relu()
         return torch.addmm(l2.bias, hidden, l2.weight.flatten(1).t())[:, 0]
 

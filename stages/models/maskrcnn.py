@@ -59,7 +59,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import OrderedDict
-from typing import Mapping, Sequence
+from typing import Mapping, Sequence, cast
 
 import cv2
 import numpy as np
@@ -362,6 +362,11 @@ def paste_masks_in_image(masks: torch.Tensor, boxes: torch.Tensor, size: tuple[i
 class FrozenBatchNorm2d(nn.Module):
     """BatchNorm with fixed statistics and affine terms, all buffers: y = (x - mean) / sqrt(var + eps) * w + b."""
 
+    weight: torch.Tensor  # buffers (register_buffer), declared for the type checker
+    bias: torch.Tensor
+    running_mean: torch.Tensor
+    running_var: torch.Tensor
+
     def __init__(self, num_features: int, eps: float = BN_EPS_COCO) -> None:
         super().__init__()
         self.eps = eps
@@ -406,6 +411,11 @@ class Bottleneck(nn.Module):
 class ResNet50Body(nn.Module):
     """``backbone.body``: ResNet-50 stem and stages (blocks 3, 4, 6, 3), no pooling / fc."""
 
+    layer1: nn.Sequential  # set by name in __init__ (the checkpoint's keys)
+    layer2: nn.Sequential
+    layer3: nn.Sequential
+    layer4: nn.Sequential
+
     def __init__(self, bn_eps: float) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False)
@@ -443,7 +453,7 @@ class FeaturePyramidNetwork(nn.Module):
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_uniform_(m.weight, a=1)
-                nn.init.zeros_(m.bias)
+                nn.init.zeros_(cast(torch.Tensor, m.bias))  # every Conv2d here has a bias
 
     def forward(self, x: list[torch.Tensor]) -> list[torch.Tensor]:
         """[C2..C5] -> [P2, P3, P4, P5, P6 = max_pool2d(P5, 1, stride 2)], each (1, 256, h_l, w_l)."""
@@ -511,7 +521,7 @@ class RPNHead(nn.Module):
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.normal_(m.weight, std=0.01)
-                nn.init.zeros_(m.bias)
+                nn.init.zeros_(cast(torch.Tensor, m.bias))  # every Conv2d here has a bias
 
     def forward(self, feats: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Levels (1, 256, h, w) -> objectness (1, A, h, w) and deltas (1, 4A, h, w) per level."""
@@ -544,11 +554,11 @@ class RegionProposalNetwork(nn.Module):
             keep_d.append(d[top])
             keep_a.append(a[top])
             keep_l.append(torch.full((top.numel(),), level, dtype=torch.int64))
-        scores, levels = torch.sigmoid(torch.cat(keep_s)), torch.cat(keep_l)
+        probs, levels = torch.sigmoid(torch.cat(keep_s)), torch.cat(keep_l)
         boxes = clip_boxes(decode_boxes(torch.cat(keep_d), torch.cat(keep_a), RPN_BOX_WEIGHTS)[:, 0], image_size)
         keep = remove_small_boxes(boxes, RPN_MIN_SIZE)
-        boxes, scores, levels = boxes[keep], scores[keep], levels[keep]
-        keep = batched_nms(boxes, scores, levels, self.nms_thresh)[: self.post_nms_top_n]
+        boxes, probs, levels = boxes[keep], probs[keep], levels[keep]
+        keep = batched_nms(boxes, probs, levels, self.nms_thresh)[: self.post_nms_top_n]
         return boxes[keep]
 
 
@@ -591,7 +601,7 @@ class MaskRCNNHeads(nn.Sequential):
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-                nn.init.zeros_(m.bias)
+                nn.init.zeros_(cast(torch.Tensor, m.bias))  # every Conv2d here has a bias
 
 
 class MaskRCNNPredictor(nn.Sequential):

@@ -131,7 +131,7 @@ def _lite3_blocks() -> list[nn.Sequential]:
     stages = []
     cin = STEM_CHANNELS
     for kind, k, stride, exp, cout, reps in LITE3_STAGES:
-        blocks = []
+        blocks: list[nn.Module] = []
         for i in range(reps):
             s = stride if i == 0 else 1
             if kind == "ds":
@@ -286,7 +286,7 @@ def midas_prior(model: MidasNet, image: np.ndarray) -> np.ndarray:
         raise ValueError(f"image must be uint8 (H, W, 3), got {img.dtype} {img.shape}")
     h, w = img.shape[:2]
     nh, nw = network_size(h, w)
-    x = cv2.resize(img.astype(np.float32) / 255.0, (nw, nh), interpolation=cv2.INTER_CUBIC)
+    x: np.ndarray = cv2.resize(img.astype(np.float32) / 255.0, (nw, nh), interpolation=cv2.INTER_CUBIC)
     x = (x - np.asarray(IMAGENET_MEAN, np.float32)) / np.asarray(IMAGENET_STD, np.float32)
     t = torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None].float()
     was_training = model.training

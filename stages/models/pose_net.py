@@ -20,6 +20,7 @@ vs 0.46 % of the path (a tie). ``pose_param="net"`` selects the network.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import torch
 import torch.nn as nn
@@ -43,9 +44,11 @@ class _Encoder(nn.Module):
         )
         g = torch.Generator().manual_seed(seed)
         with torch.no_grad():
-            for c in self.convs:
+            for m in self.convs:
+                c = cast(nn.Conv2d, m)
                 fan = c.in_channels * 9
                 c.weight.copy_(torch.randn(c.weight.shape, generator=g) * math.sqrt(2.0 / fan))
+                assert c.bias is not None  # built with bias=True
                 c.bias.zero_()
         for p in self.parameters():
             p.requires_grad_(False)
@@ -70,11 +73,12 @@ class PoseNet(nn.Module):
         d_in = 4 * width + 2 * n_freq
         self.decoder = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, 6))
         g = torch.Generator().manual_seed(seed + 7)
+        l0, l2 = cast(nn.Linear, self.decoder[0]), cast(nn.Linear, self.decoder[2])
         with torch.no_grad():
-            self.decoder[0].weight.copy_(torch.randn(self.decoder[0].weight.shape, generator=g) / math.sqrt(d_in))
-            self.decoder[0].bias.zero_()
-            self.decoder[2].weight.zero_()
-            self.decoder[2].bias.zero_()
+            l0.weight.copy_(torch.randn(l0.weight.shape, generator=g) / math.sqrt(d_in))
+            cast(torch.Tensor, l0.bias).zero_()  # nn.Linear leaves bias unannotated; bias=True here
+            l2.weight.zero_()
+            cast(torch.Tensor, l2.bias).zero_()
 
     @torch.no_grad()
     def encode(self, images: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

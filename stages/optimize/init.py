@@ -232,20 +232,22 @@ def essential_chain(
     prev_scale = 1.0  # the previous pair's scale s (read only once known)
     for k in range(n - 1):
         T_k1_k = T_next_cur[k].copy()
-        if d_fwd[k] is not None:
-            if k > 0 and d_bwd[k - 1] is not None and known:
+        fwd, bwd = d_fwd[k], d_bwd[k]
+        if fwd is not None:
+            assert bwd is not None  # a pair's two depth maps are None together (above)
+            if k > 0 and (prev_bwd := d_bwd[k - 1]) is not None and known:
                 # same-pixel ratio: depth of frame k (previous pair, already scaled) / (this pair)
-                prev = d_bwd[k - 1] * prev_scale
-                both = np.isfinite(prev) & np.isfinite(d_fwd[k])
+                prev = prev_bwd * prev_scale
+                both = np.isfinite(prev) & np.isfinite(fwd)
                 if both.sum() >= 20:
-                    s = float(np.median(prev[both] / d_fwd[k][both]))
+                    s = float(np.median(prev[both] / fwd[both]))
                 else:
-                    s = math.exp(log_m[k]) / ref_ratio(k, d_fwd[k])
+                    s = math.exp(log_m[k]) / ref_ratio(k, fwd)
             else:
-                s = math.exp(log_m[k]) / ref_ratio(k, d_fwd[k])
+                s = math.exp(log_m[k]) / ref_ratio(k, fwd)
             T_k1_k[:3, 3] *= s
             prev_scale = s
-            log_m[k + 1] = math.log(s * ref_ratio(k + 1, d_bwd[k]))
+            log_m[k + 1] = math.log(s * ref_ratio(k + 1, bwd))
             known = True
         else:
             log_m[k + 1] = log_m[k]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Iterator, Mapping
+from typing import Any, Callable, Iterable, Iterator, Mapping, cast
 
 import numpy as np
 import torch
@@ -430,9 +430,9 @@ class _Placed:
         scale, M = 1.0, np.eye(4)
         if n_old > 0:
             # scale: median log ratio of the overlap's depths; rigid part: fitted to the overlap's poses
-            logs = [np.log(self.depths[a + k][ok] / res.depths[k][ok]) for k in range(n_old)
-                    for ok in [(self.depths[a + k] > 0) & (res.depths[k] > 0)]]
-            logs = np.concatenate(logs)
+            old = cast(list[np.ndarray], self.depths[a : a + n_old])  # placed by the previous window
+            logs = np.concatenate([np.log(old[k][ok] / res.depths[k][ok]) for k in range(n_old)
+                                   for ok in [(old[k] > 0) & (res.depths[k] > 0)]])
             scale = float(np.exp(np.median(logs))) if logs.size else 1.0
         placed = res.poses.copy()
         placed[:, :3, 3] *= scale
@@ -475,12 +475,12 @@ def _independent_windows(
         t = ck[0]
         for wi in range(int(ck[1]["window"])):
             p = f"win{wi:04d}/"
-            res = KeyframeWindowResult(
+            win_res = KeyframeWindowResult(
                 t[p + "poses"].numpy(), t[p + "meshes"].numpy(), t[p + "depths"].numpy(),
                 {k[len(p) + 6:]: v.numpy() for k, v in t.items() if k.startswith(p + "state.")},
                 t[p + "stats"].numpy())
-            done.append(res)
-            placed.add(wi, res)
+            done.append(win_res)
+            placed.add(wi, win_res)
 
     def jobs() -> Iterator[KeyframeJob]:  # built lazily: only the windows in flight are in memory
         for wi in range(len(done), len(spans)):
@@ -488,9 +488,9 @@ def _independent_windows(
             yield KeyframeJob(wi, a, images[a:b], priors[a:b], static_masks[a:b], K, flows[a : b - 1],
                               init[a:b].numpy(), mesh_init[a:b].numpy(), st)
 
-    for wi, res in zip(range(len(done), len(spans)), window_map(solve_keyframe_window, jobs())):
-        done.append(res)
-        placed.add(wi, res)
+    for wi, win_res in zip(range(len(done), len(spans)), window_map(solve_keyframe_window, jobs())):
+        done.append(win_res)
+        placed.add(wi, win_res)
         if checkpointer is not None and wi + 1 < len(spans):
             shards = {f"win{k:04d}": {"poses": torch.as_tensor(r.poses), "meshes": torch.as_tensor(r.meshes),
                                       "depths": torch.as_tensor(r.depths), "stats": torch.as_tensor(r.stats),
@@ -498,7 +498,9 @@ def _independent_windows(
                       for k, r in enumerate(done)}
             checkpointer.save({"windows_done": torch.tensor(wi + 1)}, {"stage": _STAGE_INDEPENDENT, "window": wi + 1},
                               shards)
-    res = _results(placed.poses, np.stack(placed.depths), torch.as_tensor(np.stack(placed.meshes)), placed.state,
+    # every keyframe is placed by now: no None left in depths / meshes
+    res = _results(placed.poses, np.stack(cast(list[np.ndarray], placed.depths)),
+                   torch.as_tensor(np.stack(cast(list[np.ndarray], placed.meshes))), placed.state,
                    kf.taus, placed.rel_poses(kf.taus))
     res["windows"] = _window_records(torch.as_tensor(np.stack([r.stats for r in done])), [a for a, _ in spans], nk, kf)
     return res

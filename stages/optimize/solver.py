@@ -187,7 +187,7 @@ class _PairBlock:
         fvalid = torch.stack([sub[i].valid.reshape(hw) for i in fl]) if fl else None
         flow_idx = torch.tensor(fl, dtype=torch.long)
         amask = win.static[pa].reshape(len(sub), hw).clone()
-        if fl:
+        if fvalid is not None:  # i.e. fl
             amask[flow_idx] = amask[flow_idx] * fvalid
         keep_pb = None
         if win.keep is not None:
@@ -285,6 +285,7 @@ class Solver:
         if self.posenet is None:
             d = self.delta
         else:
+            assert self.w.pose_code is not None  # a PoseNet window carries its codes
             d = self.posenet.decode(self.w.pose_code).to(torch.float64)
         d = d * self.w.pose_train[:, None]
         return self.w.base @ G.pose_from_rt(d)
@@ -362,6 +363,7 @@ class Solver:
         if lw.w_flow > 0 and len(blk.flow_idx):
             fi = blk.flow_idx
             fidx = idx[fi]
+            assert blk.flows is not None  # set whenever flow_idx is not empty
             tgt = blk.flows.gather(1, fidx[..., None].expand(-1, -1, 2))
             base_uv = torch.stack([u0[fi], v0[fi]], -1).to(torch.float32)
             fwgt = blk.amask[fi].gather(1, fidx)
