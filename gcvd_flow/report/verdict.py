@@ -15,8 +15,11 @@ itself can see:
 * bundle adjustment: enough flow tracks (3+ keyframes) to check the poses against; the median
   reprojection error of the pose graph's poses on them (how far the optimisation of depth and
   poses is from the measured tracks) and after adjustment (what is left), as angles;
-* scale spread: the per-keyframe depth scale bundle adjustment applied (max / min): depth maps of
-  one clip that disagree in scale;
+* scale spread (shown, not judged): the per-keyframe depth scale bundle adjustment applied (max /
+  min). It measures how much scale drift of the keyframe chain the adjustment corrected, not what
+  is left: the real HoloLens walk (ATE 0.86 % of its path, window scales 0.97-1.13 after the
+  adjustment) needs 6.8 because its chain drifts 0.8-5.0 before it; the depth-scale disagreement
+  that remains shows in the multi-view depth agreement;
 * loop edges found but none kept by the pose graph, or a pose graph whose residual grew;
 * valid depth and static pixels under half the image (warn), and a missing cache (warn: the
   checks above that read stage outputs cannot run). Guessed intrinsics are shown, not judged.
@@ -32,15 +35,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 #: (warn below, fail below) for shares in [0, 1]; (warn above, fail above) for the others.
-AGREEMENT = (0.60, 0.20)
-FLOW_CONSISTENCY = (0.70, 0.50)
+# Re-fitted 2026-11-28 on the 23 runs of benchmarks/bench_verdict.py with the code of that day
+# (docs/benchmarks.md): good runs (ATE < 1 % of the path) agree on >= 71.6 % of pixels, a broken
+# one (5 steps, no BA, 5.4 %) on 61.3 %; the real HoloLens walk (0.86 %) has 62.7 % consistent
+# flow (motion blur, sensor noise), the broken scans 24-40 %.
+AGREEMENT = (0.66, 0.20)
+FLOW_CONSISTENCY = (0.60, 0.45)
 # bundle adjustment's median reprojection error as an angle (px / fx, mrad: the same at every
 # resolution). Before: how far the pose graph's poses are from explaining the flow tracks (good
-# runs of the validation set: <= 2.7 mrad; ICL at 128 px, ATE 5.7 %: 7.0); after: what is left.
-BA_BEFORE_MRAD = (4.0, 15.0)
+# runs of the validation set: <= 7.0 mrad, ICL at 128 px; broken ones 16-28); after: what is left.
+BA_BEFORE_MRAD = (10.0, 20.0)
 BA_AFTER_MRAD = (5.0, 15.0)
 BA_MIN_TRACKS = 30
-SCALE_SPREAD = (1.5, 3.0)
 MIN_KEYFRAMES = 3
 MAX_GAP_SHARE = 0.5  # a keyframe gap of half the clip or more: suspect
 
