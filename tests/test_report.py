@@ -310,9 +310,9 @@ def test_scale_spread_is_shown_but_not_judged(monkeypatch):
     """The depth-scale spread bundle adjustment applied measures the chain drift it corrected, not
     what is left: the real HoloLens walk (ATE 0.86 % of its path) needs 6.8. A run whose other
     bundle-adjustment figures are fine stays "good" with a spread of 7, and the value is shown."""
+    import importlib
     from types import SimpleNamespace
 
-    import importlib
     from gcvd_flow.report.verdict import overall
 
     C = importlib.import_module("gcvd_flow.report.collect")  # the package re-exports collect()
