@@ -52,3 +52,32 @@ def cli_json(*args: str, **kw) -> dict:
 
 def by_stage(doc: dict) -> dict[str, dict]:
     return {s["name"]: s for s in doc["stages"]}
+
+
+def run_main(*args: object) -> tuple[int, str, str]:
+    """The CLI in-process (fast, for fuzzing): (exit code, stdout, stderr); argparse's SystemExit
+    becomes its code."""
+    import contextlib
+    import io
+
+    from gcvd_flow.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse
+            code = int(exc.code or 0)
+    return code, out.getvalue(), err.getvalue()
+
+
+def json_paths(doc: object, prefix: tuple = ()) -> list[tuple]:
+    """Every node path of a JSON document (dict keys, the first 4 list items), for mutating one."""
+    out = [prefix]
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            out += json_paths(v, prefix + (k,))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc[:4]):
+            out += json_paths(v, prefix + (i,))
+    return out

@@ -10,7 +10,6 @@ exit 0 (or its verdict exit 1: compare --check, eval --baseline) or exit 2 with 
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
 import os
@@ -20,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import cli, make_toy_input
+from conftest import cli, json_paths, make_toy_input, run_main
 
 SEED = int(os.environ.get("GCVD_FUZZ_SEED", "32"))
 SCALE = int(os.environ.get("GCVD_FUZZ_SCALE", "1"))  # developers: more cases per file kind
@@ -34,24 +33,13 @@ def _values(rng: random.Random) -> Any:
             [], {}, [1, "a", None], {"a": {"b": [1]}}][choice]
 
 
-def _paths(doc: Any, prefix: tuple = ()) -> list[tuple]:
-    out = [prefix]
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            out += _paths(v, prefix + (k,))
-    elif isinstance(doc, list):
-        for i, v in enumerate(doc[:4]):
-            out += _paths(v, prefix + (i,))
-    return out
-
-
 def mutate(doc: Any, rng: random.Random) -> str:
     """JSON text of ``doc`` with one node replaced by a value of another kind (or the whole
     document replaced by deep nesting, a few times in a hundred)."""
     if rng.random() < 0.1:
         return DEEP
     doc = json.loads(json.dumps(doc))
-    paths = _paths(doc)
+    paths = json_paths(doc)
     # prefer the shallow structure the readers rely on, but reach deep leaves too
     r = rng.random()
     path = rng.choice([p for p in paths if len(p) <= 2] if r < 0.5 else [p for p in paths if len(p) <= 4]
@@ -67,18 +55,6 @@ def mutate(doc: Any, rng: random.Random) -> str:
     else:
         node[path[-1]] = new
     return json.dumps(doc)
-
-
-def run_main(*args: str) -> tuple[int, str, str]:
-    from gcvd_flow.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in args])
-        except SystemExit as exc:  # argparse
-            code = int(exc.code or 0)
-    return code, out.getvalue(), err.getvalue()
 
 
 def check_clean(args: tuple, code: int, err: str, verdict_ok: bool = False, what: str = "") -> None:

@@ -8,8 +8,6 @@ silent wrong result. Commands run in-process (``gcvd_flow.cli.main``) on one 6-f
 
 from __future__ import annotations
 
-import contextlib
-import io
 import os
 import random
 from pathlib import Path
@@ -17,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import cli
+from conftest import cli, run_main
 
 from gcvd_flow import pipeline
 from gcvd_flow.engine.errors import UsageError
@@ -26,18 +24,6 @@ from gcvd_flow.io.formats import read_user_mask_png
 SEED = int(os.environ.get("GCVD_FUZZ_SEED", "36"))
 SCALE = int(os.environ.get("GCVD_FUZZ_SCALE", "1"))
 H, W = 72, 96
-
-
-def run_main(*args: str) -> tuple[int, str, str]:
-    from gcvd_flow.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in args])
-        except SystemExit as exc:  # argparse
-            code = int(exc.code or 0)
-    return code, out.getvalue(), err.getvalue()
 
 
 def check_clean(what: str, code: int, err: str) -> None:

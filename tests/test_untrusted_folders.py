@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, cli, make_toy_input
+from conftest import ROOT, cli, json_paths, make_toy_input
 
 TOY = ("--pipeline", "toy")
 TIMEOUT = float(os.environ.get("GCVD_HANG_TIMEOUT", "60"))  # s for a command that must not hang (~1-3 s)
@@ -347,22 +347,11 @@ HUGE = ["9" * 5000, "1e999", "-1e999", str(10 ** 400), "NaN", "Infinity", "-Infi
 VALUES = [None, True, 0, -1, 1.5, "x", "=1+1", "$\\foo$", "../../etc", [], {}, [1, "a"], {"a": {"b": [1]}}]
 
 
-def _paths(doc, prefix=()):
-    out = [prefix]
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            out += _paths(v, prefix + (k,))
-    elif isinstance(doc, list):
-        for i, v in enumerate(doc[:4]):
-            out += _paths(v, prefix + (i,))
-    return out
-
-
 def mutate_json(doc, rng: random.Random) -> str:
     """JSON text of ``doc`` with one node replaced by another kind of value or an out-of-range
     number (as text: JSON can spell 1e999, Python cannot)."""
     doc = json.loads(json.dumps(doc))
-    paths = _paths(doc)
+    paths = json_paths(doc)
     path = rng.choice([p for p in paths if len(p) <= 3] if rng.random() < 0.7 else paths)
     marker = "@@MUT@@"
     huge = rng.random() < 0.4
