@@ -29,17 +29,15 @@ class DepthFusionSettings:
     references: Literal["baseline", "offsets"] = param(
         "baseline", "how each frame's references are chosen: 'baseline' by triangulation angle and overlap at "
         "the final poses, 'offsets' the fixed ``offsets``")
-    offsets: tuple[int, ...] = param((-8, -4, -2, -1, 1, 2, 4, 8), "references=offsets: reference frames "
-                                     "(relative index) triangulated against each frame with the final poses; +-1 "
-                                     "are the flow stage's pairs and +-4 the priors' (no new flow). Was (-8, 8) "
-                                     "until 2026-11-25: on a wide-baseline real walk-through frames 8 apart "
-                                     "rarely overlap (confident share 0.3 % -> 48 %, AbsRel 0.167 -> 0.143; ICL "
-                                     "74 % -> 97 %, AbsRel 0.0493 -> 0.0487)")
+    offsets: tuple[int, ...] = param((-8, -4, -2, -1, 1, 2, 4, 8), "references=offsets: reference frames (relative "
+                                                                   "index) triangulated against each frame with the "
+                                                                   "final poses; +-1 are the flow stage's pairs and "
+                                                                   "+-4 the priors' (no new flow); frames far apart "
+                                                                   "rarely overlap on a wide-baseline walk")
     preset: Literal["ultrafast", "fast", "medium", "fine"] = "fine"
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
     min_angle_deg: float = param(0.2, "smallest usable triangulation angle", ge=0)
-    max_log_dev: float = param(0.6, "measurements further from the optimised depth (|log ratio|) are "
-                               "dropped (0.3 until 2026-11-24: AbsRel ICL 0.0530 -> 0.0523, loop 0.0419 -> 0.0405)",
+    max_log_dev: float = param(0.6, "measurements further from the optimised depth (|log ratio|) are dropped",
                                gt=0)
     agree_log_dev: float = param(0.3, "measurements within this of the optimised depth count as agreeing in "
                                  "the confidence", gt=0)
@@ -64,8 +62,7 @@ class FusionReferencesSettings:
     chosen there from 4 deg / 0.6 / 4 / 2 / 32 (HoloLens confident share 31 %) and neighbours."""
 
     max_refs: int = param(3, "references per frame at most", ge=1)
-    max_gap: int = param(12, "frames searched on each side (32: synthetic walk AbsRel 0.0877 against 0.0788, "
-                         "loop 0.0363 against 0.0373)", ge=1)
+    max_gap: int = param(12, "frames searched on each side", ge=1)
     target_angle_deg: float = param(2.0, "median triangulation angle aimed at, degrees",
                                     gt=0)
     min_angle_deg: float = param(0.5, "smallest usable median triangulation angle of a "
@@ -89,9 +86,8 @@ class DepthFilterSettings:
     border: int = param(4, ge=0)
     fill_from: float = param(0.7, "depth confidence of the pixels an edge-aware fill of uncertain depth is "
                              "made from", ge=0, le=1)
-    fill_below: float = param(0.0, "pixels less confident than this are pulled towards that fill (in "
-                              "proportion; 0 = off, the default: it helps ICL, AbsRel 0.053 -> 0.049, and "
-                              "hurts the synthetic loop, 0.042 -> 0.129)", ge=0, le=1)
+    fill_below: float = param(0.0, "pixels less confident than this are pulled towards that fill (in proportion; 0 = "
+                                   "off, the default: it helps some clips and hurts others)", ge=0, le=1)
 
 
 @dataclass(frozen=True)
@@ -109,18 +105,14 @@ class DepthConsensusSettings:
     splat_offsets: tuple[int, ...] = param((1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64),
                                            "references (frames i - k and i + k) whose confident filtered depth is "
                                            "splatted forward into frame i after the carry, the correction spread "
-                                           "edge-aware (stages.depth.consensus.splat_consensus; () = off): AbsRel "
-                                           "HoloLens 0.1465 -> 0.121, ICL 0.048 -> 0.041, synthetic loop 0.037 -> "
-                                           "0.034, walk 0.079 -> 0.046 (docs/log/2026-11-28-depth2.md); these 12 "
-                                           "offsets give the 20 of 1..12, 16..64 step 8 within 0.3 % at 60 % of the "
-                                           "work; 1, 2, 4, ..., 64 lose 3-4 % (docs/log/2026-11-28-lead.md)",
+                                           "edge-aware (stages.depth.consensus.splat_consensus; () = off)",
                                            validator=_positive_offsets)
     splat_front: float = param(0.1, "splatted depths within this (relative) of the nearest one at a pixel are its "
                                "visible surface and averaged; the rest are occluded", gt=0)
     splat_min_confidence: float = param(0.5, "reference pixels at least this confident are splatted", ge=0, le=1)
     splat_keep: float = param(0.5, "frame i's pixels at least this confident keep their own depth; less confident "
                               "ones take the splat in proportion, (1 - (c / splat_keep)^2) (above 1: every pixel "
-                              "blended as first built, ICL 0.048 -> 0.060)", ge=0)
+                              "blended as first built)", ge=0)
     splat_ref_edge_jump: float = param(0.1, "a reference's pixels within 2 px of a jump of its own log depth larger than "
                                        "this are not splatted (at occlusion boundaries their depth mixes two "
                                        "surfaces); 0 = off", ge=0)

@@ -44,8 +44,7 @@ class CalibrateSettings:
                                          "intrinsics are given (flag, intrinsics.txt or a dataset default); off: keep "
                                          "the guess f = 300/384 x long side")
     max_frames: int = param(48, "frames sampled by image motion over the clip for the estimate", ge=3)
-    features: int = param(1000, "SIFT features per sampled frame (the strongest; 2000: a textured synthetic clip "
-                          "7 % off and 2x slower)", ge=100)
+    features: int = param(1000, "SIFT features per sampled frame (the strongest)", ge=100)
     max_rel_sigma: float = param(0.03, "an estimate whose spread over frame blocks and formal std (std / f) exceed "
                                  "this is not used: the motion does not determine the focal length; the guess is "
                                  "kept (the reported uncertainty also holds the principal-point term)", gt=0)
@@ -66,8 +65,8 @@ class FlowSettings:
     """Flow of adjacent pairs (stages.frontend.flow.compute_pair_flow)."""
 
     backend: Literal["dis", "raft"] = "dis"
-    preset: DisPreset = param("fine", "DIS preset; 'fine' = medium at full resolution (loop clip: ATE 0.06 % vs "
-                              "0.08 % of the path with 'medium', at ~3.5x the flow time)")
+    preset: DisPreset = param("fine", "DIS preset; 'fine' = medium at full resolution (slower than 'medium', more "
+                                      "accurate)")
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
     weights: str | None = param(None, "RAFT weights file", json_schema_extra=WEIGHTS_FILE)
 
@@ -84,12 +83,10 @@ class MasksSettings:
         "motion", "motion: flow vs. static geometry; maskrcnn: COCO instances of moving "
         "classes (needs weights); motion+maskrcnn: dynamic if either says so")
     dilate: int = param(5, ge=0)
-    texture_frac: float = param(1.0, "motion evidence is scaled down where the image's Shi-Tomasi texture is "
-                                "below this x its median (flow there is interpolated, not measured); 0 = off. "
-                                "Static real walk-through: 4.1 % of pixels flagged -> 0.9 % (with sigma_mult 5), "
-                                "moving-object IoU 0.459 -> 0.454", ge=0)
-    sigma_mult: float = param(5.0, "a pixel moves when its epipolar residual exceeds median + sigma_mult x "
-                              "robust sigma (4 until 2026-11-25)", gt=0)
+    texture_frac: float = param(1.0, "motion evidence is scaled down where the image's Shi-Tomasi texture is below "
+                                     "this x its median (flow there is interpolated, not observed); 0 = off", ge=0)
+    sigma_mult: float = param(5.0, "a pixel moves when its epipolar residual exceeds median + sigma_mult x robust "
+                                   "sigma", gt=0)
     span: int = param(6, "frames spanned by the chained flow (an object moving along epipolar lines over 1 "
                       "frame rarely does over several)", ge=1)
     weights: str | None = param(None, "Mask R-CNN weights file", json_schema_extra=WEIGHTS_FILE)
@@ -112,13 +109,11 @@ class PriorsSettings:
     backend: Literal["geometric", "midas"] = "geometric"
     span: int = param(8, "frames between a frame and its reference for triangulation", ge=1)
     references: Literal["back", "symmetric"] = param(
-        "back", "back: span and span/2 frames back (forward for the first frames), two direct flows per frame, "
-        "and an appended frame never changes an existing frame's references; symmetric (opt-in): span back and "
-        "span forward, each direct flow shared by the two frames it joins (ICL: flow_far 215 pairs instead of "
-        "410, but fusion_flow 170 instead of 64, since the fusion references no longer find the span/2 pairs; "
-        "ICL AbsRel 0.0481 -> 0.0460, HoloLens 0.1482 -> 0.1492, KITTI RPE +18 %; docs/log/2026-11-28-cost.md)")
-    preset: DisPreset = param("fine", "DIS preset of the prior's direct flows ('fine': full-resolution "
-                              "finest level; prior AbsRel 0.058 vs 0.095 with 'medium' on the synthetic loop)")
+        "back", "back: span and span/2 frames back (forward for the first frames), two direct flows per frame, and an"
+                " appended frame never changes an existing frame's references; symmetric (opt-in): span back and span"
+                " forward, each direct flow shared by the two frames it joins (fewer far flows, but the fusion "
+                "references no longer find the span/2 pairs)")
+    preset: DisPreset = param("fine", "DIS preset of the prior's direct flows ('fine': full-resolution finest level)")
     fb_thresh: float = param(1.0, gt=0)
     weights: str | None = param(None, "MiDaS weights file", json_schema_extra=WEIGHTS_FILE)
 

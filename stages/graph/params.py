@@ -30,42 +30,35 @@ class AssociationSettings:
     min_separation: int = param(8, ge=0)
     min_inlier_ratio: float = param(0.5, ge=0, le=1)
     min_consistent: float = param(0.1, ge=0, le=1)
-    per_keyframe: int = param(0, "candidates also: each keyframe's most similar eligible partners (a revisit "
-                              "lasting several keyframes gives several loop edges); 0: NMS only (default: the "
-                              "extra, wider edges moved the synthetic loop's pose graph 1.00 -> 1.28 mm and the "
-                              "real walk-through's bundle adjustment by noise, 0.0536 -> 0.0517 m)", ge=0)
+    per_keyframe: int = param(0, "candidates also: each keyframe's most similar eligible partners (a revisit lasting "
+                                 "several keyframes gives several loop edges); 0: NMS only", ge=0)
     max_candidates: int = param(40, "loop candidates verified at most (the most similar)", ge=0)
     retrieval: Literal["vocabulary", "global"] = param(
-        "global", "loop candidates: global (the whole-image descriptor with threshold / nms / per_keyframe; HoloLens "
-        "walk-through: 0 of its 28 revisit pairs proposed) or vocabulary (VLAD + TF-IDF bag of words of the clip's own "
-        "keyframes' SIFT features over all keyframe pairs: 20 of 28 among the 40 best, every verified edge true; "
-        "opt-in: on KITTI 07 it verifies a forward look-alike 23 m ahead, ATE 1.90 -> 3.23 m); resnet18 is global")
+        "global", "loop candidates: global (the whole-image descriptor with threshold / nms / per_keyframe) or "
+                  "vocabulary (VLAD + TF-IDF bag of words of the clip's own keyframes' SIFT features over all "
+                  "keyframe pairs; opt-in: it finds revisits the global descriptor misses, and on forward driving "
+                  "look-alikes ahead); resnet18 is global")
     words: int = param(64, "vocabulary: VLAD visual words (k-means on the keyframes' RootSIFT, fixed seed)", ge=1)
     top_k: int = param(5, "vocabulary: candidates each keyframe proposes (its best-scoring partners)", ge=0)
     min_ratio: float = param(0.1, "vocabulary: a candidate's similarity relative to its keyframes' similarity "
-                             "with their temporal neighbours must reach this (in VLAD or bag of words; real "
-                             "revisits verified at 0.12-0.28)", ge=0)
-    loop_nms: int = param(8, "verified loop edges kept: the best (most inliers) within +-loop_nms/2 keyframes at "
-                          "both ends; <= 1 keeps all (all 6 / 28 verified edges: synthetic loop ATE 0.88 -> 1.12 mm, "
-                          "HoloLens 0.061 -> 0.069 m)", ge=0)
+                             "with their temporal neighbours must reach this (in VLAD or bag of words)", ge=0)
+    loop_nms: int = param(8, "verified loop edges kept: the best (most inliers) within +-loop_nms/2 keyframes at both"
+                             " ends; <= 1 keeps all", ge=0)
     min_departure: float = param(0.5, "vocabulary: a pair is a candidate only when the path left in between (some "
-                                 "keyframe between scores lower with both ends, by this many standard deviations): "
-                                 "forward driving sees the road ahead again, which is no revisit (KITTI 07: 16 such "
-                                 "loops verified without it, ATE 1.90 -> 3.14 m)", ge=0)
+                                      "keyframe between scores lower with both ends, by this many standard "
+                                      "deviations): forward driving sees the road ahead again, which is no revisit", ge=0)
     window: int = param(1, "vocabulary: scores averaged over +-window keyframes along the path (a revisit lasts "
                         "several keyframes)", ge=0)
     prewarp_sequential: Literal["auto", "on", "off"] = param(
         "auto", "pre-warp consecutive keyframes by their RANSAC homography before the flow, as loop candidates are: "
-        "on, off, or auto: on unless the clip moves forward (>= 80 % of the consecutive pairs' SIFT translations "
-        "within 30 degrees of the optical axis), where the homography (a zoom fitted to a 3-D street) biased the "
-        "parallax into scale drift (KITTI 07 ATE 1.90 -> 0.30 m with the wider frames; hand-held clips need it: "
-        "synthetic loop 0.9 -> 3.6 mm without)")
+                "on, off, or auto: on unless the clip moves forward (>= 80 % of the consecutive pairs' SIFT "
+                "translations within 30 degrees of the optical axis), where the homography (a zoom fitted to a 3-D "
+                "street) biases the parallax into scale drift")
     verify: Literal["geometric", "paper"] = param(
         "geometric", "loop verification: geometric (essential-matrix inliers and the dense flow agreeing with "
         "them; accepts wide-baseline revisits) or paper (mean flow <= the keyframe threshold)")
-    min_inliers: int = param(20, "geometric: essential-matrix (or homography) inliers a loop needs (real revisit "
-                             "at 256x170: 24-42; KITTI forward-motion look-alikes at 256x78, whose edges wrecked "
-                             "its pose graph (keyframe ATE 0.74 -> 3.46 m): 15-17)", ge=5)
+    min_inliers: int = param(20, "geometric: essential-matrix (or homography) inliers a loop needs (forward-motion "
+                                 "look-alikes verify with fewer inliers than true revisits)", ge=5)
     min_epipolar: float = param(0.5, "geometric: share of consistent flow within 2 px of the matches' epipolar "
                                 "geometry", ge=0, le=1)
 

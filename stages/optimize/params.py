@@ -70,10 +70,9 @@ class KeyframeSettings:
     init: Literal["essential", "identity"] = _f("essential", "initial keyframe poses: essential-matrix "
                                                 "chain or identity")
     chain_check_deg: float = _f(0.0, "essential chain: pairs in a keyframe triplet whose chained-flow rotation "
-                                "disagrees with the composed pairs' by more than this (degrees) get the rotation "
-                                "medoid of their own and two bridged estimates and a translation re-estimated "
-                                "with it (stages/optimize/chain_check.py; 0 = off; 2.0 measured in "
-                                "docs/log/2026-11-28-scale2.md)", ge=0)
+                                     "disagrees with the composed pairs' by more than this (degrees) get the rotation"
+                                     " medoid of their own and two bridged estimates and a translation re-estimated "
+                                     "with it (stages/optimize/chain_check.py; 0 = off)", ge=0)
     checkpoint_every: int = _f(50, "steps between checkpoints", ge=1)
     schedule: Literal["chained", "independent"] = _f(
         "chained", "chained (the authors'): each window starts from the previous one's optimised, "
@@ -81,34 +80,27 @@ class KeyframeSettings:
         "essential-matrix chain and they run side by side on the workers (3+ windows), each then "
         "placed onto the previous one by a similarity fitted on the overlap (faster, but the fixed "
         "overlap no longer carries the scale: see docs/benchmarks.md)")
-    threads: int = _f(1, "torch threads of the keyframe windows (results are bit-identical only "
-                      "for the same count; 2 until 2026-11-24: the second thread bought nothing on a "
-                      "40-keyframe window, ICL's stage 7.2 -> 5.3 s with 1, and a run beside another "
-                      "no longer spins two threads against it)", ge=1)
-    pair_blocks: int = _f(2, "keyframe windows: the pairs are split into this many blocks whose losses and "
-                          "gradients (up to the shared depth and poses) are computed on threads of their own "
-                          "each step, then summed in block order (1 = one block, the sum unsplit; results are "
-                          "bit-identical only for the same count; 2 since 2026-11-25: a 40-keyframe step "
-                          "57 -> 39 ms on two cores)", ge=1)
+    threads: int = _f(1, "torch threads of the keyframe windows (results are bit-identical only for the same count)", ge=1)
+    pair_blocks: int = _f(2, "keyframe windows: the pairs are split into this many blocks whose losses and gradients "
+                             "(up to the shared depth and poses) are computed on threads of their own each step, then"
+                             " summed in block order (1 = one block, the sum unsplit; results are bit-identical only "
+                             "for the same count)", ge=1)
     taus: tuple[int, ...] = _f((1, 2, 4, 8), "frame distances of the optimised pairs (all stages)",
                               validator=_frame_distances)
     flow_taus: tuple[int, ...] = _f((1,), "pairs that also get the flow loss; tau > 1 uses flows chained "
                                     "from the tau = 1 flows (the authors use tau = 1 only)",
                                     validator=_frame_distances)
-    photo_warp: Literal["pixel", "centre"] = _f("centre", "photometric 3x3 patches (all three optimisations): "
-                                                 "the centre warped and the patch shifted with it (a ninth of "
-                                                 "the geometry per step; the default since 2026-11-28: keyframe "
-                                                 "and segment steps -14..-17 % CPU, accuracy rows within 2.5 %, "
-                                                 "docs/log/2026-11-28-cost2.md), or every pixel warped with its "
-                                                 "own depth (the paper's, 'pixel'; --profile paper)")
+    photo_warp: Literal["pixel", "centre"] = _f("centre", "photometric 3x3 patches (all three optimisations): the "
+                                                          "centre warped and the patch shifted with it (a ninth of "
+                                                          "the geometry per step), or every pixel warped with its own"
+                                                          " depth (the paper's, 'pixel'; --profile paper)")
     mesh_shape_lr_frac: float = _f(0.1, "spatial mesh vertex lr = lr * mesh_lr_mult * this: on point-sampled "
                                    "losses a fast spatial mesh bends the depth along flow noise, while poses "
                                    "need a fast per-frame scale", ge=0)
-    points_by_weight: bool = _f(False, "keyframe windows: a pair's points per step in proportion to its weight "
-                                "1/tau (points * weight / max weight, at least 8): the least variance of the "
-                                "window's loss for the points drawn; with taus 1,2,4,8 half the points of "
-                                "'points' for every pair, a step -22..-30 % CPU (opt-in: the synthetic scan's "
-                                "ATE 6.3 mm -> 13.1 cm, ICL +0.12 cm; docs/benchmarks.md)")
+    points_by_weight: bool = _f(False, "keyframe windows: a pair's points per step in proportion to its weight 1/tau "
+                                       "(points * weight / max weight, at least 8): the least variance of the "
+                                       "window's loss for the points drawn (opt-in: cheaper steps, worse on some "
+                                       "clips)")
     stop_every: int = _f(25, "keyframe windows: steps between plateau checks", ge=1)
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "
                          "less than this fraction below that of the stop_every steps before (0: never)", ge=0)
@@ -174,9 +166,7 @@ class BundleAdjustmentSettings:
     enabled: bool = _f(True, "refine keyframe poses over flow tracks (robust reprojection "
                        "factors) after the pose graph")
     stride: int = _f(12, "px between track starts in every keyframe", ge=2)
-    track_length: int = _f(16, "keyframes a track follows at most (plus one hop across each loop edge); 8 until "
-                           "2026-11-25 (real walk-through, keyframe ATE 0.0813 -> 0.0536 m with the weak prior "
-                           "below)", ge=2)
+    track_length: int = _f(16, "keyframes a track follows at most (plus one hop across each loop edge)", ge=2)
     min_views: int = _f(3, "keyframes that must see a point", ge=2)
     robust_px: float = _f(0.3, "Cauchy scale of the reprojection error, px", gt=0)
     # The prior only fixes the global scale (monocular BA has none); 0.05 (until 2026-11-25) held
@@ -187,7 +177,7 @@ class BundleAdjustmentSettings:
     max_iterations: int = _f(30, ge=1)
     consistent_px: float = _f(0.25, "keep the pose graph's poses when they already reproject the tracks "
                               "to this median error, px (flow noise, no drift)", ge=0)
-    solver: Literal["schur", "gtsam"] = _f("schur", "Levenberg-Marquardt of the same cost: 'schur' (numpy, "
-                                           "analytic Jacobians, landmarks eliminated by the Schur complement; "
-                                           "~10x faster) or 'gtsam' (gtsam_unstable's inverse-depth factors, "
-                                           "numerical derivatives; the reference)")
+    solver: Literal["schur", "gtsam"] = _f("schur", "Levenberg-Marquardt of the same cost: 'schur' (numpy, analytic "
+                                                    "Jacobians, landmarks eliminated by the Schur complement; the "
+                                                    "fast one) or 'gtsam' (gtsam_unstable's inverse-depth factors, "
+                                                    "numerical derivatives; the reference)")
