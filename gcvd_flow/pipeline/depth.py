@@ -3,7 +3,6 @@ depth_consensus (stages/depth)."""
 
 from __future__ import annotations
 
-import typing
 from typing import Any
 
 import numpy as np
@@ -29,25 +28,19 @@ from gcvd_flow.stages.graph import references
 # plan / why like any stage; the flows of the chosen pairs that no other stage computes are the
 # items of fusion_flow (keyed by the two images, preset and threshold only, like flow_far's).
 # "offsets" is the fixed-offset rule, its flows flow_far's items.
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    DepthFusionParams = depth_params.DepthFusionSettings
-else:
-    DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
+DepthFusionParams = section("depth_fusion", depth_params.DepthFusionSettings)
 
 
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    FusionReferencesParams = depth_params.FusionReferencesSettings
-else:
-    FusionReferencesParams = section("fusion_references", depth_params.FusionReferencesSettings)
+FusionReferencesParams = section("fusion_references", depth_params.FusionReferencesSettings)
 
 
-def _fusion_samples_items(view, p: DepthFusionParams):
+def _fusion_samples_items(view, p: depth_params.DepthFusionSettings):
     baseline = p.enabled and p.references == "baseline"
     return [{"K": PartRef(CALIBRATE, ("K",)), "depth": PartRef(OPTIMIZE_SEGMENTS, ("depths", i))}
             for i in range(view.len(INGEST) if baseline else 0)]
 
 
-def run_fusion_samples(inputs: dict[str, Any], p: DepthFusionParams, ctx: ItemContext) -> dict[str, Any]:
+def run_fusion_samples(inputs: dict[str, Any], p: depth_params.DepthFusionSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's optimised depth -> {points float32 (M, 3): a grid of its pixels in camera
     coordinates (pose scale), size int [w, h]}: what fusion_references projects, a few KB per frame
     (the whole clip's depth maps are never held at once)."""
@@ -116,7 +109,7 @@ FUSION_FLOW = declare(MapStage("fusion_flow", run_flow_far, deps=(INGEST, FUSION
                                description="direct flows of the fusion reference pairs no other stage computes"))
 
 
-def _fusion_items(view, p: DepthFusionParams):
+def _fusion_items(view, p: depth_params.DepthFusionSettings):
     # a reference's flow: the flow stage's pair (adjacent), flow_far's (shared with priors) or
     # fusion_flow's, seen from frame i ("fwd": i is the pair's first frame, "bwd": its second)
     n = view.len(INGEST)
@@ -141,7 +134,7 @@ def _fusion_items(view, p: DepthFusionParams):
     return out
 
 
-def run_depth_fusion(inputs: dict[str, Any], p: DepthFusionParams, ctx: ItemContext) -> dict[str, Any]:
+def run_depth_fusion(inputs: dict[str, Any], p: depth_params.DepthFusionSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's optimised depth fused with its multi-view triangulation -> {depth float32 (H, W),
     measured float (fraction of pixels triangulated), confidence float32 (H, W) in [0, 1]}."""
     depth = np.asarray(inputs["depth"], np.float32)
@@ -168,13 +161,10 @@ DEPTH_FUSION = declare(MapStage("depth_fusion", run_depth_fusion,
 
 
 # ============================================================================== depth_filter
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    DepthFilterParams = depth_params.DepthFilterSettings
-else:
-    DepthFilterParams = section("depth_filter", depth_params.DepthFilterSettings)
+DepthFilterParams = section("depth_filter", depth_params.DepthFilterSettings)
 
 
-def _filter_items(view, p: DepthFilterParams):
+def _filter_items(view, p: depth_params.DepthFilterSettings):
     n = view.len(INGEST)
     r = p.radius if p.enabled else 0
     user = r > 0 and _has_user_masks(view)
@@ -187,7 +177,7 @@ def _filter_items(view, p: DepthFilterParams):
     return out
 
 
-def run_depth_filter(inputs: dict[str, Any], p: DepthFilterParams, ctx: ItemContext) -> dict[str, Any]:
+def run_depth_filter(inputs: dict[str, Any], p: depth_params.DepthFilterSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W),
     confidence float32 (H, W): depth_fusion's, zero where the filter invalidated the depth}."""
     depths = np.stack([np.asarray(d["depth"]) for d in inputs["depths"]])
@@ -218,13 +208,10 @@ DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=(INGEST, 
 
 
 # ============================================================================== depth_consensus
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    DepthConsensusParams = depth_params.DepthConsensusSettings
-else:
-    DepthConsensusParams = section("depth_consensus", depth_params.DepthConsensusSettings)
+DepthConsensusParams = section("depth_consensus", depth_params.DepthConsensusSettings)
 
 
-def _consensus_items(view, p: DepthConsensusParams):
+def _consensus_items(view, p: depth_params.DepthConsensusSettings):
     n = view.len(INGEST)
     out = []
     for i in range(n):
@@ -239,7 +226,7 @@ def _consensus_items(view, p: DepthConsensusParams):
     return out
 
 
-def run_depth_consensus(inputs: dict[str, Any], p: DepthConsensusParams, ctx: ItemContext) -> dict[str, Any]:
+def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's filtered depth averaged with the depths its references see at its pixels (moving
     pixels, by the masks stage, left out), then (splat_offsets) corrected with their confident
     depth splatted into it -> {depth float32 (H, W), confidence float32 (H, W): depth_filter's,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import typing
 from typing import Any
 
 import numpy as np
@@ -27,13 +26,10 @@ from gcvd_flow.stages.frontend import (
 from gcvd_flow.stages.graph import references
 
 # ============================================================================== ingest
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    IngestParams = frontend_params.IngestSettings
-else:
-    IngestParams = section("ingest", frontend_params.IngestSettings)
+IngestParams = section("ingest", frontend_params.IngestSettings)
 
 
-def _camera(src: Source, p: IngestParams) -> tuple[lens.Camera | None, str]:
+def _camera(src: Source, p: frontend_params.IngestSettings) -> tuple[lens.Camera | None, str]:
     """The camera --intrinsics, the layout's intrinsics.txt or a dataset default gives (source px;
     None: none given) and where it came from, checked against the frame size: a value no lens
     has is one line naming it and the option or file, exit 2 (stages.frontend.lens.check_camera)."""
@@ -52,7 +48,7 @@ def _camera(src: Source, p: IngestParams) -> tuple[lens.Camera | None, str]:
     return cam, origin
 
 
-def _ingest_items(view, p: IngestParams):
+def _ingest_items(view, p: frontend_params.IngestSettings):
     src: Source = view.source
     sel = list(range(len(src.items)))[p.start:p.end:p.stride]
     if len(sel) < 2:
@@ -67,7 +63,7 @@ def _ingest_items(view, p: IngestParams):
              "name": Const(src.names[i] if src.names else str(i)), **extra} for i in sel]
 
 
-def _ingest_summary(view, p: IngestParams) -> dict[str, Any]:
+def _ingest_summary(view, p: frontend_params.IngestSettings) -> dict[str, Any]:
     src: Source = view.source
     w, h = ingest_mod.working_size(src.size[0], src.size[1], p.long_side, p.min_short_frac)
     given, origin = _camera(src, p)
@@ -148,10 +144,7 @@ USER_MASKS = declare(MapStage("user_masks", run_user_masks, deps=(INGEST,), para
 
 
 # ============================================================================== calibrate
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    CalibrateParams = frontend_params.CalibrateSettings
-else:
-    CalibrateParams = section("calibrate", frontend_params.CalibrateSettings)
+CalibrateParams = section("calibrate", frontend_params.CalibrateSettings)
 
 
 class _SampledImages:
@@ -169,7 +162,7 @@ class _SampledImages:
         return np.asarray(self._frames[i][self._key])
 
 
-def run_calibrate(inputs: dict[str, Any], p: CalibrateParams, ctx: StageContext) -> dict[str, Any]:
+def run_calibrate(inputs: dict[str, Any], p: frontend_params.CalibrateSettings, ctx: StageContext) -> dict[str, Any]:
     """ingest's camera -> {K (3, 3) at working resolution: the given intrinsics, or one focal length
     estimated from the frames, or the guess; estimated, guessed (bool), origin, focal_source (fx, fy at
     source resolution), rel_sigma (std / f of the estimate, None when not estimated), warning (str,
@@ -266,21 +259,18 @@ CALIBRATE = declare(Stage("calibrate", run_calibrate, deps=(INGEST, USER_MASKS),
 
 
 # ============================================================================== flow
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    FlowParams = frontend_params.FlowSettings
-else:
-    FlowParams = section("flow", frontend_params.FlowSettings)
+FlowParams = section("flow", frontend_params.FlowSettings)
 
 
-def _flow_items(view, p: FlowParams):
+def _flow_items(view, p: frontend_params.FlowSettings):
     return [{"a": ItemRef(INGEST, i), "b": ItemRef(INGEST, i + 1)} for i in range(view.len(INGEST) - 1)]
 
 
-def _open_raft(p: FlowParams) -> Any:
+def _open_raft(p: frontend_params.FlowSettings) -> Any:
     return open_model("raft", p.weights)
 
 
-def run_flow(inputs: dict[str, Any], p: FlowParams, ctx: ItemContext) -> dict[str, Any]:
+def run_flow(inputs: dict[str, Any], p: frontend_params.FlowSettings, ctx: ItemContext) -> dict[str, Any]:
     """Adjacent pair (i, i+1) -> {fwd, bwd (H, W, 2) float32 px, fwd_valid, bwd_valid bool}."""
     model = ctx.resource("model") if p.backend == "raft" else None
     return flow.compute_pair_flow(inputs["a"]["image"], inputs["b"]["image"], backend=p.backend,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import typing
 from typing import Any
 
 import numpy as np
@@ -18,10 +17,7 @@ from gcvd_flow.pipeline.shared import _solve_mask
 from gcvd_flow.stages.graph import keyframes as keyframes_mod, params as graph_params
 
 # ============================================================================== keyframes
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    KeyframesParams = graph_params.KeyframesSettings
-else:
-    KeyframesParams = section("keyframes", graph_params.KeyframesSettings)
+KeyframesParams = section("keyframes", graph_params.KeyframesSettings)
 
 
 def run_keyframes(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[str, Any]:
@@ -45,13 +41,10 @@ KEYFRAMES = declare(Stage("keyframes", run_keyframes, deps=(FLOW, MASKS), params
 
 
 # ============================================================================== association
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    AssociationParams = graph_params.AssociationSettings
-else:
-    AssociationParams = section("association", graph_params.AssociationSettings)
+AssociationParams = section("association", graph_params.AssociationSettings)
 
 
-def _open_resnet(p: AssociationParams) -> Any:
+def _open_resnet(p: graph_params.AssociationSettings) -> Any:
     return open_model("resnet18", p.weights)
 
 

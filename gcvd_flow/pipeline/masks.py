@@ -3,7 +3,6 @@ stages' items make to its items."""
 
 from __future__ import annotations
 
-import typing
 from typing import Any
 
 import numpy as np
@@ -22,10 +21,7 @@ from gcvd_flow.stages.frontend import (
 from gcvd_flow.stages.graph import references
 
 # ============================================================================== masks
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    MasksParams = frontend_params.MasksSettings
-else:
-    MasksParams = section("masks", frontend_params.MasksSettings)
+MasksParams = section("masks", frontend_params.MasksSettings)
 
 
 def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
@@ -34,7 +30,7 @@ def _chain_refs(i: int, n: int, span: int) -> dict[str, Any]:
     return {"direction": Const(direction), "chain": [ItemRef(FLOW, k) for k in flows]}
 
 
-def _mask_items(view, p: MasksParams):
+def _mask_items(view, p: frontend_params.MasksSettings):
     # The semantic backend reads the frame itself; the motion backend its flows (only); the user's
     # mask of the frame enters by its content (an ExternalRef: file digest + loader).
     n = view.len(INGEST)
@@ -63,7 +59,7 @@ def _mask_items(view, p: MasksParams):
     return out
 
 
-def _open_maskrcnn(p: MasksParams) -> Any:
+def _open_maskrcnn(p: frontend_params.MasksSettings) -> Any:
     return open_model("maskrcnn", p.weights, min_size=p.min_size)
 
 
@@ -74,7 +70,7 @@ def _with_user_mask(static: np.ndarray, inputs: dict[str, Any]) -> np.ndarray:
     return np.where(_user_keep(inputs, static.shape) > 0, static, 0).astype(np.uint8)
 
 
-def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: ItemContext) -> dict[str, Any]:
+def run_masks(inputs: dict[str, Any], p: frontend_params.MasksSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i -> {static: uint8 (H, W), 1 = static, solve: uint8 (H, W), 1 = static and flow the
     optimisations trust}: the backend's masks with the user's (--masks) pixels set to 0; with
     --masks also user_keep: uint8 (H, W), 1 = not masked by the user (what the later stages
@@ -86,7 +82,7 @@ def run_masks(inputs: dict[str, Any], p: MasksParams, ctx: ItemContext) -> dict[
     return {**{k: np.where(keep > 0, v, 0).astype(np.uint8) for k, v in masks.items()}, "user_keep": keep}
 
 
-def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str, Any]:
+def _backend_mask(inputs: dict[str, Any], p: frontend_params.MasksSettings, ctx: Any) -> dict[str, Any]:
     """Frame i -> {static, solve}, from its adjacent and chained flows (backend motion), its
     image's Mask R-CNN instances of moving classes (maskrcnn), or both (motion+maskrcnn: static
     where both say static)."""
@@ -114,7 +110,7 @@ def _backend_mask(inputs: dict[str, Any], p: MasksParams, ctx: Any) -> dict[str,
     return {"static": motion, "solve": solve}
 
 
-def _mask_summary(view, p: MasksParams) -> dict[str, Any] | None:
+def _mask_summary(view, p: frontend_params.MasksSettings) -> dict[str, Any] | None:
     """{"user_masks": True} when the items carry the user's (--masks) kept pixels, else None (the
     stage's manifest as without a summary): what later items functions ask, without loading an item
     (a read-through run from a remote fetches no mask item then)."""

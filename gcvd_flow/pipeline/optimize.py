@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import typing
 from typing import Any
 
 import numpy as np
@@ -109,10 +108,7 @@ OPTIMIZE_EDGES = declare(Stage("optimize_edges", run_optimize_edges,
 
 
 # ============================================================================== pose_graph
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    PoseGraphParams = opt_params.PoseGraphSettings
-else:
-    PoseGraphParams = section("pose_graph", opt_params.PoseGraphSettings)
+PoseGraphParams = section("pose_graph", opt_params.PoseGraphSettings)
 
 
 def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[str, Any]:
@@ -149,13 +145,10 @@ POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=(OPTIMIZE_KEYFRAME
 
 
 # ============================================================================== bundle_adjustment
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    BundleAdjustmentParams = opt_params.BundleAdjustmentSettings
-else:
-    BundleAdjustmentParams = section("bundle_adjustment", opt_params.BundleAdjustmentSettings)
+BundleAdjustmentParams = section("bundle_adjustment", opt_params.BundleAdjustmentSettings)
 
 
-def run_bundle_adjustment(inputs: dict[str, Any], p: BundleAdjustmentParams, ctx: StageContext) -> dict[str, Any]:
+def run_bundle_adjustment(inputs: dict[str, Any], p: opt_params.BundleAdjustmentSettings, ctx: StageContext) -> dict[str, Any]:
     """Pose-graph keyframe poses -> {poses (K, 4, 4) T_w_k refined over flow tracks, statistics}."""
     pg = inputs["pose_graph"]
     T_w_k = np.asarray(pg["poses"], np.float64)

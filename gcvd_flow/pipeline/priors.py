@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import typing
 from typing import Any
 
 import numpy as np
@@ -21,13 +20,10 @@ from gcvd_flow.stages.frontend import (
 )
 
 # ============================================================================== priors
-if typing.TYPE_CHECKING:  # mypy: the section's fields are the dataclass's
-    PriorsParams = frontend_params.PriorsSettings
-else:
-    PriorsParams = section("priors", frontend_params.PriorsSettings)
+PriorsParams = section("priors", frontend_params.PriorsSettings)
 
 
-def _prior_items(view, p: PriorsParams):
+def _prior_items(view, p: frontend_params.PriorsSettings):
     # Reference frames span back and span forward (priors.references=symmetric: each pair serves
     # the two frames it joins), or span and span/2 back (references=back): the prior
     # triangulates a direct flow to the reference; chaining adjacent flows drifts ~0.1 px per
@@ -46,11 +42,11 @@ def _prior_items(view, p: PriorsParams):
     return out
 
 
-def _open_midas(p: PriorsParams) -> Any:
+def _open_midas(p: frontend_params.PriorsSettings) -> Any:
     return open_model("midas", p.weights)
 
 
-def run_priors(inputs: dict[str, Any], p: PriorsParams, ctx: ItemContext) -> dict[str, Any]:
+def run_priors(inputs: dict[str, Any], p: frontend_params.PriorsSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i -> {inv_depth float32 (H, W) median 1, confidence float32 (H, W)}."""
     image = inputs["image"]["image"]
     if p.backend == "midas":

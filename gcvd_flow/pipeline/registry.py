@@ -66,6 +66,13 @@ def _section_check(check: Any) -> Any:
     return run
 
 
-def section(name: str, cls: type) -> type[Section]:
-    """``--set NAME.key=value`` configures the section derived from the dataclass ``cls``."""
-    return config_section(name)(section_from_dataclass(cls, "".join(w.title() for w in name.split("_")) + "Params"))
+_Settings = typing.TypeVar("_Settings")
+
+
+def section(name: str, cls: type[_Settings]) -> type[_Settings]:
+    """``--set NAME.key=value`` configures the section derived from the dataclass ``cls``. At run
+    time a pydantic ``Section``; typed as ``cls`` because it has exactly its fields (names, types,
+    defaults), so mypy checks every adapter's reads against the dataclass. Adapters annotate their
+    settings with the dataclass (a variable is not a type to mypy)."""
+    sec = config_section(name)(section_from_dataclass(cls, "".join(w.title() for w in name.split("_")) + "Params"))
+    return typing.cast("type[_Settings]", sec)

@@ -4,7 +4,6 @@ the user's --masks files, and which reference frames priors and depth_fusion rea
 from __future__ import annotations
 
 import dataclasses
-import typing
 from typing import Any
 
 import numpy as np
@@ -13,12 +12,11 @@ from gcvd_flow.engine.errors import UsageError
 from gcvd_flow.io.sources import Source
 from gcvd_flow.stages.frontend import (
     ingest as ingest_mod,
+    params as frontend_params,
     user_masks,
 )
 from gcvd_flow.stages.graph import references
 
-if typing.TYPE_CHECKING:
-    from gcvd_flow.pipeline.masks import MasksParams
 
 def _undistort_of(cam: dict[str, Any]) -> list[Any] | None:
     """The ingest summary's lens as item input [intrinsics, coefficients, model] (None: pinhole)."""
@@ -62,7 +60,7 @@ def _far_flow(fl: dict[str, Any], direction: str) -> tuple[np.ndarray, np.ndarra
     return np.asarray(fl["bwd"]), np.asarray(fl["bwd_valid"], bool)
 
 
-def _user_mask_files(src: Source, p: MasksParams, sel: list[int]) -> list[str]:
+def _user_mask_files(src: Source, p: frontend_params.MasksSettings, sel: list[int]) -> list[str]:
     """The --masks PNG of each selected source frame: DIR/<frame stem>.png when any PNG of DIR is
     named as a frame (then every PNG must be: one that matches no frame is one line, exit 2, not a
     silent fall-back to frame order), else the k-th PNG of DIR (natural order) when DIR holds one
