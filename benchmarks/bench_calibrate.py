@@ -61,7 +61,7 @@ def main() -> None:
     kw = {k: _value(v) for k, v in (item.split("=", 1) for item in a.set)}
     t = time.time()
     res = calibrate.estimate_focal(ims, K, **kw)
-    f = res.get("estimate", res["focal"]) / s
+    f = res.get("estimate", res.focal) / s
     out = {k: v for k, v in res.items() if isinstance(v, (int, float, str, bool))}
     out.update(f_source=f, error_pct=100 * (f / a.true_fx - 1), seconds=round(time.time() - t, 1),
                n=len(ims), size=[W, H])
@@ -84,13 +84,13 @@ def _pp_fields(res: dict[str, Any], s: float, src: tuple[int, int], true_pp: str
     def source(c):
         return [(float(v) + 0.5) / s - 0.5 for v in c]
 
-    out: dict[str, Any] = {"pp_source": source(res["principal_point"]), "pp_estimated": res["pp_estimated"],
-                           "pp_reason": res.get("pp_reason", ""), "pp_z": res.get("pp_z")}
-    if res.get("pp_estimate") is not None:
-        out["pp_estimate_source"] = source(res["pp_estimate"])
-        out["pp_sigma_source"] = [float(v) / s for v in res["pp_sigma"]]
-        out["pp_sigma_blocks_source"] = [float(v) / s for v in res["pp_sigma_blocks"]]
-        out["pp_sigma_formal_source"] = [float(v) / s for v in res["pp_sigma_formal"]]
+    out: dict[str, Any] = {"pp_source": source(res.principal_point), "pp_estimated": res.pp_estimated,
+                           "pp_reason": res.get("pp_reason", ""), "pp_z": res.pp_z}
+    if res.pp_estimate is not None:
+        out["pp_estimate_source"] = source(res.pp_estimate)
+        out["pp_sigma_source"] = [float(v) / s for v in res.pp_sigma]
+        out["pp_sigma_blocks_source"] = [float(v) / s for v in res.pp_sigma_blocks]
+        out["pp_sigma_formal_source"] = [float(v) / s for v in res.pp_sigma_formal]
     if true_pp:
         t = np.asarray([float(v) for v in true_pp.split(",")])
         for name in ("pp_source", "pp_estimate_source"):

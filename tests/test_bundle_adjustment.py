@@ -11,7 +11,7 @@ from gcvd_flow.evaluate.metrics import ate
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.stages.geometry import se3
 from gcvd_flow.stages.optimize import ba_solver
-from gcvd_flow.stages.optimize.bundle_adjustment import build_tracks, bundle_adjust, gtsam_graph, inverse_depth_landmark, solve_gtsam
+from gcvd_flow.stages.optimize.bundle_adjustment import bundle_adjust, flow_tracks, gtsam_graph, inverse_depth_landmark, solve_gtsam
 
 
 def _pair_flow(clip, a: int, b: int) -> dict[str, np.ndarray]:
@@ -50,7 +50,7 @@ def _jitter(T: np.ndarray, seed: int) -> np.ndarray:
 
 def test_tracks_follow_the_flow():
     K, T_gt, depths, edges, kf = _keyframe_problem()
-    tracks = build_tracks(edges, kf, depths[0].shape, stride=16, track_length=4)
+    tracks = flow_tracks(edges, kf, depths[0].shape, stride=16, track_length=4)
     assert len(tracks) > 50 and max(len(t) for t in tracks) == 4
     # a track's observations are the projections of one 3-D point (exact flows, exact depth)
     m, u, v = tracks[0][0]
@@ -92,10 +92,10 @@ def test_tracks_cross_loop_edges():
     either end; those observations are the same 3-D point (exact flows)."""
     K, T_gt, depths, edges, kf = _keyframe_problem(trajectory="loop", n_frames=48, step=4, loop_edge=True)
     n = len(kf)
-    tracks = build_tracks(edges, kf, depths[0].shape, stride=16, track_length=4)
+    tracks = flow_tracks(edges, kf, depths[0].shape, stride=16, track_length=4)
     across = [t for t in tracks if {o[0] for o in t} >= {0, n - 1}]
     assert len(across) > 20
-    without = build_tracks({e: f for e, f in edges.items() if e != (kf[0], kf[-1])}, kf, depths[0].shape,
+    without = flow_tracks({e: f for e, f in edges.items() if e != (kf[0], kf[-1])}, kf, depths[0].shape,
                            stride=16, track_length=4)
     assert not [t for t in without if {o[0] for o in t} >= {0, n - 1}]
     for t in across[:10]:

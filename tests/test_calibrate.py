@@ -17,14 +17,14 @@ def test_focal_recovered_at_other_fields_of_view(trajectory, n, scale):
     K_guess = default_intrinsics(SIZE)
     clip = render_clip(n, trajectory, size=SIZE, seed=0, focal=K_guess[0, 0] * scale)
     res = estimate_focal(list(clip.frames), K_guess)
-    assert res["determined"], res
-    assert res["method"] == "bundle adjustment"
-    err = abs(res["focal"] / clip.K[0, 0] - 1)
-    assert err < 0.02, (res["focal"], clip.K[0, 0])
+    assert res.determined, res
+    assert res.method == "bundle adjustment"
+    err = abs(res.focal / clip.K[0, 0] - 1)
+    assert err < 0.02, (res.focal, clip.K[0, 0])
     # an uncertainty that covers the error without being absurd (the formal one alone: 0.06-0.1 %)
-    assert err <= 2 * res["rel_sigma"] and 0.005 < res["rel_sigma"] < 0.05, res
-    assert res["forward_share"] < 0.5
-    assert res["points"] > res["tracks"]  # the final adjustment used every track, the SfM the capped set
+    assert err <= 2 * res.rel_sigma and 0.005 < res.rel_sigma < 0.05, res
+    assert res.forward_share < 0.5
+    assert res.points > res.tracks  # the final adjustment used every track, the SfM the capped set
 
 
 @pytest.mark.slow
@@ -68,10 +68,10 @@ def test_focal_recovered_from_pure_rotation():
     K_guess = default_intrinsics(SIZE)
     clip = render_clip(20, "rotation", size=SIZE, seed=0, focal=K_guess[0, 0] * 0.8)
     res = estimate_focal(list(clip.frames), K_guess)
-    assert res["determined"] and res["method"] == "rotation", res
-    err = abs(res["focal"] / clip.K[0, 0] - 1)
-    assert err < 0.02, (res["focal"], clip.K[0, 0])
-    assert err <= 2 * res["rel_sigma"] < 0.05, res
+    assert res.determined and res.method == "rotation", res
+    err = abs(res.focal / clip.K[0, 0] - 1)
+    assert err < 0.02, (res.focal, clip.K[0, 0])
+    assert err <= 2 * res.rel_sigma < 0.05, res
 
 
 def test_static_clip_keeps_the_guess_and_says_why():
@@ -79,9 +79,9 @@ def test_static_clip_keeps_the_guess_and_says_why():
     clip = render_clip(2, "orbit", size=SIZE, seed=0, focal=K_guess[0, 0] * 1.2)
     frames = [clip.frames[0]] * 10  # a camera that does not move
     res = estimate_focal(frames, K_guess)
-    assert not res["determined"]
-    assert res["focal"] == K_guess[0, 0]
-    assert "hardly moves" in res["reason"]
+    assert not res.determined
+    assert res.focal == K_guess[0, 0]
+    assert "hardly moves" in res.reason
 
 
 class _Frames:
@@ -137,7 +137,7 @@ def test_calibrate_stage_with_given_intrinsics_does_nothing():
 
 
 def test_select_tracks_caps_each_frame_and_keeps_the_image_covered():
-    from gcvd_flow.stages.frontend.calibrate import select_tracks
+    from gcvd_flow.stages.sfm.tracks import select_tracks
 
     rng = np.random.default_rng(0)
     W, H = 160, 120
@@ -181,21 +181,23 @@ def test_no_feature_on_or_next_to_a_user_masked_pixel():
     """--masks reaches calibrate's features (hence every pair, track and bundle adjustment): none lies
     on a masked pixel or within MASK_DILATE_PX of one; without a mask the features are as before."""
     from gcvd_flow.stages.frontend import calibrate as cal
+    from gcvd_flow.stages.sfm import features as sf
+    from gcvd_flow.stages.sfm.tracks import feature_tracks
 
     clip, _, frames, masked = _side_patch_clip()
     keep = [(~m).astype(np.uint8) for m in masked]
     sel, feats = cal._select_by_motion(frames, 48, 1000, 0.05, keep=keep)
-    edge = int(0.3 * SIZE[0]) + cal.MASK_DILATE_PX  # first usable column
+    edge = int(0.3 * SIZE[0]) + sf.MASK_DILATE_PX  # first usable column
     assert len(sel) >= 10 and all(len(p) > 50 for p, _ in feats)
     for p, d in feats:
         assert np.round(p[:, 0]).min() >= edge and len(d) == len(p)
-    tracks = cal.build_tracks(feats)
+    tracks = feature_tracks(feats, sf.UniqueRatioMatcher(cal.SIFT_RATIO))
     assert tracks and min(np.round(x[0]) for t in tracks for x in t.values()) >= edge
-    p0, d0 = cal._features(frames[0], 1000)
+    p0, d0 = sf.sift_features(frames[0], 1000)
     assert (np.round(p0[:, 0]) < edge).sum() > 20  # the patch has features the mask removes
     # the budget is spent after the mask: (nearly) every feature of the unmasked part is kept
-    assert len(cal._features(frames[0], 1000, keep[0])[0]) >= 0.8 * (np.round(p0[:, 0]) >= edge).sum()
-    p1, _ = cal._features(frames[0], 1000, np.ones(SIZE[::-1], np.uint8))  # nothing masked: the same keypoints
+    assert len(sf.sift_features(frames[0], 1000, keep[0])[0]) >= 0.8 * (np.round(p0[:, 0]) >= edge).sum()
+    p1, _ = sf.sift_features(frames[0], 1000, np.ones(SIZE[::-1], np.uint8))  # nothing masked: the same keypoints
     assert {tuple(x) for x in np.round(p1, 3)} == {tuple(x) for x in np.round(p0, 3)}
 
 
@@ -246,22 +248,26 @@ def test_principal_point_of_a_centred_clip_stays_at_the_centre():
     K_guess = default_intrinsics(size)
     clip = render_clip(60, "loop", size=size, seed=0)
     res = estimate_focal(list(clip.frames), K_guess)
-    assert res["determined"] and res["pp_estimate"] is not None, res
-    err = np.abs(np.asarray(res["principal_point"]) - K_guess[:2, 2])
-    assert np.all(err <= 0.005 * np.asarray(size)), res["principal_point"]
-    assert np.all(np.abs(np.asarray(res["pp_estimate"]) - K_guess[:2, 2]) <= 0.01 * np.asarray(size)), res["pp_estimate"]
+    assert res.determined and res.pp_estimate is not None, res
+    err = np.abs(np.asarray(res.principal_point) - K_guess[:2, 2])
+    assert np.all(err <= 0.005 * np.asarray(size)), res.principal_point
+    assert np.all(np.abs(np.asarray(res.pp_estimate) - K_guess[:2, 2]) <= 0.01 * np.asarray(size)), res.pp_estimate
 
 
 def test_principal_point_not_determined_keeps_the_centre_and_warns():
     """A principal point whose std exceeds pp_max_sigma is not used: the centre is kept and one
     warning line names it (the estimate and its std in the reason)."""
+    import dataclasses
+
     from gcvd_flow import pipeline
+    from gcvd_flow.stages.frontend.calibrate import FocalEstimate
 
     K = default_intrinsics(SIZE)
-    res = {"determined": True, "focal": 150.0, "rel_sigma": 0.01, "reason": "", "pairs": 10, "rotation_pairs": 0,
+    res = FocalEstimate.from_record({"determined": True, "focal": 150.0, "rel_sigma": 0.01, "reason": "", "pairs": 10, "rotation_pairs": 0,
            "method": "bundle adjustment", "median_px": 0.1, "frames": 20, "points": 500, "iterations": 10,
            "principal_point": K[:2, 2].tolist(), "pp_estimated": False, "pp_estimate": [70.0, 50.0],
-           "pp_sigma": [4.0, 6.0], "pp_reason": "the motion does not determine it (...)"}
+           "pp_sigma": [4.0, 6.0], "pp_reason": "the motion does not determine it (...)",
+           "tracks": 300, "pp_frac": 0.02})
     ctx = _Ctx()
     out = {"K": K}
     pipeline._principal_point_outcome(res, K, (0.5, 0.5), out, ctx)
@@ -269,6 +275,25 @@ def test_principal_point_not_determined_keeps_the_centre_and_warns():
     assert [ln for ln in ctx.lines if ln.startswith("warning: ")] == ["warning: " + out["pp_warning"]]
     assert "principal point not estimated" in out["pp_warning"] and "centre" in out["pp_warning"]
     # a singular marginal (std inf, HoloLens) is stored as no std: artifacts hold finite floats only
-    res["pp_sigma"] = [float("inf"), float("inf")]
+    res = dataclasses.replace(res, pp_sigma=[float("inf"), float("inf")])
     pipeline._principal_point_outcome(res, K, (0.5, 0.5), out, _Ctx())
     assert out["principal_point"]["sigma_px"] is None and out["principal_point"]["estimated"] is False
+
+
+def test_focal_estimate_is_a_typed_record():
+    """estimate_focal returns a FocalEstimate; a result key without a declared field is an error
+    (it would otherwise reach the adapter untyped and undocumented)."""
+    import dataclasses
+
+    import pytest
+
+    from gcvd_flow.stages.frontend.calibrate import FocalEstimate
+
+    base = {"focal": 200.0, "determined": False, "rel_sigma": float("inf"), "pairs": 0, "rotation_pairs": 0,
+            "frames": 0, "points": 0, "tracks": 0, "median_px": 0.0, "method": "", "iterations": 0, "pp_frac": 0.02,
+            "principal_point": [127.5, 95.5], "pp_estimated": False, "pp_reason": "not estimated", "reason": "still"}
+    est = FocalEstimate.from_record(base)
+    assert est.focal == 200.0 and est.block_focals == [] and est.pp_sigma is None
+    with pytest.raises(TypeError, match="unexpected"):
+        FocalEstimate.from_record({**base, "new_diagnostic": 1.0})
+    assert {f.name for f in dataclasses.fields(FocalEstimate)} >= set(base)

@@ -58,7 +58,7 @@ def _calibrate(rec: Any) -> None:
     from motion, the decision, the principal point)."""
     K = default_intrinsics((160, 120))
     clip = render_clip(30, "loop", size=(160, 120), seed=0, focal=K[0, 0] * 1.2)
-    assert estimate_focal(list(clip.frames), K, rec)["determined"]
+    assert estimate_focal(list(clip.frames), K, rec).determined
 
 
 def _association(rec: Any) -> None:

@@ -148,7 +148,7 @@ def test_prior_gradient_weights_are_zero_wherever_a_scale_meets_a_masked_pixel()
 
 # ------------------------------------------------------------------------------ geometry stages
 def test_bundle_adjustment_tracks_never_touch_a_masked_pixel():
-    from gcvd_flow.stages.optimize.bundle_adjustment import build_tracks
+    from gcvd_flow.stages.optimize.bundle_adjustment import flow_tracks
 
     h, w = 48, 64
     flow = np.zeros((h, w, 2), np.float32)
@@ -164,8 +164,8 @@ def test_bundle_adjustment_tracks_never_touch_a_masked_pixel():
         return sum(not user_masks.footprint_kept(keep[m], np.array([u]), np.array([v]))[0]
                    for t in tracks for m, u, v in t)
 
-    free = build_tracks(edges, [0, 5, 9, 14], (h, w), stride=3, track_length=3)
-    kept = build_tracks(edges, [0, 5, 9, 14], (h, w), stride=3, track_length=3, keep=keep)
+    free = flow_tracks(edges, [0, 5, 9, 14], (h, w), stride=3, track_length=3)
+    kept = flow_tracks(edges, [0, 5, 9, 14], (h, w), stride=3, track_length=3, keep=keep)
     assert touches(free) > 20 and touches(kept) == 0 and len(kept) > 0.6 * len(free)
 
 

@@ -97,7 +97,7 @@ def project(xyz: np.ndarray, c2w: np.ndarray, K: np.ndarray) -> tuple[np.ndarray
     return uv, z
 
 
-def build_tracks(depths: Sequence[np.ndarray], poses: np.ndarray, K: np.ndarray, pts: dict[str, np.ndarray],
+def depth_tracks(depths: Sequence[np.ndarray], poses: np.ndarray, K: np.ndarray, pts: dict[str, np.ndarray],
                  max_track: int, agreement: float = DEPTH_AGREEMENT,
                  min_views: int = MIN_VIEWS) -> list[tuple[np.ndarray, np.ndarray]]:
     """The observations of every frame k: (point ids int64 (Mk,) ascending, pixels float64 (Mk, 2)
@@ -145,8 +145,8 @@ def _model(ctx: ExportContext) -> dict[str, Any]:
     """Everything the files hold, at the export view's resolution (COLMAP pixel convention)."""
     run, view = ctx.run, ctx.view()
     pts = sample_points(run.depths, run.poses, run.K, range(0, len(run), ctx.opt.every), ctx.opt.max_points)
-    obs = build_tracks(run.depths, run.poses, run.K, pts, ctx.opt.max_track)
-    # keep the points some frame observes (build_tracks leaves one-view points unobserved) and
+    obs = depth_tracks(run.depths, run.poses, run.K, pts, ctx.opt.max_track)
+    # keep the points some frame observes (depth_tracks leaves one-view points unobserved) and
     # number them 0..m-1 in their original order
     used = np.zeros(len(pts["xyz"]), bool)
     for ids, _ in obs:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from gcvd_flow.stages.frontend import (
     user_masks,
 )
 from gcvd_flow.stages.graph import references
+
+if TYPE_CHECKING:  # calibrate itself is imported when the stage runs
+    from gcvd_flow.stages.frontend.calibrate import FocalEstimate
 
 # ============================================================================== ingest
 IngestParams = section("ingest", frontend_params.IngestSettings)
@@ -186,28 +189,28 @@ def run_calibrate(inputs: dict[str, Any], p: frontend_params.CalibrateSettings, 
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
         res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep)
-    out.update(pairs=int(res["pairs"]), rotation_pairs=int(res["rotation_pairs"]), method=res["method"],
-               median_px=float(res["median_px"]), frames=int(res["frames"]), points=int(res["points"]),
-               iterations=int(res["iterations"]))
-    rel = float(res["rel_sigma"])
+    out.update(pairs=int(res.pairs), rotation_pairs=int(res.rotation_pairs), method=res.method,
+               median_px=float(res.median_px), frames=int(res.frames), points=int(res.points),
+               iterations=int(res.iterations))
+    rel = float(res.rel_sigma)
     out["rel_sigma"] = rel if np.isfinite(rel) else None
-    if not res["determined"]:
-        out["warning"] = f"focal length not estimated, the guess f = {K[0, 0]:.1f} px is kept: {res['reason']}"
+    if not res.determined:
+        out["warning"] = f"focal length not estimated, the guess f = {K[0, 0]:.1f} px is kept: {res.reason}"
         ctx.log("warning: " + out["warning"])
         out["principal_point"] = {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "sigma_px": None, "estimated": False,
                                   "detail": "assumed at the image centre (the focal length is not determined)"}
         return out
-    f = float(res["focal"])
+    f = float(res.focal)
     K = K.copy()
     K[0, 0] = K[1, 1] = f
-    K[0, 2], K[1, 2] = (float(v) for v in res["principal_point"])
+    K[0, 2], K[1, 2] = (float(v) for v in res.principal_point)
     out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
                origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.1f} % at {cam['width']}x"
-                      f"{cam['height']} ({len(frames)} frames, {res['pairs']} pairs)")
-    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; {res['method']}: "
-            f"{res['frames']} frames, {res['points']} points, {res['iterations']} LM iterations, {res['pairs']} pairs of which "
-            f"{res['rotation_pairs']} "
-            f"rotation-only, median residual {res['median_px']:.2f} px)")
+                      f"{cam['height']} ({len(frames)} frames, {res.pairs} pairs)")
+    ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; {res.method}: "
+            f"{res.frames} frames, {res.points} points, {res.iterations} LM iterations, {res.pairs} pairs of which "
+            f"{res.rotation_pairs} "
+            f"rotation-only, median residual {res.median_px:.2f} px)")
     _principal_point_outcome(res, K, (sx, sy), out, ctx)
     return out
 
@@ -224,7 +227,7 @@ def _unsolvable(images: Any, keep: Any, indices: list[int]) -> list[list[Any]]:
     return [[int(k), why] for k, why in bad]
 
 
-def _principal_point_outcome(res: dict[str, Any], K: np.ndarray, scale: tuple[float, float], out: dict[str, Any],
+def _principal_point_outcome(res: FocalEstimate, K: np.ndarray, scale: tuple[float, float], out: dict[str, Any],
                              ctx: Any) -> None:
     """The calibrate stage's account of the principal point when the focal length was estimated:
     out's principal_point = {cx, cy (working px), cx_source, cy_source, sigma_px (working, None when
@@ -232,25 +235,25 @@ def _principal_point_outcome(res: dict[str, Any], K: np.ndarray, scale: tuple[fl
     the centre and logs one warning line (out's pp_warning)."""
     sx, sy = scale
     cx, cy = float(K[0, 2]), float(K[1, 2])
-    sig = res.get("pp_sigma")
+    sig = res.pp_sigma
     sig = None if sig is None or not np.all(np.isfinite(sig)) else sig  # artifacts hold finite floats only
     doc: dict[str, Any] = {"cx": cx, "cy": cy, "cx_source": (cx + 0.5) / sx - 0.5, "cy_source": (cy + 0.5) / sy - 0.5,
            "sigma_px": [float(v) for v in sig] if sig is not None else None,
            "sigma_source_px": [float(sig[0]) / sx, float(sig[1]) / sy] if sig is not None else None,
-           "estimated": bool(res.get("pp_estimated")),
-           "estimate": [float(v) for v in res["pp_estimate"]] if res.get("pp_estimate") is not None else None}
+           "estimated": bool(res.pp_estimated),
+           "estimate": [float(v) for v in res.pp_estimate] if res.pp_estimate is not None else None}
     if doc["estimated"]:
         doc["detail"] = (f"estimated from the video: ({cx:.1f}, {cy:.1f}) px +- ({sig[0]:.1f}, {sig[1]:.1f}) px, "
-                         f"{res['pp_z']:.1f} std from the image centre")
-        ctx.log(f"principal point {doc['detail']} (focal length {res['focal_centre']:.1f} px with the centre)")
-    elif res.get("pp_reason"):
-        doc["detail"] = f"assumed at the image centre: {res['pp_reason']}"
-        out["pp_warning"] = f"principal point not estimated, the image centre ({cx:.1f}, {cy:.1f}) px is kept: {res['pp_reason']}"
+                         f"{res.pp_z:.1f} std from the image centre")
+        ctx.log(f"principal point {doc['detail']} (focal length {res.focal_centre:.1f} px with the centre)")
+    elif res.pp_reason:
+        doc["detail"] = f"assumed at the image centre: {res.pp_reason}"
+        out["pp_warning"] = f"principal point not estimated, the image centre ({cx:.1f}, {cy:.1f}) px is kept: {res.pp_reason}"
         ctx.log("warning: " + out["pp_warning"])
     else:
-        doc["detail"] = "image centre" + (f" ({res['pp_note']})" if res.get("pp_note") else "")
-        if res.get("pp_note"):
-            ctx.log(f"principal point: {res['pp_note']}")
+        doc["detail"] = "image centre" + (f" ({res.pp_note})" if res.pp_note else "")
+        if res.pp_note:
+            ctx.log(f"principal point: {res.pp_note}")
     out["principal_point"] = doc
 
 

@@ -41,26 +41,77 @@ Units: pixels at the frames' (working) resolution.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import cv2
 import numpy as np
 
 from gcvd_flow.stages.frontend.params import CalibrateSettings, settings_with
+from gcvd_flow.stages.geometry.se3 import hat
+from gcvd_flow.stages.sfm.features import UniqueRatioMatcher, matched_points, sift_features
+from gcvd_flow.stages.sfm.reconstruction import (
+    TRACK_KEY,
+    add_points,
+    adjust_focal,
+    bundle_adjust_focal,
+    focal_K,
+    incremental_reconstruction,
+    observations,
+    rodrigues,
+)
+from gcvd_flow.stages.sfm.tracks import RANSAC_SEED, UnionFind, feature_tracks, select_tracks
 
 log = logging.getLogger(__name__)
 
-RANSAC_SEED = 1234
 SIFT_RATIO = 0.8
-# The user's mask (--masks) grows by this many px before keypoints are kept off it: a SIFT keypoint's
-# rounded location and the centre of its descriptor's support stay off the masked pixels.
-MASK_DILATE_PX = 4
-# ... and a keypoint whose blob (MASK_SUPPORT x its SIFT size, the diameter OpenCV reports) reaches a
-# masked pixel is dropped too: a large-scale keypoint next to the mask describes the masked content
-# (an image-fixed patch's edge then makes an image-fixed track).
-MASK_SUPPORT = 1.0
-TRACK_KEY = 1_000_000  # point key = model * TRACK_KEY + track index (several reconstructions)
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    """What :func:`estimate_focal` found (pixels at the frames' working resolution). ``focal`` and
+    ``principal_point`` are what to use: the estimate when ``determined`` / ``pp_estimated``, else
+    the guess, with ``reason`` / ``pp_reason`` saying why (one line each). The rest explains the
+    estimate: the work it saw and the terms of its uncertainty."""
+
+    focal: float  # px: the estimate (determined) or the guess
+    determined: bool
+    rel_sigma: float  # relative std of focal (inf: nothing determined)
+    pairs: int  # frame pairs with enough matched motion
+    rotation_pairs: int  # of them explained by a homography
+    frames: int  # frames the solution registered
+    points: int  # triangulated points of the final adjustment
+    tracks: int
+    median_px: float  # median reprojection (or transfer) error of the final adjustment
+    method: str  # "rotation" (homographies), "bundle adjustment" or "" (not reached)
+    iterations: int  # Levenberg-Marquardt iterations, all adjustments
+    pp_frac: float  # the principal-point offset (share of the image size) the uncertainty allows for
+    principal_point: list[float]  # (cx, cy) px
+    pp_estimated: bool
+    pp_reason: str  # why the principal point was not estimated ("" when it was, or was kept by choice)
+    reason: str = ""  # why the focal length was not determined ("" when it was)
+    pp_sigma: list[float] | None = None  # std (cx, cy) px of the free-principal-point adjustment
+    pp_estimate: list[float] | None = None  # its (cx, cy) px, used or not
+    pp_z: float | None = None  # its distance from the centre, in std
+    pp_sigma_blocks: list[float] | None = None
+    pp_sigma_formal: list[float] | None = None
+    pp_note: str = ""  # why the centre was kept although the principal point was estimated
+    pp_sensitivity: list[float] | None = None  # d log f per pp_frac x image size, (x, y)
+    focal_centre: float | None = None  # px: the focal length with the principal point at the centre
+    estimate: float | None = None  # px: the estimate when it was not determined (for the warning)
+    forward_share: float | None = None  # share of forward steps (forward-only motion: f undetermined)
+    block_focals: list[float] = field(default_factory=list)  # px: the jackknife's, one per block left out
+    pp_focals: list[float] = field(default_factory=list)  # px: with the principal point moved by pp_frac
+    rel_sigma_blocks: float | None = None  # the terms of rel_sigma: jackknife over frame blocks,
+    rel_sigma_pp: float | None = None  # ... the principal-point allowance,
+    rel_sigma_formal: float | None = None  # ... and the adjustment's formal std
+    rel_sigma_motion: float | None = None  # blocks and formal alone (what the motion determines)
+
+    @classmethod
+    def from_record(cls, rec: dict[str, Any]) -> FocalEstimate:
+        """From estimate_focal's working record; a key without a field is a TypeError (a new
+        result must be declared here, where it is typed and documented)."""
+        return cls(**rec)
 
 
 @dataclass
@@ -78,74 +129,6 @@ class PairGeometry:
 
 
 # ------------------------------------------------------------------------------ matches
-
-
-def usable(keep: np.ndarray, dilate_px: int = MASK_DILATE_PX) -> np.ndarray:
-    """The user's kept mask (H, W), 1 = not masked -> uint8 (H, W), 1 = a keypoint may sit here:
-    kept and more than ``dilate_px`` px (Chebyshev) from any masked pixel, so that neither a
-    keypoint's rounded location nor the core of its descriptor's support is on the mask."""
-    k = (np.asarray(keep) > 0).astype(np.uint8)
-    return cv2.erode(k, np.ones((2 * dilate_px + 1,) * 2, np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
-
-
-def _features(img: np.ndarray, n_features: int, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """SIFT keypoints (M, 2) px and descriptors (M, 128) of an image: the ``n_features`` strongest.
-    With ``keep`` (the user's kept mask (H, W), 1 = not masked) the strongest among those not
-    on or within MASK_DILATE_PX of a masked pixel and whose blob (MASK_SUPPORT x size) reaches
-    none: OpenCV keeps its n strongest *before* it applies a detection mask, so a textured masked
-    area would otherwise take the budget; here the cap comes after the mask."""
-    gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY)
-    if keep is None:
-        sift = cv2.SIFT_create(nfeatures=n_features, contrastThreshold=0.02)  # type: ignore[attr-defined]
-        kp, des = sift.detectAndCompute(gray, None)
-        return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
-    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02)  # type: ignore[attr-defined]
-    ok = usable(keep)
-    kp = sift.detect(gray, ok)
-    if kp:
-        h, w = ok.shape
-        pts = np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2)
-        xi = np.clip(np.round(pts[:, 0]).astype(np.int64), 0, w - 1)
-        yi = np.clip(np.round(pts[:, 1]).astype(np.int64), 0, h - 1)
-        # px from each pixel to the nearest masked one (L2; large where nothing is masked)
-        dist = cv2.distanceTransform((np.asarray(keep) > 0).astype(np.uint8), cv2.DIST_L2, 5)
-        size = np.asarray([k.size for k in kp], np.float64)
-        sel = np.flatnonzero((ok[yi, xi] > 0) & (dist[yi, xi] > MASK_SUPPORT * size))
-        order = sel[np.argsort(-np.asarray([kp[i].response for i in sel]), kind="stable")][:n_features]
-        kp = [kp[i] for i in order]
-    if not kp:
-        return np.zeros((0, 2), np.float64), None
-    kp, des = sift.compute(gray, kp)
-    return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
-
-
-class _Knn:
-    """Ratio-test matches of feature pairs, each pair matched once (frame selection, pair geometry
-    and tracks ask for the same pairs): {(id(desc a), id(desc b)): (ia, ib) keypoint indices}."""
-
-    def __init__(self):
-        self.cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-
-    def __call__(self, fa, fb) -> tuple[np.ndarray, np.ndarray]:
-        (pa, da), (pb, db) = fa, fb
-        if da is None or db is None or len(pa) < 8 or len(pb) < 8:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        key = (id(da), id(db))
-        if key not in self.cache:
-            knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
-            # one match per keypoint of b (the first in a's order): duplicates bias the fit
-            best: dict[int, int] = {}
-            for m in knn:
-                if len(m) == 2 and m[0].distance < SIFT_RATIO * m[1].distance and m[0].trainIdx not in best:
-                    best[m[0].trainIdx] = m[0].queryIdx
-            self.cache[key] = (np.asarray(list(best.values()), np.int64), np.asarray(list(best.keys()), np.int64))
-        return self.cache[key]
-
-
-def _match(fa, fb, knn: _Knn | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Matched pixel positions (x_a, x_b), (M, 2) each, of two frames' features."""
-    ia, ib = (knn or _Knn())(fa, fb)
-    return fa[0][ia].reshape(-1, 2), fb[0][ib].reshape(-1, 2)
 
 
 def pair_geometry(a: int, b: int, x1: np.ndarray, x2: np.ndarray, *, ransac_px: float = 1.0,
@@ -188,13 +171,9 @@ def _transfer_error(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray
 # ------------------------------------------------------------------------------ the cost
 
 
-def _K(f: float, c: np.ndarray) -> np.ndarray:
-    return np.array([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1.0]])
-
-
 def _algebraic_cost(g: PairGeometry, f: float, c: np.ndarray) -> float:
     """How far the pair's matrix is from a valid one at focal ``f`` (0 = consistent)."""
-    K = _K(f, c)
+    K = focal_K(f, c)
     if g.kind == "rotation":
         M = np.linalg.inv(K) @ g.H @ K
         d = np.linalg.det(M)
@@ -219,14 +198,6 @@ def initial_focal(pairs: list[PairGeometry], c: np.ndarray, f_guess: float,
 # ------------------------------------------------------------------------------ refinement
 
 
-def _rodrigues(r: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(r, np.float64).reshape(3, 1))[0]
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
 def _tangent_basis(t: np.ndarray) -> np.ndarray:
     """(3, 2): two unit vectors orthogonal to unit t (the translation direction's 2 DoF)."""
     a = np.eye(3)[int(np.argmin(np.abs(t)))]
@@ -237,7 +208,7 @@ def _tangent_basis(t: np.ndarray) -> np.ndarray:
 
 def _init_pose(g: PairGeometry, f: float, c: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(rotation vector (3,), unit translation (3,) or None for a rotation pair) at focal f."""
-    K = _K(f, c)
+    K = focal_K(f, c)
     if g.kind == "rotation":
         M = np.linalg.inv(K) @ g.H @ K
         U, _, Vt = np.linalg.svd(M)
@@ -274,19 +245,19 @@ class _Problem:
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         f = float(np.exp(x[0]))
-        K = _K(f, self.c)
+        K = focal_K(f, self.c)
         Ki = np.linalg.inv(K)
         out = np.empty(self.n_rows)
         for g, sl, rows, t0, B in zip(self.pairs, self.slices, self.rows, self.t0, self.basis):
             p = x[sl]
-            R = _rodrigues(p[:3])
+            R = rodrigues(p[:3])
             if t0 is None:  # x2 ~ K R K^-1 x1: transfer error, px
                 q = np.c_[g.x1, np.ones(len(g.x1))] @ (K @ R @ Ki).T
                 out[rows] = (q[:, :2] / q[:, 2:3] - g.x2).ravel()
                 continue
             t = t0 + B @ p[3:5]
             t = t / np.linalg.norm(t)
-            F = Ki.T @ _skew(t) @ R @ Ki
+            F = Ki.T @ hat(np.asarray(t, np.float64)[None])[0] @ R @ Ki
             h1 = np.c_[g.x1, np.ones(len(g.x1))]
             h2 = np.c_[g.x2, np.ones(len(g.x2))]
             Fx1, Ftx2 = h1 @ F.T, h2 @ F
@@ -339,392 +310,6 @@ def refine_focal(pairs: list[PairGeometry], c: np.ndarray, f0: float, *, robust_
 # ------------------------------------------------------------------------------ multi-view
 
 
-class _UnionFind:
-    def __init__(self):
-        self.parent: dict[tuple[int, int], tuple[int, int]] = {}
-
-    def find(self, x):
-        self.parent.setdefault(x, x)
-        while self.parent[x] != x:
-            self.parent[x] = self.parent[self.parent[x]]
-            x = self.parent[x]
-        return x
-
-    def union(self, a, b):
-        ra, rb = self.find(a), self.find(b)
-        if ra != rb:
-            self.parent[max(ra, rb)] = min(ra, rb)
-
-
-def _inlier_matches(fa, fb, ransac_px: float, min_inliers: int, knn: _Knn | None = None
-                    ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Keypoint indices (ia, ib) of a pair's ratio-test matches that a RANSAC F keeps."""
-    ia, ib = (knn or _Knn())(fa, fb)
-    if len(ia) < min_inliers:
-        return None
-    cv2.setRNGSeed(RANSAC_SEED)
-    F, inl = cv2.findFundamentalMat(fa[0][ia], fb[0][ib], cv2.FM_RANSAC, ransac_px, 0.999, 5000)
-    if F is None or inl is None:
-        return None
-    keep = inl.ravel().astype(bool)
-    return (ia[keep], ib[keep]) if keep.sum() >= min_inliers else None
-
-
-def build_tracks(feats: list, ransac_px: float = 1.0, min_inliers: int = 20,
-                 offsets: Sequence[int] = (1, 2, 3), knn: _Knn | None = None) -> list[dict[int, np.ndarray]]:
-    """Features of the sampled frames (positions (K, 2) px, descriptors) -> tracks: {frame position:
-    pixel (2,)} seen in >= 3 frames, from RANSAC-verified matches chained over frame pairs; a track
-    claiming two keypoints in one frame is dropped."""
-    uf = _UnionFind()
-    for a in range(len(feats)):
-        for off in offsets:
-            b = a + off
-            if b >= len(feats):
-                break
-            m = _inlier_matches(feats[a], feats[b], ransac_px, min_inliers, knn)
-            if m is None:
-                continue
-            for i, j in zip(*m):
-                uf.union((a, int(i)), (b, int(j)))
-    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
-    for node in sorted(uf.parent):
-        groups.setdefault(uf.find(node), []).append(node)
-    tracks = []
-    for nodes in groups.values():
-        frames = [f for f, _ in nodes]
-        if len(nodes) < 3 or len(set(frames)) != len(frames):
-            continue
-        tracks.append({f: feats[f][0][k] for f, k in nodes})
-    return tracks
-
-
-def select_tracks(tracks: list[dict[int, np.ndarray]], size: tuple[int, int], per_frame: int,
-                  grid: tuple[int, int] = (8, 6)) -> list[dict[int, np.ndarray]]:
-    """At most about ``per_frame`` tracks per frame, spread over the image: each frame's tracks are
-    binned into a ``grid`` = (columns, rows) of cells over ``size`` = (W, H) px and every cell keeps
-    its longest ones (ties: the earlier track) up to its share; the result is the union over frames,
-    in the original order. Bounds the bundle adjustments' work on richly textured clips (thousands
-    of SIFT tracks) while keeping every frame registered and the points spread over the image."""
-    if per_frame <= 0:
-        return tracks
-    gx, gy = grid
-    per_cell = max(1, int(np.ceil(per_frame / (gx * gy))))
-    W, H = size
-    by_cell: dict[tuple[int, int, int], list[tuple[int, int]]] = {}
-    for i, t in enumerate(tracks):
-        for f, uv in t.items():
-            cx = min(gx - 1, max(0, int(uv[0] * gx / W)))
-            cy = min(gy - 1, max(0, int(uv[1] * gy / H)))
-            by_cell.setdefault((f, cx, cy), []).append((-len(t), i))
-    keep: set[int] = set()
-    for cell in sorted(by_cell):
-        keep.update(i for _, i in sorted(by_cell[cell])[:per_cell])
-    return [tracks[i] for i in sorted(keep)]
-
-
-def _triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    X = cv2.triangulatePoints(P1, P2, x1.T.astype(np.float64), x2.T.astype(np.float64))
-    return (X[:3] / X[3:]).T
-
-
-def _project(K: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) -> (pixels (N, 2), depth (N,)) in the camera T_c_w (world-to-camera)."""
-    Xc = X @ T_c_w[:3, :3].T + T_c_w[:3, 3]
-    p = Xc @ K.T
-    return p[:, :2] / p[:, 2:3], Xc[:, 2]
-
-
-def incremental_reconstruction(tracks: list[dict[int, np.ndarray]], n_frames: int, K: np.ndarray,
-                               min_parallax_px: float, max_px: float = 3.0, min_points: int = 12,
-                               refine: Any = None, exclude: frozenset = frozenset()
-                               ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray]:
-    """A small incremental structure from motion at intrinsics K over the frames not in ``exclude``:
-    two-view start (the first such frame and the first later one whose median track motion exceeds
-    ``min_parallax_px``), then every frame by
-    PnP (RANSAC) on the points already triangulated, new points triangulated after each; every time
-    the registered frames grew by half, ``refine(T, pts, K) -> (T, pts, K)`` (a bundle adjustment
-    with the focal length free: later frames are registered with a better one). Returns (T_c_w
-    world-to-camera (4, 4) per registered frame position, point (3,) per track index, K)."""
-    T: dict[int, np.ndarray] = {}
-    pts: dict[int, np.ndarray] = {}
-    start = None
-    free = [f for f in range(n_frames) if f not in exclude]
-    if len(free) < 2:
-        return T, pts, K
-    a = free[0]
-    for b in free[1:]:
-        shared = [t for t in tracks if a in t and b in t]
-        if len(shared) < 2 * min_points:
-            break
-        x1 = np.array([t[a] for t in shared])
-        x2 = np.array([t[b] for t in shared])
-        start = (b, x1, x2)
-        if np.median(np.linalg.norm(x2 - x1, axis=1)) >= min_parallax_px:
-            break
-    if start is None:
-        return T, pts, K
-    b, x1, x2 = start
-    cv2.setRNGSeed(RANSAC_SEED)
-    E, inl = cv2.findEssentialMat(x1, x2, K, cv2.RANSAC, 0.999, 1.0)
-    if E is None or E.shape != (3, 3):
-        return T, pts, K
-    _, R, t, _ = cv2.recoverPose(E, x1, x2, K, mask=inl)
-    T[a] = np.eye(4)
-    T[b] = np.eye(4)
-    T[b][:3, :3], T[b][:3, 3] = R, t.ravel()
-    _add_points(tracks, T, pts, K, max_px)
-    next_refine = 6
-    while True:
-        best, best_n = None, 0
-        for f in free:
-            if f in T:
-                continue
-            n = sum(1 for i, t in enumerate(tracks) if f in t and i in pts)
-            if n > best_n:
-                best, best_n = f, n
-        if best is None or best_n < min_points:
-            break
-        ids = [i for i, t in enumerate(tracks) if best in t and i in pts]
-        obj = np.array([pts[i] for i in ids]); img = np.array([tracks[i][best] for i in ids])
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=200, reprojectionError=max_px,
-                                                 confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok or inl is None or len(inl) < min_points:
-            T[best] = None  # type: ignore[assignment]  # tried: never again
-            continue
-        Tb = np.eye(4)
-        Tb[:3, :3], Tb[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-        T[best] = Tb
-        _add_points(tracks, T, pts, K, max_px)
-        n_reg = sum(v is not None for v in T.values())
-        if refine is not None and n_reg >= next_refine:
-            next_refine = int(np.ceil(n_reg * 1.5))
-            good = {f: v for f, v in T.items() if v is not None}
-            good, pts, K = refine(good, pts, K)
-            T = {f: good.get(f) for f in T}
-    return {f: v for f, v in T.items() if v is not None}, pts, K
-
-
-def _add_points(tracks, T, pts, K, max_px: float) -> None:
-    """Triangulate tracks not yet triangulated that two registered frames see (the pair furthest
-    apart in the track), if the point lies in front of both and reprojects within ``max_px``."""
-    for i, t in enumerate(tracks):
-        if i in pts:
-            continue
-        fs = [f for f in t if T.get(f) is not None]
-        if len(fs) < 2:
-            continue
-        a, b = min(fs), max(fs)
-        X = _triangulate(K @ T[a][:3], K @ T[b][:3], t[a][None], t[b][None])[0]
-        ok = True
-        for f in (a, b):
-            p, z = _project(K, T[f], X[None])
-            if z[0] <= 0 or np.linalg.norm(p[0] - t[f]) > max_px:
-                ok = False
-        if ok:
-            pts[i] = X
-
-
-def bundle_adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
-                        robust_px: float = 1.0, iterations: int = 50, max_px: tuple[float, ...] = (10.0, 2.0)
-                        ) -> dict[str, Any]:
-    """Rounds of :func:`_adjust`: each keeps the observations that the previous solution (first: the
-    initial reconstruction) explains within ``max_px[r]`` px, in front of the camera."""
-    out: dict[str, Any] = {}
-    n_iter = 0
-    for px in max_px:
-        out = _adjust(tracks, T, pts, K, robust_px=robust_px, iterations=iterations, max_px=px)
-        n_iter += out["iterations"]
-        if not out["T"]:
-            break
-        T = out["T"]  # world-to-camera
-        pts = out["pts"]
-        K = _K(out["focal"], np.asarray(K)[:2, 2])
-    out["iterations"] = n_iter  # of all rounds
-    return out
-
-
-def _observations(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray, max_px: float
-                  ) -> tuple[dict[int, list[tuple[int, np.ndarray]]], dict[int, int]]:
-    """The observations a bundle adjustment uses: of each point, the registered frames where it lies
-    in front and reprojects within ``max_px`` (at least two); frames seeing fewer than 8 points are
-    left out (their pose would be undetermined). Returns ({point key: [(frame, uv (2,))]},
-    {frame: observation count})."""
-    cand: dict[int, list[tuple[int, np.ndarray]]] = {}  # frame -> [(point key, uv)]
-    for i in sorted(pts):
-        for f, uv in tracks[i % TRACK_KEY].items():
-            if f in T:
-                cand.setdefault(f, []).append((i, uv))
-    good: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for f in sorted(cand):  # all of a frame's candidates projected at once
-        keys = [i for i, _ in cand[f]]
-        uv = np.array([u for _, u in cand[f]], np.float64)
-        p, z = _project(K, T[f], np.array([pts[i] for i in keys]))
-        ok = (z > 1e-9) & (np.linalg.norm(p - uv, axis=1) <= max_px)
-        for k in np.flatnonzero(ok):
-            good.setdefault(keys[k], []).append((f, uv[k]))
-    obs = {i: sorted(o, key=lambda x: x[0]) for i, o in sorted(good.items()) if len(o) >= 2}
-    while True:
-        count: dict[int, int] = {}
-        for o in obs.values():
-            for f, _ in o:
-                count[f] = count.get(f, 0) + 1
-        weak = {f for f, n in count.items() if n < 8}
-        if not weak:
-            return obs, count
-        obs = {i: [(f, uv) for f, uv in o if f not in weak] for i, o in obs.items()}
-        obs = {i: o for i, o in obs.items() if len(o) >= 2}
-
-
-def _adjust(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
-            robust_px: float, iterations: int, max_px: float, marginal: bool = False,
-            pp_prior: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
-    """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
-    poses, points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected
-    reconstructions (models) of one camera share the focal length. Gauge of each model: its first
-    pose and its first point are held by tight priors (the point fixes the scale). With
-    ``pp_prior`` = (centre (2,), sigma (2,) px) the principal point is free too (Cal3_S2 with square
-    pixels: fx = fy and no skew held by tight factors), pulled towards ``centre`` by a Gaussian
-    prior of ``sigma``; it starts at K's. Its gauge is minimal (the first pose and its distance to
-    the model's furthest camera): a point held in place fixes its bearing, which held the principal
-    point of a planar-motion clip where it started (orbit: cy 5.3 px off at a formal std of 0.03 px).
-    Returns {focal, pp (2,), median_px, observations, points,
-    frames, iterations (LM), T (world-to-camera (4, 4) per frame), pts, errors (reprojection error
-    per observation, px), with ``marginal`` rel_sigma_formal (:func:`_formal_cov`) and, with
-    ``pp_prior``, pp_sigma_formal (2,) px}."""
-    import gtsam
-
-    C = lambda k: gtsam.symbol("c", k)  # noqa: E731
-    P = lambda k: gtsam.symbol("p", k)  # noqa: E731
-    KEY = gtsam.symbol("k", 0)
-    graph = gtsam.NonlinearFactorGraph()
-    vals = gtsam.Values()
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_px),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
-    obs, count = _observations(tracks, T, pts, K, max_px)
-    frames = sorted(count)
-    if len(frames) < 3 or not obs:
-        return {"focal": float(K[0, 0]), "pp": np.asarray(K)[:2, 2].copy(), "median_px": 0.0, "observations": 0,
-                "points": 0, "frames": len(frames), "iterations": 0, "T": {}, "pts": {}, "errors": np.zeros(0)}
-    for fr in frames:
-        vals.insert(C(fr), gtsam.Pose3(np.linalg.inv(T[fr])))
-    if pp_prior is None:
-        vals.insert(KEY, gtsam.Cal3f(float(K[0, 0]), float(K[0, 2]), float(K[1, 2])))
-        factor: Any = gtsam.GeneralSFMFactor2Cal3f
-    else:
-        vals.insert(KEY, gtsam.Cal3_S2(float(K[0, 0]), float(K[0, 0]), 0.0, float(K[0, 2]), float(K[1, 2])))
-        factor = gtsam.GeneralSFMFactor2Cal3_S2
-        _add_pp_factors(graph, KEY, float(K[0, 0]), pp_prior)
-    n_obs = 0
-    ids = sorted(obs)
-    for i in ids:
-        vals.insert(P(i), gtsam.Point3(*pts[i]))
-        for fr, uv in obs[i]:
-            graph.add(factor(gtsam.Point2(*uv), noise, C(fr), P(i), KEY))
-            n_obs += 1
-    model_frames: dict[int, set[int]] = {}
-    for i in ids:
-        model_frames.setdefault(i // TRACK_KEY, set()).update(f for f, _ in obs[i])
-    for m, fs in model_frames.items():
-        f0 = min(fs)
-        graph.add(gtsam.PriorFactorPose3(C(f0), gtsam.Pose3(np.linalg.inv(T[f0])), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-        if pp_prior is not None:  # a minimal gauge: a point held fixed would also hold the principal point
-            far = max(fs, key=lambda fr: float(np.linalg.norm(_centre(T[fr]) - _centre(T[f0]))))
-            dist = float(np.linalg.norm(_centre(T[far]) - _centre(T[f0])))
-            if dist > 1e-9:
-                graph.add(gtsam.RangeFactorPose3(C(f0), C(far), dist, gtsam.noiseModel.Isotropic.Sigma(1, 1e-6 * dist)))
-                continue
-        i0 = next(i for i in ids if i // TRACK_KEY == m)
-        graph.add(gtsam.PriorFactorPoint3(P(i0), gtsam.Point3(*pts[i0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(iterations)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
-    res = opt.optimize()
-    if pp_prior is None:
-        f, pp = float(res.atCal3f(KEY).fx()), np.asarray(K)[:2, 2].copy()
-    else:
-        cal = res.atCal3_S2(KEY)
-        f, pp = 0.5 * float(cal.fx() + cal.fy()), np.array([cal.px(), cal.py()], np.float64)
-    poses = {fr: np.linalg.inv(res.atPose3(C(fr)).matrix()) for fr in frames}
-    points = {i: np.asarray(res.atPoint3(P(i))) for i in ids}
-    err = _obs_errors(_K(f, pp), poses, points, obs)
-    out = {"focal": f, "pp": pp, "median_px": float(np.median(err)), "observations": n_obs, "points": len(ids),
-           "frames": len(frames), "iterations": int(opt.iterations()), "T": poses, "pts": points, "errors": err}
-    if marginal:
-        cov = _formal_cov(graph, res, KEY, [P(i) for i in ids], C(frames[0]), err)
-        out["rel_sigma_formal"] = float(np.sqrt(cov[0, 0]) / f) if cov is not None else float("inf")
-        if pp_prior is not None:
-            out["pp_sigma_formal"] = np.sqrt(np.diag(cov)[3:5]) if cov is not None else np.full(2, np.inf)
-    return out
-
-
-def _centre(T_c_w: np.ndarray) -> np.ndarray:
-    """Camera centre (3,) in the world of a world-to-camera pose (4, 4)."""
-    return -T_c_w[:3, :3].T @ T_c_w[:3, 3]
-
-
-def _add_pp_factors(graph, key: int, f: float, pp_prior: tuple[np.ndarray, np.ndarray]) -> None:
-    """The Cal3_S2 of :func:`_adjust` with a free principal point: fx = fy (square pixels, a tight
-    factor on fx - fy), no skew, the principal point pulled to ``centre`` with ``sigma`` px
-    (``pp_prior``); fx and fy themselves free (a prior 10 x f wide)."""
-    import gtsam
-
-    centre, sigma = (np.asarray(v, np.float64) for v in pp_prior)
-    graph.add(gtsam.PriorFactorCal3_S2(key, gtsam.Cal3_S2(f, f, 0.0, float(centre[0]), float(centre[1])),
-                                       gtsam.noiseModel.Diagonal.Sigmas(
-                                           np.array([10 * f, 10 * f, 1e-4, float(sigma[0]), float(sigma[1])]))))
-
-    def square(this, values, jacobians):  # fx - fy; Cal3_S2's tangent is (fx, fy, s, u0, v0)
-        cal = values.atCal3_S2(this.keys()[0])
-        if jacobians is not None:
-            jacobians[0] = np.array([[1.0, -1.0, 0.0, 0.0, 0.0]])
-        return np.array([cal.fx() - cal.fy()])
-
-    graph.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, 1e-3), [key], square))
-
-
-def _formal_cov(graph, res, key: int, point_keys: list[int], first_pose: int, err: np.ndarray
-                ) -> np.ndarray | None:
-    """Marginal covariance (px^2) of the calibration ``key`` (Cal3f: (1, 1), f; Cal3_S2: (5, 5), fx,
-    fy, skew, cx, cy) from the sparse Gauss-Newton information (gtsam Marginals), scaled by the
-    robust residual spread. Small on real clips (f: 0.01-0.1 % where the errors were 1-3 %), but
-    large where the motion leaves f unobservable (pure forward translation: the cost is flat along
-    f), which the perturbation terms of :func:`_uncertainty` cannot see. Weak priors on the points
-    (10 x the scene's size) keep a point seen from nearly one place from making the system
-    indeterminate. None when it cannot be computed."""
-    import gtsam
-
-    s = max(1.4826 * float(np.median(err)) / 1.1774, 1e-3)  # |r| of a 2-D Gaussian: median = 1.1774 sigma
-    origin = res.atPose3(first_pose).translation()
-    size = float(np.median([np.linalg.norm(res.atPoint3(k) - origin) for k in point_keys]))
-    g = gtsam.NonlinearFactorGraph(graph)
-    for k in point_keys:
-        g.add(gtsam.PriorFactorPoint3(k, res.atPoint3(k), gtsam.noiseModel.Isotropic.Sigma(3, 10.0 * max(size, 1e-9))))
-    try:
-        cov = np.atleast_2d(np.asarray(gtsam.Marginals(g, res).marginalCovariance(key), np.float64))
-    except RuntimeError:
-        return None
-    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
-        return None
-    return cov * s * s
-
-
-def _obs_errors(K: np.ndarray, T: dict[int, np.ndarray], pts: dict[int, np.ndarray],
-                obs: dict[int, list[tuple[int, np.ndarray]]]) -> np.ndarray:
-    """Reprojection errors (px) of every observation, points in key order and each point's
-    observations in order; 1000 px where a point lies behind the camera. Each frame's observations
-    are projected at once."""
-    rows = [(i, f, uv) for i in sorted(obs) for f, uv in obs[i]]
-    out = np.empty(len(rows))
-    by_frame: dict[int, list[int]] = {}
-    for k, (_, f, _) in enumerate(rows):
-        by_frame.setdefault(f, []).append(k)
-    for f, ks in by_frame.items():
-        p, z = _project(K, T[f], np.array([pts[rows[k][0]] for k in ks]))
-        e = np.linalg.norm(p - np.array([rows[k][2] for k in ks]), axis=1)
-        out[ks] = np.where(z > 1e-9, e, 1e3)
-    return out
-
-
 def _reconstructions(tracks, n: int, K: np.ndarray, parallax: float, refine: Any
                      ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray]:
     """Incremental reconstructions until every frame is in one or cannot start one: where the
@@ -751,26 +336,26 @@ def _sample(n: int, max_frames: int) -> list[int]:
 
 
 def _select_by_motion(images: Sequence[np.ndarray], max_frames: int, n_features: int, target_frac: float,
-                      min_frames: int = 20, knn: _Knn | None = None,
+                      min_frames: int = 20, knn: UniqueRatioMatcher | None = None,
                       keep: Sequence[np.ndarray] | None = None) -> tuple[list[int], list]:
     """Frames spaced by image motion rather than by index: from each chosen frame, the next is the
     last one whose matches moved less than ``target_frac`` x the long side (median) while still
     sharing enough matches. A slow clip is thinned, a fast one (wide baseline) keeps every frame.
     Candidates: at most 4 x ``max_frames`` frames, evenly; at most ``max_frames`` are kept
     (evenly among the chosen); fewer than ``min_frames``: the spacing is halved (up to 3 times).
-    ``keep``: the user's kept masks of ``images`` (:func:`_features`), None without.
+    ``keep``: the user's kept masks of ``images`` (:func:`sift_features`), None without.
     Returns (indices into ``images``, their features)."""
     cand = _sample(len(images), 4 * max_frames)
     feats: dict[int, Any] = {}
 
     def feat(i: int):
         if i not in feats:
-            feats[i] = _features(np.asarray(images[cand[i]]), n_features, None if keep is None else keep[cand[i]])
+            feats[i] = sift_features(np.asarray(images[cand[i]]), n_features, None if keep is None else keep[cand[i]])
         return feats[i]
 
     target = target_frac * max(np.asarray(images[cand[0]]).shape[:2])
     for _ in range(4):  # too few frames for a reconstruction: halve the spacing
-        chosen = _chosen(feat, len(cand), target, knn or _Knn())
+        chosen = _chosen(feat, len(cand), target, knn or UniqueRatioMatcher(SIFT_RATIO))
         if len(chosen) >= min(min_frames, len(cand)):
             break
         target /= 2
@@ -779,13 +364,13 @@ def _select_by_motion(images: Sequence[np.ndarray], max_frames: int, n_features:
     return [cand[k] for k in chosen], [feat(k) for k in chosen]
 
 
-def _chosen(feat: Any, n: int, target: float, knn: _Knn) -> list[int]:
+def _chosen(feat: Any, n: int, target: float, knn: UniqueRatioMatcher) -> list[int]:
     """Greedy spacing of :func:`_select_by_motion` over candidate positions 0..n-1."""
     chosen, a = [0], 0
     while a < n - 1:
         nxt = a + 1
         for b in range(a + 1, n):
-            x1, x2 = _match(feat(a), feat(b), knn)
+            x1, x2 = matched_points(feat(a), feat(b), knn)
             if len(x1) < 60 or np.median(np.linalg.norm(x2 - x1, axis=1)) >= target:
                 nxt = max(a + 1, b if len(x1) >= 60 else b - 1)
                 break
@@ -799,15 +384,11 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
                    min_pairs: int = 6, robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    passes: int = 4, motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
                    keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False,
-                   **overrides: Any) -> dict[str, Any]:
-    """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) -> {
-    focal (px, working resolution; the guess when not determined), determined (bool),
-    rel_sigma (std of f / f: the spread over leave-one-block-out re-estimates, :func:`_jackknife`),
-    method ("bundle adjustment" | "rotation"), pairs, rotation_pairs, frames (registered), points,
-    tracks, median_px, iterations (LM iterations of all bundle adjustments), block_focals,
-    pp_focals, rel_sigma_blocks / _pp / _formal (the terms of rel_sigma), forward_share
-    (:func:`forward_share`), reason (why not determined, '' when determined)}. The principal point
-    is K_guess's: not determined (the guess is kept, with the reason) when rel_sigma_motion (the
+                   **overrides: Any) -> FocalEstimate:
+    """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) ->
+    :class:`FocalEstimate` (focal, its relative std rel_sigma from the jackknife over frame blocks
+    (:func:`_jackknife`), the principal-point allowance and the formal std; the principal point).
+    The focal length is not determined (the guess is kept, with the reason) when rel_sigma_motion (the
     blocks and formal terms) exceeds ``max_rel_sigma`` or a share >= ``max_forward_share`` of the steps between registered frames
     moves along the optical axis (forward-only motion: KITTI 1.0, HoloLens walk 0.41, ICL 0).
 
@@ -819,14 +400,14 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
 
     ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
     no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle
-    adjustment sees one (:func:`_features`).
+    adjustment sees one (:func:`sift_features`).
 
     ``settings``: the calibrate stage's :class:`CalibrateSettings` (None: its defaults), with
     ``overrides`` by field name; ``mode`` is the caller's (whether to estimate at all)."""
     cfg = settings_with(CalibrateSettings, settings, overrides)
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
     f_guess = float(K_guess[0, 0])
-    knn = _Knn()
+    knn = UniqueRatioMatcher(SIFT_RATIO)
     sel, feats = _select_by_motion(images, cfg.max_frames, cfg.features, motion_frac, knn=knn, keep=keep)
     pairs = _frame_pairs(sel, feats, knn, ransac_px)
     n_rot = sum(g.kind == "rotation" for g in pairs)
@@ -838,7 +419,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     if len(pairs) < min_pairs:
         out["reason"] = (f"only {len(pairs)} frame pair(s) with enough matched motion (need {min_pairs}): "
                          "the camera hardly moves")
-        return out
+        return FocalEstimate.from_record(out)
     size = np.asarray(images[sel[0]]).shape[1::-1]
     if n_rot >= rotation_share * len(pairs):
         f, rel = _rotation_focal([g for g in pairs if g.kind == "rotation"], c, f_guess, blocks, cfg.pp_frac, size, out)
@@ -854,7 +435,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
                               robust_px=robust_px, blocks=blocks, pp_prior=pp_prior)
     else:
         _not_determined(f, rel, out, max_forward_share)
-    return out
+    return FocalEstimate.from_record(out)
 
 
 def _frame_pairs(sel: list[int], feats: list[Any], knn: Any, ransac_px: float) -> list[PairGeometry]:
@@ -864,7 +445,7 @@ def _frame_pairs(sel: list[int], feats: list[Any], knn: Any, ransac_px: float) -
     for p in range(len(sel)):
         for off in (1, 2):
             if p + off < len(sel):
-                g = pair_geometry(p, p + off, *_match(feats[p], feats[p + off], knn), ransac_px=ransac_px)
+                g = pair_geometry(p, p + off, *matched_points(feats[p], feats[p + off], knn), ransac_px=ransac_px)
                 if g is not None:
                     pairs.append(g)
     return pairs
@@ -876,7 +457,7 @@ def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, s
     """(focal, rel_sigma) from tracks over the selected frames: a small structure from motion and
     a bundle adjustment with the focal length free (:func:`_sfm_focal`); rel_sigma inf when it
     registered fewer than max(3, a quarter of) the frames."""
-    all_tracks = build_tracks(feats, ransac_px=ransac_px, knn=knn)
+    all_tracks = feature_tracks(feats, ransac_px=ransac_px, knn=knn)
     tracks = select_tracks(all_tracks, size, cfg.tracks_per_frame)
     out["tracks"] = len(tracks)
     f, rel = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, passes, 0.04 * max(size), blocks,
@@ -907,7 +488,7 @@ def _principal_point_step(ba: Any, f: float, c: np.ndarray, size: Any, cfg: Cali
     """With the focal length determined: the principal point per ``cfg.principal_point``
     (:func:`_estimate_pp` from the adjustment ``ba``; none from a rotating camera's homographies)."""
     if cfg.principal_point == "auto" and ba is not None:
-        _estimate_pp(ba, _K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, pp_prior, out)
+        _estimate_pp(ba, focal_K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, pp_prior, out)
     elif cfg.principal_point == "auto":
         out["pp_reason"] = (f"not estimated from a rotating camera's homographies (method {out['method']}); "
                             "assumed at the image centre")
@@ -1016,11 +597,11 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
         iters[0] += ba["iterations"]
         if not ba["T"] or not 0.3 * f_guess < ba["focal"] < 3.0 * f_guess:
             return T, pts, K
-        return ba["T"], {**pts, **ba["pts"]}, _K(ba["focal"], c)
+        return ba["T"], {**pts, **ba["pts"]}, focal_K(ba["focal"], c)
 
     final = None
     for _ in range(passes):
-        T, pts, K = _reconstructions(tracks, n, _K(f, c), parallax, refine)
+        T, pts, K = _reconstructions(tracks, n, focal_K(f, c), parallax, refine)
         if len(T) < 3 or len(pts) < 20:
             break
         ba = bundle_adjust_focal(tracks, T, pts, K, robust_px=robust_px)
@@ -1036,8 +617,8 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
         out["iterations"] = iters[0]
         return f, float("inf")
     if len(all_tracks) > len(tracks):
-        pts_all = _retriangulate(all_tracks, tracks, final, _K(f, c))
-        pol = bundle_adjust_focal(all_tracks, final["T"], pts_all, _K(f, c),
+        pts_all = _retriangulate(all_tracks, tracks, final, focal_K(f, c))
+        pol = bundle_adjust_focal(all_tracks, final["T"], pts_all, focal_K(f, c),
                                   robust_px=robust_px, max_px=(2.0,))
         iters[0] += pol["iterations"]
         if pol["T"] and pol["frames"] >= final["frames"] and 0.3 * f_guess < pol["focal"] < 3.0 * f_guess:
@@ -1046,7 +627,7 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
             out["_polish"] = (all_tracks, pol)
     out["_ba"] = (tracks, final)  # for the principal point (estimate_focal pops it)
     out["forward_share"] = forward_share(final["T"])
-    rel, it = _uncertainty(tracks, final, _K(f, c), robust_px, blocks, pp_frac, size, out)
+    rel, it = _uncertainty(tracks, final, focal_K(f, c), robust_px, blocks, pp_frac, size, out)
     out["iterations"] = iters[0] + it
     return f, rel
 
@@ -1072,14 +653,14 @@ def _retriangulate(tracks, ba_tracks, ba: dict[str, Any], K: np.ndarray) -> dict
     model * TRACK_KEY + index into ``ba_tracks``): each reconstruction (model) separately, as its
     poses live in their own frame; keys model * TRACK_KEY + index into ``tracks``."""
     model_of: dict[int, int] = {}
-    for key, o in _observations(ba_tracks, ba["T"], ba["pts"], K, 2.0)[0].items():
+    for key, o in observations(ba_tracks, ba["T"], ba["pts"], K, 2.0)[0].items():
         for fr, _ in o:
             model_of.setdefault(fr, key // TRACK_KEY)
     out: dict[int, np.ndarray] = {}
     for m in sorted(set(model_of.values())):
         T = {fr: v for fr, v in ba["T"].items() if model_of.get(fr) == m}
         pts: dict[int, np.ndarray] = {}
-        _add_points(tracks, T, pts, K, 2.0)
+        add_points(tracks, T, pts, K, 2.0)
         out.update({m * TRACK_KEY + i: X for i, X in pts.items()})
     return out
 
@@ -1100,15 +681,15 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
     for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]])):
         pair = []
         for sign in (1.0, -1.0):  # central difference: both runs gated and converged alike
-            Kd = _K(ba["focal"], K[:2, 2] + sign * d)  # from the capped adjustment's own solution
-            res = _adjust(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=30,
+            Kd = focal_K(ba["focal"], K[:2, 2] + sign * d)  # from the capped adjustment's own solution
+            res = adjust_focal(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=30,
                           max_px=2.0 + float(np.abs(d).sum()))
             iters += res["iterations"]
             pair.append(float(res["focal"]) if res["T"] else float("nan"))
         pp_fs += pair
         sens.append(abs(np.log(pair[0] / pair[1])) / 2 if all(np.isfinite(pair)) else float("inf"))
     rel_pp = float(np.hypot(sens[0], sens[1]))  # x, y
-    formal = _adjust(tracks, ba["T"], ba["pts"], _K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
+    formal = adjust_focal(tracks, ba["T"], ba["pts"], focal_K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
                      marginal=True)
     rel_f = float(formal.get("rel_sigma_formal", float("inf")))
     out.update(block_focals=fs, pp_focals=pp_fs, rel_sigma_blocks=rel_b, rel_sigma_pp=rel_pp, rel_sigma_formal=rel_f,
@@ -1125,7 +706,7 @@ def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bloc
     (near-degenerate stretches, lens and principal-point model error, rolling shutter), which the
     formal covariance (0.01-0.1 % on real clips whose errors were 1-3 %) does not. Where leaving a
     block out splits a reconstruction, each part gets its own gauge. Returns (focal per block that
-    kept >= 3 frames, LM iterations); with ``pp_prior`` (the principal point free, :func:`_adjust`)
+    kept >= 3 frames, LM iterations); with ``pp_prior`` (the principal point free, :func:`adjust_focal`)
     the focal lengths are (f, cx, cy) triples."""
     frames = sorted(ba["T"])
     fs, iters = [], 0
@@ -1133,7 +714,7 @@ def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bloc
         drop = set(part.tolist())
         T = {f: v for f, v in ba["T"].items() if f not in drop}
         pts = _split_models(tracks, T, ba["pts"], K, max_px)
-        res = _adjust(tracks, T, pts, K, robust_px=robust_px, iterations=iterations, max_px=max_px, pp_prior=pp_prior)
+        res = adjust_focal(tracks, T, pts, K, robust_px=robust_px, iterations=iterations, max_px=max_px, pp_prior=pp_prior)
         iters += res["iterations"]
         if res["frames"] >= 3:
             fs.append(float(res["focal"]) if pp_prior is None else (float(res["focal"]), *map(float, res["pp"])))
@@ -1147,7 +728,7 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     principal point free, pulled towards K's (the image centre) by a prior of ``prior_frac`` x the
     image size (W, H); its uncertainty per axis is the quadrature sum of the jackknife spread over
     ``blocks`` contiguous frame blocks left out (:func:`_jackknife`) and the formal marginal std
-    (:func:`_formal_cov`, which holds the prior: where the motion says nothing it stays ~ the
+    (:func:`formal_cov`, which holds the prior: where the motion says nothing it stays ~ the
     prior's width). Returns {pp (2,), focal, sigma (2,), sigma_blocks, sigma_formal (px),
     rel_sigma_blocks, rel_sigma_formal (of f), iterations}."""
     c0 = np.asarray(K, np.float64)[:2, 2]
@@ -1157,12 +738,12 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     err = np.asarray(ba.get("errors", []), np.float64)
     noise = max(1.4826 * float(np.median(err)) / 1.1774, 1e-3) if len(err) else 1.0
     prior = (c0, prior_frac * np.asarray(size, np.float64) / noise)
-    joint = _adjust(tracks, ba["T"], ba["pts"], K, robust_px=robust_px, iterations=iterations, max_px=2.0,
+    joint = adjust_focal(tracks, ba["T"], ba["pts"], K, robust_px=robust_px, iterations=iterations, max_px=2.0,
                     marginal=True, pp_prior=prior)
     iters = joint["iterations"]
     if not joint["T"]:
         return {"pp": c0, "focal": float(K[0, 0]), "sigma": np.full(2, np.inf), "iterations": iters}
-    Kj = _K(joint["focal"], joint["pp"])
+    Kj = focal_K(joint["focal"], joint["pp"])
     est, it = _jackknife(tracks, joint, Kj, robust_px, blocks, pp_prior=prior, iterations=15)
     iters += it
     if len(est) >= 3:
@@ -1181,9 +762,9 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
 def _split_models(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray, max_px: float
                   ) -> dict[int, np.ndarray]:
     """Points re-keyed so that each connected part (frames linked by shared points) of the
-    observations within ``max_px`` is its own model (its own gauge in :func:`_adjust`)."""
-    obs, _ = _observations(tracks, T, pts, K, max_px)
-    uf = _UnionFind()
+    observations within ``max_px`` is its own model (its own gauge in :func:`adjust_focal`)."""
+    obs, _ = observations(tracks, T, pts, K, max_px)
+    uf = UnionFind()
     for o in obs.values():
         for f, _ in o[1:]:
             uf.union((o[0][0], 0), (f, 0))

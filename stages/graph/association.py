@@ -41,10 +41,10 @@ from scipy.ndimage import maximum_filter
 
 from gcvd_flow.stages.frontend.flow import dis_flow, fb_consistency
 from gcvd_flow.stages.frontend.params import settings_with
-from gcvd_flow.stages.geometry.image import to_gray
 from gcvd_flow.stages.geometry.two_view import pose_from_essential
 from gcvd_flow.stages.graph import retrieval as retrieval_mod
 from gcvd_flow.stages.graph.params import AssociationSettings
+from gcvd_flow.stages.sfm.features import SiftFeatures, ratio_matches, sift_features
 
 log = logging.getLogger(__name__)
 
@@ -208,33 +208,15 @@ def candidate_pairs(
 # ----------------------------------------------------------------------------- matching
 
 
-SiftFeatures = tuple[np.ndarray, np.ndarray | None]  # keypoint positions (K, 2) px, descriptors (K, 128)
-
-
 def _sift_features(img: np.ndarray) -> SiftFeatures:
-    """SIFT keypoint positions and descriptors of one image (a keyframe takes part in several
-    pairs: its features are computed once)."""
-    sift = cv2.SIFT_create(contrastThreshold=SIFT_CONTRAST)  # type: ignore[attr-defined]
-    kp, des = sift.detectAndCompute(to_gray(img), None)
-    return np.asarray([k.pt for k in kp], np.float64).reshape(-1, 2), des
-
-
-def _match_features(fa: SiftFeatures, fb: SiftFeatures) -> tuple[np.ndarray, np.ndarray]:
-    """Ratio-test matches of two images' features: (pts_a (M, 2), pts_b (M, 2)) float64 px,
-    deterministic order."""
-    (pos_a, des_a), (pos_b, des_b) = fa, fb
-    if des_a is None or des_b is None or len(pos_a) < 2 or len(pos_b) < 2:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(des_a, des_b, k=2)
-    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < SIFT_RATIO * m[1].distance]
-    ia = np.asarray([q for q, _ in pairs], np.int64)
-    ib = np.asarray([t for _, t in pairs], np.int64)
-    return pos_a[ia].reshape(-1, 2), pos_b[ib].reshape(-1, 2)
+    """SIFT keypoint positions and descriptors of one image, all of them (a keyframe takes part in
+    several pairs: its features are computed once; a top-level function for the worker map)."""
+    return sift_features(img, 0, contrast=SIFT_CONTRAST)
 
 
 def _sift_matches(img_a: np.ndarray, img_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Ratio-test SIFT matches: (pts_a (M, 2), pts_b (M, 2)) float64 px, deterministic order."""
-    return _match_features(_sift_features(img_a), _sift_features(img_b))
+    return ratio_matches(_sift_features(img_a), _sift_features(img_b), SIFT_RATIO)
 
 
 def _homography(pts_a: np.ndarray, pts_b: np.ndarray) -> tuple[np.ndarray | None, float]:
@@ -379,7 +361,7 @@ def forward_share(features: list[SiftFeatures], K: np.ndarray, max_deg: float = 
     rotation-only pair's translation direction is noise, which rarely falls in the cone."""
     n = k = 0
     for fa, fb in zip(features[:-1], features[1:]):
-        pts_a, pts_b = _match_features(fa, fb)
+        pts_a, pts_b = ratio_matches(fa, fb, SIFT_RATIO)
         E, _, n_inl = _essential(pts_a, pts_b, K)
         if E is None or n_inl < MIN_MATCHES:
             continue
@@ -513,7 +495,7 @@ def _pair_flow_call(args: tuple[np.ndarray, np.ndarray, SiftFeatures, SiftFeatur
     img_a, img_b, fa, fb, fb_thresh, prewarp = args
     if not prewarp:
         return {**_flow_with_prewarp(img_a, img_b, np.eye(3), fb_thresh), "homography": np.eye(3)}
-    return keyframe_pair_flow(img_a, img_b, fb_thresh=fb_thresh, _matches=_match_features(fa, fb))
+    return keyframe_pair_flow(img_a, img_b, fb_thresh=fb_thresh, _matches=ratio_matches(fa, fb, SIFT_RATIO))
 
 
 def _verify_call(args: tuple[np.ndarray, np.ndarray, SiftFeatures, SiftFeatures, np.ndarray, float, dict[str, Any]],
@@ -521,7 +503,7 @@ def _verify_call(args: tuple[np.ndarray, np.ndarray, SiftFeatures, SiftFeatures,
     """One loop candidate: (img_a, img_b, features a, features b, K, keyframe threshold px,
     verify_pair keywords) -> :func:`verify_pair`."""
     img_a, img_b, fa, fb, K, threshold_px, kw = args
-    return verify_pair(img_a, img_b, K, threshold_px, _matches=_match_features(fa, fb), **kw)
+    return verify_pair(img_a, img_b, K, threshold_px, _matches=ratio_matches(fa, fb, SIFT_RATIO), **kw)
 
 
 def _verify_candidates(

@@ -44,7 +44,10 @@ from typing import Sequence
 
 import numpy as np
 
-DEFAULT_WORDS = 64
+from gcvd_flow.stages.graph.params import AssociationSettings
+
+DEFAULT_WORDS = AssociationSettings.words
+_A = AssociationSettings  # the defaults are the association stage's, written once there
 DEFAULT_MAX_SAMPLES = 20000
 DEFAULT_ITERS = 12
 
@@ -211,9 +214,9 @@ def departure(score: np.ndarray) -> np.ndarray:
     return out
 
 
-def relative_candidates(descs: np.ndarray | Sequence[np.ndarray], min_separation: int = 8, top_k: int = 5,
-                        min_ratio: float = 0.1, window: int = 1, min_departure: float | None = 0.5,
-                        ) -> list[tuple[int, int, float]]:
+def relative_candidates(descs: np.ndarray | Sequence[np.ndarray], min_separation: int = _A.min_separation,
+                        top_k: int = _A.top_k, min_ratio: float = _A.min_ratio, window: int = _A.window,
+                        min_departure: float | None = _A.min_departure) -> list[tuple[int, int, float]]:
     """Loop candidates over all keyframe pairs from one or more descriptor kinds.
 
     Per kind: cosine similarity averaged along the path (:func:`sequence_scores`, ``window``),

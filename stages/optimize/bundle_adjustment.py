@@ -5,7 +5,7 @@ What COLMAP has and GCVD lacks: after the pose graph, every keyframe pose is ref
 graph only knows relative poses per window and per loop edge; the reprojection factors tie every
 keyframe to the same points, which removes drift that windows chained by relative poses keep.
 
-Tracks come from the flows the cache already holds (:func:`build_tracks`): from a grid of pixels
+Tracks come from the flows the cache already holds (:func:`flow_tracks`): from a grid of pixels
 in keyframe m, the forward-backward-consistent flow to keyframe m+1 is followed for up to
 ``track_length`` keyframes (a pixel leaves its track where the flow is inconsistent or leaves the
 image), and from every keyframe the track reaches, one hop across each loop edge of the
@@ -74,7 +74,7 @@ def _bilinear(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 Track = list[tuple[int, float, float]]  # [(keyframe position, u, v), ...], first = anchor
 
 
-def build_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
+def flow_tracks(edge_flows: Mapping[tuple[int, int], dict[str, np.ndarray]], keyframes: Sequence[int],
                        shape: tuple[int, int], stride: int = 12, track_length: int = 4,
                        border: int = 2, keep: Sequence[np.ndarray] | None = None) -> list[Track]:
     """Tracks over the keyframe graph: started on a ``stride`` grid in every keyframe, followed
@@ -196,7 +196,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                         K: np.ndarray, settings: BundleAdjustmentSettings | None = None, *,
                         keep: Sequence[np.ndarray] | None = None, **overrides: Any) -> BundleResult:
     """Refine keyframe poses T_w_k (K, 4, 4) over tracks of the keyframe graph
-    (:func:`build_tracks`), landmarks as inverse depth in their first keyframe.
+    (:func:`flow_tracks`), landmarks as inverse depth in their first keyframe.
 
     If the given poses (with landmarks at the keyframes' depth) already reproject the tracks to a
     median error below ``consistent_px``, they are kept (``skipped``): the tracks hold no evidence
@@ -207,7 +207,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     ``solver``: "schur" (:mod:`stages.optimize.ba_solver`: analytic Jacobians, Schur complement;
     >10x faster on keyframe-heavy clips) or "gtsam" (the same factor graph in gtsam's
     Levenberg-Marquardt, the reference). ``keep``: the user's (--masks) kept pixels per keyframe
-    (bool (H, W)) or None (:func:`build_tracks`). ``settings``: the stage's
+    (bool (H, W)) or None (:func:`flow_tracks`). ``settings``: the stage's
     :class:`BundleAdjustmentSettings` (None: its defaults) with ``overrides`` by field name;
     ``enabled`` is the caller's."""
     cfg = settings_with(BundleAdjustmentSettings, settings, overrides)
@@ -219,7 +219,7 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     T_w_k = np.asarray(T_w_k, np.float64)
     n = len(T_w_k)
     h, w = np.asarray(depths[0]).shape
-    tracks = [t for t in build_tracks(edge_flows, keyframes, (h, w), stride, track_length, keep=keep)
+    tracks = [t for t in flow_tracks(edge_flows, keyframes, (h, w), stride, track_length, keep=keep)
               if len(t) >= min_views]
     none: BundleResult = {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
                           "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
