@@ -239,14 +239,14 @@ def test_kept_pixels_take_no_landings_and_the_output_is_the_same_bits(monkeypatc
     refs = _refs([-0.2, -0.1, 0.1, 0.2])
     args = dict(guide=_wall_guide(), keep_confidence=0.5, ref_edge_jump=0.1)
     landed = []
-    real = consensus.splat_points
+    real = consensus.project_source
 
     def counting(*a, **k):
         out = real(*a, **k)
         landed.append(len(out[0]))
         return out
 
-    monkeypatch.setattr(consensus, "splat_points", counting)
+    monkeypatch.setattr(consensus, "project_source", counting)
     fast = splat_consensus(depth, conf, _pose(0.0), refs, K, **args)
     n_fast = sum(landed)
     monkeypatch.setattr(consensus, "_splat_targets", lambda *a, **k: None)
@@ -255,3 +255,87 @@ def test_kept_pixels_take_no_landings_and_the_output_is_the_same_bits(monkeypatc
     assert fast.tobytes() == full.tobytes()
     assert n_fast < 0.6 * sum(landed)
     assert np.abs(np.log(fast[REGION]) - np.log(depth[REGION])).mean() > 0.05  # the splat did change the region
+
+
+def _noisy_clip(n: int = 6) -> tuple[list, list]:
+    """n frames along x of the plane with the far-off region, noisy depth and mixed confidence:
+    (depth, confidence) per frame and the refs tuples (depth, confidence, pose)."""
+    rng = np.random.default_rng(5)
+    frames, refs = [], []
+    for k in range(n):
+        depth, conf = _far_off_frame() if k == 0 else (_plane(0.05 * k), np.full((H, W), 0.9, np.float32))
+        conf = np.where(rng.random((H, W)) < 0.3, rng.random((H, W)), conf).astype(np.float32)
+        depth = (depth * (1 + 0.03 * rng.standard_normal((H, W)))).astype(np.float32)
+        frames.append((depth, conf))
+        refs.append((depth, conf, _pose(0.05 * k)))
+    return frames, refs
+
+
+def test_reference_sources_computed_once_serve_every_target_with_the_same_bits():
+    """A reference's splat source (its edge-lowered confident static pixels, back-projected) does
+    not depend on the target: sources computed once through a SourceCache and reused for every
+    target give the same bits as splat_consensus computing its own, and the cache serves repeats."""
+    from gcvd_flow.stages.depth.consensus import SourceCache, reference_sources
+
+    frames, refs = _noisy_clip()
+    static = [np.ones((H, W), np.uint8) for _ in refs]
+    static[2][:10] = 0
+    args = dict(guide=_wall_guide(), keep_confidence=0.5, ref_edge_jump=0.1, min_confidence=0.5)
+    cache = SourceCache()
+    for i in (0, 3, 5):
+        sel = [j for j in range(len(refs)) if j != i]
+        own = splat_consensus(*frames[i], refs[i][2], [refs[j] for j in sel], K, ref_static=[static[j] for j in sel], **args)
+        src = reference_sources([refs[j] for j in sel], [static[j] for j in sel], K, 0.5, 0.1, cache=cache)
+        shared = splat_consensus(*frames[i], refs[i][2], [refs[j] for j in sel], K, ref_static=[static[j] for j in sel],
+                                 sources=src, **args)
+        assert shared.tobytes() == own.tobytes()
+        assert not np.array_equal(own, frames[i][0])  # the splat did change the frame
+    assert cache.hits == 3 * 5 - len(refs)  # 15 requests, each of the 6 references computed once
+
+
+def test_the_source_cache_keys_on_content_not_on_the_frame():
+    """A reference whose depth, confidence, static mask or splat settings differ is a new source:
+    a cache keyed by anything less would splat a stale reference."""
+    from gcvd_flow.stages.depth.consensus import SourceCache, reference_sources
+
+    _, refs = _noisy_clip(2)
+    cache = SourceCache()
+    first = reference_sources(refs[1:], None, K, 0.5, 0.1, cache=cache)[0]
+    moved = (refs[1][0] * np.float32(1.1), refs[1][1], refs[1][2])
+    again = reference_sources([moved], None, K, 0.5, 0.1, cache=cache)[0]
+    assert cache.hits == 0 and first is not None and again is not None
+    np.testing.assert_allclose(again.X, first.X * 1.1, rtol=1e-6)
+    mask = np.ones((H, W), np.uint8)
+    mask[:20] = 0
+    for variant in (reference_sources(refs[1:], [mask], K, 0.5, 0.1, cache=cache)[0],
+                    reference_sources(refs[1:], None, K, 0.7, 0.1, cache=cache)[0],
+                    reference_sources(refs[1:], None, K, 0.5, None, cache=cache)[0]):
+        assert cache.hits == 0 and variant is not None and len(variant.weight) != len(first.weight)
+    assert reference_sources(refs[1:], None, K, 0.5, 0.1, cache=cache)[0] is first and cache.hits == 1
+    small = SourceCache(capacity=1)
+    reference_sources(refs, None, K, 0.5, 0.1, cache=small)
+    reference_sources(refs[:1], None, K, 0.5, 0.1, cache=small)
+    assert small.hits == 0  # evicted: at most ``capacity`` sources are held
+
+
+def test_the_stage_reuses_sources_across_items_with_the_same_bits():
+    """pipeline.run_depth_consensus with its splat_sources resource (one SourceCache per worker):
+    the same bits as without it, and a second item reading the same reference hits the cache."""
+    from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
+    from gcvd_flow.stages.depth.consensus import SourceCache
+
+    class Ctx:
+        def __init__(self) -> None:
+            self.cache = SourceCache()
+
+        def resource(self, name: str) -> SourceCache:
+            assert name == "splat_sources"
+            return self.cache
+
+    depth, conf = _far_off_frame()
+    p = DepthConsensusParams(offsets=(8,), splat_offsets=(1,))
+    ctx = Ctx()
+    plain = run_depth_consensus(_stage_inputs(depth, conf, True), p, None)
+    for hits in (0, 1):
+        shared = run_depth_consensus(_stage_inputs(depth, conf, True), p, ctx)
+        assert shared["depth"].tobytes() == plain["depth"].tobytes() and ctx.cache.hits == hits

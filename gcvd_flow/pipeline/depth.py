@@ -226,6 +226,10 @@ def _consensus_items(view, p: depth_params.DepthConsensusSettings):
     return out
 
 
+def _open_source_cache(p: depth_params.DepthConsensusSettings) -> Any:
+    return depth_consensus.SourceCache()
+
+
 def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's filtered depth averaged with the depths its references see at its pixels (moving
     pixels, by the masks stage, left out), then (splat_offsets) corrected with their confident
@@ -254,7 +258,10 @@ def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSe
         use = set(int(j) for j in inputs["splat_indices"])
         sel = [k for k, j in enumerate(idx) if j in use]
         gray = np.asarray(inputs["image"]["image"], np.float64).mean(axis=2) / 255.0
-        out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray,
+        sources = None if ctx is None else depth_consensus.reference_sources(  # each reference once per worker
+            [refs[k] for k in sel], [static[1 + k] for k in sel], K, p.splat_min_confidence,
+            p.splat_ref_edge_jump or None, cache=ctx.resource("splat_sources"))
+        out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray, sources=sources,
                                               min_confidence=p.splat_min_confidence, front=p.splat_front,
                                               static=static[0], ref_static=[static[1 + k] for k in sel],
                                               keep_confidence=p.splat_keep, keep_edges=p.splat_keep_edges or None,
@@ -266,7 +273,7 @@ def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSe
 
 DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
                                    deps=(INGEST, CALIBRATE, MASKS, OPTIMIZE_SEGMENTS, DEPTH_FILTER),
-                                   params="depth_consensus",
+                                   params="depth_consensus", resources={"splat_sources": _open_source_cache},
                                    kind="depth", items=_consensus_items,
                                    description="filtered depth averaged with what confident views of the "
                                                "same points say, carried with the final poses"))

@@ -173,32 +173,68 @@ def splat_points(K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray, depth
     covering the 4 pixels around its landing position (no holes between neighbours on a
     receding surface); points behind i or outside its image are left out, and with ``target``
     (bool (H, W)) the landings on pixels where it is False."""
-    h, w = shape
-    tgt = None if target is None else np.asarray(target, bool).ravel()
+    return project_source(splat_source(K, depth_j, weight_j), K, shape, T_i_j,
+                          None if target is None else SplatTarget(target))
+
+
+class SplatSource:
+    """A reference's splatted pixels, independent of the frame they are splatted into: their
+    points in the reference's camera (float64 (3, N)) and weights (float64 (N,)). Computed once
+    per reference and reused for every target frame (``splat_consensus(sources=...)``)."""
+
+    __slots__ = ("X", "weight")
+
+    def __init__(self, X: np.ndarray, weight: np.ndarray):
+        self.X, self.weight = X, weight
+
+
+def splat_source(K: np.ndarray, depth_j: np.ndarray, weight_j: np.ndarray) -> SplatSource:
+    """The pixels of frame j with weight > 0 back-projected with their depth (see ``splat_points``)."""
     K = np.asarray(K, np.float64)
     vs, us = np.nonzero(weight_j > 0)
     z = np.asarray(depth_j, np.float64)[vs, us]
     rays = np.stack([us, vs, np.ones_like(us)], 0).astype(np.float64)
-    X = (np.linalg.inv(K) @ rays) * z
-    Y = T_i_j[:3, :3] @ X + T_i_j[:3, 3:4]
+    return SplatSource((np.linalg.inv(K) @ rays) * z, np.asarray(weight_j, np.float64)[vs, us])
+
+
+class SplatTarget:
+    """A target mask (bool (H, W)) with what ``project_source`` reads of it computed once: the flat
+    mask and where a landing's footprint reaches it."""
+
+    __slots__ = ("flat", "reach")
+
+    def __init__(self, target: np.ndarray):
+        target = np.asarray(target, bool)
+        self.flat, self.reach = target.ravel(), _footprint_reach(target)
+
+
+def project_source(src: SplatSource, K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray,
+                   target: SplatTarget | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``splat_points`` of a precomputed reference (the same arithmetic, so the same bits)."""
+    h, w = shape
+    K = np.asarray(K, np.float64)
+    Y = T_i_j[:3, :3] @ src.X + T_i_j[:3, 3:4]
     front = Y[2] > 1e-6
-    Y, wj = Y[:, front], np.asarray(weight_j, np.float64)[vs[front], us[front]]
+    Y, wj = Y[:, front], src.weight[front]
     q = K @ Y
     uf, vf = np.floor(q[0] / q[2]).astype(np.int64), np.floor(q[1] / q[2]).astype(np.int64)
-    if tgt is not None:  # first drop the points whose whole footprint misses the targets (same landings)
+    if target is not None:  # first drop the points whose whole footprint misses the targets (same landings)
         near = np.flatnonzero((uf >= -1) & (uf < w) & (vf >= -1) & (vf < h))
-        sel = near[_footprint_reach(np.asarray(target, bool))[vf[near] + 1, uf[near] + 1]]
-        uf, vf, Y, wj = uf[sel], vf[sel], Y[:, sel], wj[sel]
+        sel = near[target.reach[vf[near] + 1, uf[near] + 1]]
+        uf, vf, zj, wj = uf[sel], vf[sel], Y[2, sel], wj[sel]
+    else:
+        zj = Y[2]
     idx, zs, ws = [], [], []
     for du, dv in SPLAT_FOOTPRINT:
         u, v = uf + du, vf + dv
         ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         flat = v[ok] * w + u[ok]
-        if tgt is not None:
-            ok[ok] = tgt[flat]
-            flat = flat[tgt[flat]]
+        if target is not None:
+            hit = target.flat[flat]
+            ok[ok] = hit
+            flat = flat[hit]
         idx.append(flat)
-        zs.append(Y[2, ok])
+        zs.append(zj[ok])
         ws.append(wj[ok])
     return np.concatenate(idx), np.concatenate(zs), np.concatenate(ws)
 
@@ -229,6 +265,7 @@ def splat_consensus(
     keep_confidence: float | None = None,
     keep_edges: float | None = None,
     ref_edge_jump: float | None = None,
+    sources: Sequence[SplatSource | None] | None = None,
 ) -> np.ndarray:
     """Frame i's depth float32 (H, W) corrected with its references' confident depth splatted
     forward into it (z-buffered), and the correction spread edge-aware over what no view covers.
@@ -253,7 +290,9 @@ def splat_consensus(
     docs/log/2026-11-28-depth2.md).
 
     refs: [(depth_j (H, W), confidence_j (H, W), pose_j (4, 4) camera-to-world), ...]; static /
-    ref_static as in ``consensus_depth``. Pixels with depth 0 stay 0.
+    ref_static as in ``consensus_depth``. Pixels with depth 0 stay 0. ``sources``: the refs'
+    ``reference_sources`` (the same min_confidence, ref_static and ref_edge_jump), computed once
+    when the references serve several frames; the output is the same bits.
     """
     depth = np.asarray(depth, np.float32)
     h, w = depth.shape
@@ -262,7 +301,9 @@ def splat_consensus(
     pose = np.asarray(pose, np.float64)
     T_i_w = np.linalg.inv(pose)
     target = _splat_targets(conf, valid, min_confidence, keep_confidence, keep_edges, depth)
-    pts = _landings(refs, ref_static, T_i_w, K, (h, w), min_confidence, ref_edge_jump, target)
+    if sources is None:
+        sources = reference_sources(refs, ref_static, K, min_confidence, ref_edge_jump)
+    pts = _landings(refs, sources, T_i_w, K, (h, w), target)
     if not pts:
         return depth
     idx, z, wt = (np.concatenate(a) for a in zip(*pts))
@@ -287,23 +328,81 @@ def splat_consensus(
     return out
 
 
-def _landings(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], ref_static: Sequence[np.ndarray | None] | None,
-              T_i_w: np.ndarray, K: np.ndarray, shape: tuple[int, int], min_confidence: float,
-              ref_edge_jump: float | None, target: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """splat_points of every reference's confident static pixels (weight confidence^2) into frame i
-    (T_i_w: world to frame i's camera)."""
-    pts = []
-    for k, (depth_j, conf_j, pose_j) in enumerate(refs):
+def _landings(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], sources: Sequence[SplatSource | None],
+              T_i_w: np.ndarray, K: np.ndarray, shape: tuple[int, int],
+              target: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every reference's splat source moved into frame i (T_i_w: world to frame i's camera)."""
+    tgt = None if target is None else SplatTarget(target)
+    return [project_source(src, K, shape, T_i_w @ np.asarray(pose_j, np.float64), tgt)
+            for (_, _, pose_j), src in zip(refs, sources) if src is not None]
+
+
+def reference_sources(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                      ref_static: Sequence[np.ndarray | None] | None, K: np.ndarray, min_confidence: float,
+                      ref_edge_jump: float | None, cache: SourceCache | None = None) -> list[SplatSource | None]:
+    """Per reference, its confident static pixels (weight confidence^2; with ``ref_edge_jump`` the
+    confidence lowered at its own depth edges) as a ``SplatSource`` (None: nothing to splat). They
+    do not depend on the target frame: compute them once for all the frames a reference serves
+    (``cache``: a ``SourceCache`` kept across the frames, keyed by the inputs' content)."""
+    out: list[SplatSource | None] = []
+    for k, (depth_j, conf_j, _) in enumerate(refs):
         st = None if ref_static is None else ref_static[k]
+        key = b"" if cache is None else cache.key(K, depth_j, conf_j, st, min_confidence, ref_edge_jump)
+        if cache is not None and key in cache:
+            out.append(cache.get(key))
+            continue
         dj = np.asarray(depth_j, np.float32)
         if ref_edge_jump is not None:  # a reference's pixels straddling its occlusion boundaries
             conf_j = edge_confidence(dj, conf_j, ref_edge_jump)
         wj = np.where((dj > 0) & (np.asarray(conf_j) >= min_confidence), np.asarray(conf_j, np.float64) ** 2, 0.0)
         if st is not None:
             wj = np.where(np.asarray(st) > 0, wj, 0.0)
-        if wj.any():
-            pts.append(splat_points(K, shape, T_i_w @ np.asarray(pose_j, np.float64), dj, wj, target))
-    return pts
+        out.append(splat_source(K, dj, wj) if wj.any() else None)
+        if cache is not None:
+            cache.put(key, out[-1])
+    return out
+
+
+class SourceCache:
+    """The ``SplatSource`` of the last ``capacity`` references, keyed by a hash of everything they
+    are computed from (depth, confidence, static mask, K, min_confidence, ref_edge_jump): a frame
+    serves as reference to every frame within the largest splat offset, each time the same source.
+    Memory: ~32 bytes per splatted pixel per entry (ICL 256x192: ~1.4 MB)."""
+
+    def __init__(self, capacity: int = 136):
+        from collections import OrderedDict
+
+        self.capacity = capacity
+        self._d: OrderedDict[bytes, SplatSource | None] = OrderedDict()
+        self.hits = 0
+
+    @staticmethod
+    def key(K: np.ndarray, depth: np.ndarray, conf: np.ndarray, static: np.ndarray | None, min_confidence: float,
+            ref_edge_jump: float | None) -> bytes:
+        import hashlib
+
+        hsh = hashlib.blake2b(repr((float(min_confidence), ref_edge_jump)).encode(), digest_size=20)
+        for a in (np.asarray(K, np.float64), np.asarray(depth), np.asarray(conf), static):
+            if a is None:
+                hsh.update(b"none")
+                continue
+            a = np.ascontiguousarray(a)
+            hsh.update(repr((a.dtype.str, a.shape)).encode())
+            hsh.update(a.data)
+        return hsh.digest()
+
+    def __contains__(self, key: bytes) -> bool:
+        return key in self._d
+
+    def get(self, key: bytes) -> SplatSource | None:
+        self._d.move_to_end(key)
+        self.hits += 1
+        return self._d[key]
+
+    def put(self, key: bytes, src: SplatSource | None) -> None:
+        self._d[key] = src
+        while len(self._d) > self.capacity:
+            self._d.popitem(last=False)
 
 
 def _splat_targets(conf: np.ndarray, valid: np.ndarray, min_confidence: float, keep_confidence: float | None,
