@@ -35,6 +35,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_cost import Sampler  # noqa: E402 - the sibling benchmark's process-tree sampler
+
 from gcvd_flow.pipeline import STAGE_GROUPS  # noqa: E402 - the checkout's pipeline, not an installed one
 
 PRE, MAIN, POST = STAGE_GROUPS["pre"], STAGE_GROUPS["main"], STAGE_GROUPS["post"]
@@ -42,53 +45,15 @@ PRE, MAIN, POST = STAGE_GROUPS["pre"], STAGE_GROUPS["main"], STAGE_GROUPS["post"
 
 class TreeMemory:
     """Peak memory of a process and all its descendants (the map stages' worker processes are
-    children of multiprocessing's forkserver, which wait4 does not count): the sum of their
-    proportional set sizes (Pss in /proc/PID/smaps_rollup: shared pages split between the
-    processes sharing them), sampled every 0.2 s from a thread."""
+    children of multiprocessing's forkserver, which wait4 does not count): the peak summed Pss
+    sampled by bench_cost.Sampler (one process-tree sampler for both benchmarks)."""
 
     def __init__(self, pid: int) -> None:
-        import threading
-
-        self.pid, self.peak_kb = pid, 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    @staticmethod
-    def _tree(root: int) -> list[int]:
-        children: dict[int, list[int]] = {}
-        for d in os.listdir("/proc"):
-            if d.isdigit():
-                try:
-                    ppid = int(open(f"/proc/{d}/stat").read().rsplit(")", 1)[1].split()[1])
-                except (OSError, IndexError, ValueError):
-                    continue
-                children.setdefault(ppid, []).append(int(d))
-        out, todo = [], [root]
-        while todo:
-            p = todo.pop()
-            out.append(p)
-            todo.extend(children.get(p, []))
-        return out
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.2):
-            total = 0
-            for p in self._tree(self.pid):
-                try:
-                    for line in open(f"/proc/{p}/smaps_rollup"):
-                        if line.startswith("Pss:"):
-                            total += int(line.split()[1])
-                            break
-                except OSError:
-                    pass
-            self.peak_kb = max(self.peak_kb, total)
+        self._sampler = Sampler(pid)
 
     def stop(self) -> float:
         """Peak in MB."""
-        self._stop.set()
-        self._thread.join()
-        return self.peak_kb / 1024
+        return float(self._sampler.stop()["peak_tree_pss_mb"])
 
 
 def _timed_runs(tmp: Path, clip: Path, tag: str, copies: int, policy: str, run_args: tuple[str, ...] = ()) -> list[float]:
