@@ -143,7 +143,7 @@ def test_intrinsics_formats(tmp_path):
         (ds.read_tum_poses, "# only a comment\n", "no poses"),
         (ds.read_redwood_log, "0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n", "5 lines per pose"),
         (ds.read_redwood_log, "0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1\n0 0 0 1\n", "line 4"),
-        (ds.read_intrinsics_txt, "525 525 319.5\n", "fx fy cx cy"),
+        (ds.read_intrinsics_txt, "525 525 319.5\n", "fx,fy,cx,cy"),
         (ds.read_intrinsics_txt, "-1 525 319.5 239.5\n", "positive"),
         (ds.read_intrinsics_txt, "525 0 319.5\n0 -525 239.5\n0 0 1\n", "positive"),
         (ds.read_intrinsics_txt, "nan 525 319.5 239.5\n", "non-finite"),
@@ -194,7 +194,7 @@ def test_icl_redwood_log():
 
 @pytest.mark.parametrize("text, fragment", [("nan 75 31.5 23.5\n", "non-finite"),
                                             ("-75 75 31.5 23.5\n", "focal lengths must be positive"),
-                                            ("75 75 31.5\n", "fx fy cx cy")])
+                                            ("75 75 31.5\n", "fx,fy,cx,cy")])
 def test_garbage_intrinsics_txt_stops_the_run_in_one_line(tmp_path, text, fragment):
     from conftest import cli
 

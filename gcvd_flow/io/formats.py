@@ -194,77 +194,25 @@ def read_redwood_log(path: PathLike) -> np.ndarray:
     return poses
 
 
-# camera models of intrinsics.txt (COLMAP's names; the grammar is stages/frontend/lens.py's, which
-# the pipeline uses for --intrinsics: tests/test_cameras.py checks that both read the same)
-CAMERA_MODELS = {"pinhole": ("PINHOLE", (4,)), "opencv": ("OPENCV", (8, 9)),
-                 "opencv_fisheye": ("OPENCV_FISHEYE", (8,)), "fisheye": ("OPENCV_FISHEYE", (8,))}
-_CAMERA_SYNTAX = ("'fx fy cx cy' (4 values), 'fx fy cx cy k1 k2 p1 p2 [k3]' (8 or 9: with the lens distortion, "
-                  "OpenCV order), 'OPENCV_FISHEYE fx fy cx cy k1 k2 k3 k4' or a 3x3 matrix")
-
-
 def read_camera_txt(path: PathLike) -> tuple[np.ndarray, str, tuple[float, ...]]:
     """Read ``intrinsics.txt`` -> (K float64 (3, 3), model, distortion coefficients).
 
-    Accepts, after an optional model name (PINHOLE, OPENCV, OPENCV_FISHEYE or fisheye; a space or
-    a colon after it): ``fx fy cx cy`` (PINHOLE), the same followed by ``k1 k2 p1 p2 [k3]``
-    (OPENCV, OpenCV order), ``OPENCV_FISHEYE fx fy cx cy k1 k2 k3 k4`` (cv2.fisheye), or 9 unnamed
-    numbers ending with ``0 0 1`` (a 3x3 matrix, row-major, on one or three lines). Lines starting
-    with '#' are comments. Non-finite values and focal lengths <= 0 are a ``DatasetError`` naming
-    the file (a garbage file must not run to the end); whether the camera fits the frames is
-    checked at ingest (stages.frontend.lens.check_camera).
+    The grammar is ``--intrinsics``' (stages.frontend.lens.parse_camera: an optional model name
+    PINHOLE, OPENCV, OPENCV_FISHEYE or fisheye, then ``fx fy cx cy``, ``fx fy cx cy k1 k2 p1 p2
+    [k3]``, ``k1 k2 k3 k4`` for the fisheye, or 9 numbers ending with ``0 0 1``, a 3x3 matrix) over
+    the file's lines, '#' lines being comments. Anything it refuses (non-finite values, focal
+    lengths <= 0, a wrong count) is a ``DatasetError`` naming the file (a garbage file must not run
+    to the end); whether the camera fits the frames is checked at ingest (lens.check_camera).
     """
+    from gcvd_flow.stages.frontend.lens import parse_camera
+
     path = Path(path)
     text = " ".join(line for line in _read_text(path).splitlines() if not line.strip().startswith("#"))
-    head, sep, rest = text.partition(":")
-    if sep and _is_model_name(head.strip()):  # MODEL:numbers
-        text = head + " " + rest
-    tokens = text.replace(",", " ").split()
-    name = tokens.pop(0) if tokens and _is_model_name(tokens[0]) else None
     try:
-        vals = [float(t) for t in tokens]
-    except ValueError:
-        raise DatasetError(path, f"not numeric: {' '.join(tokens)[:80]!r}; expected {_CAMERA_SYNTAX}") from None
-    model = _camera_model(path, name, vals)
-    coeffs: tuple[float, ...]
-    if model == "MATRIX":
-        K, coeffs, model = np.array(vals, dtype=np.float64).reshape(3, 3), (), "PINHOLE"
-    else:
-        fx, fy, cx, cy = vals[:4]
-        K, coeffs = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), tuple(vals[4:])
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(coeffs))):
-        raise DatasetError(path, f"non-finite values (nan / inf); expected {_CAMERA_SYNTAX}")
-    if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise DatasetError(path, f"focal lengths must be positive, got fx={K[0, 0]:g} fy={K[1, 1]:g}")
-    return K, model, coeffs
-
-
-def _is_model_name(t: str) -> bool:
-    """Letters and '_' that are not a number ('nan', 'inf' are numbers)."""
-    if not t.replace("_", "").isalpha():
-        return False
-    try:
-        float(t)
-    except ValueError:
-        return True
-    return False
-
-
-def _camera_model(path: Path, name: str | None, vals: list[float]) -> str:
-    n = len(vals)
-    if name is not None:
-        if name.lower() not in CAMERA_MODELS:
-            raise DatasetError(path, f"unknown camera model {name!r} (accepted: PINHOLE, OPENCV, OPENCV_FISHEYE)")
-        model, counts = CAMERA_MODELS[name.lower()]
-        if n not in counts:
-            raise DatasetError(path, f"{model} takes {' or '.join(map(str, counts))} values, got {n}")
-        return model
-    if n == 4:
-        return "PINHOLE"
-    if n == 8 or (n == 9 and vals[6:] != [0.0, 0.0, 1.0]):
-        return "OPENCV"
-    if n == 9:
-        return "MATRIX"
-    raise DatasetError(path, f"expected {_CAMERA_SYNTAX}, got {n} values")
+        cam = parse_camera(text)
+    except ValueError as exc:
+        raise DatasetError(path, str(exc)) from None
+    return cam.K(), cam.model, tuple(cam.coeffs)
 
 
 def read_intrinsics_txt(path: PathLike) -> np.ndarray:

@@ -145,7 +145,7 @@ def parse_camera(text: str) -> Camera:
     names = ("fx", "fy", "cx", "cy") + COEFF_NAMES[model]
     for n, v in zip(names, list(intr) + coeffs):
         if not math.isfinite(v):
-            raise ValueError(f"{n}={v:g} is not finite")
+            raise ValueError(f"{n}={v:g}: non-finite values (nan, inf) are not a camera")
     for n, v in zip(("fx", "fy"), intr[:2]):
         if v <= 0:
             raise ValueError(f"{n}={v:g}: focal lengths must be positive")
@@ -243,7 +243,7 @@ def _check_cached(cam: Camera, size: tuple[int, int]) -> None:
     names = ("fx", "fy", "cx", "cy") + COEFF_NAMES[cam.model]
     for n, v in zip(names, cam.intrinsics + cam.coeffs):
         if not math.isfinite(v):
-            raise ValueError(f"{n}={v:g} is not finite")
+            raise ValueError(f"{n}={v:g}: non-finite values (nan, inf) are not a camera")
     _check_focal(cam, w, h)
     for n, c, extent in (("cx", cam.cx, w), ("cy", cam.cy, h)):
         if not -0.5 <= c <= extent - 0.5:
