@@ -107,3 +107,26 @@ def test_export_ships_undistorted_frames_with_a_pinhole_camera(tmp_path):
     src = cv2.imread(str(clip / "frames" / "000003.png"))[..., ::-1]
     got = cv2.imread(str(out / "images/000003.png"))[..., ::-1]
     np.testing.assert_array_equal(got, undistort_frame(src, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), DIST))
+
+
+def test_undistortion_is_bicubic_and_closer_to_the_pinhole_frame_than_bilinear():
+    """A fisheye lens stretches its periphery by up to ~1.4x when undistorted: bilinear resampling
+    blurs the frame (a fisheye clip's depth AbsRel 1.11x the pinhole clip's), bicubic keeps it
+    nearer the pinhole render (1.01x; docs/log/2026-11-28-cams3.md). Fails if ingest goes back
+    to bilinear."""
+    import cv2
+
+    from gcvd_flow.stages.frontend import lens
+
+    fish = (0.03, -0.01, 0.004, -0.001)
+    d = render_clip(2, "loop", size=(256, 192), distortion=fish, distortion_model="OPENCV_FISHEYE")
+    p = render_clip(2, "loop", size=(256, 192))
+    K = d.K
+    cam = lens.make_camera((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), "OPENCV_FISHEYE", fish)
+    ours = lens.undistort_image(d.frames[1], cam)
+    mx, my = lens.undistort_maps(cam, (256, 192))
+    bilinear = cv2.remap(np.ascontiguousarray(d.frames[1]), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    m = _interior(p.frames[1])
+    err_ours = np.abs(ours.astype(float) - p.frames[1])[m].mean()
+    err_bilinear = np.abs(bilinear.astype(float) - p.frames[1])[m].mean()
+    assert err_ours < 0.85 * err_bilinear, (err_ours, err_bilinear)
