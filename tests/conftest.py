@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +17,11 @@ ROOT = Path(__file__).resolve().parent.parent
 # The suite runs on 2 xdist workers: runs compute their map items in-process unless a test asks
 # for workers (--jobs N, or tests/test_jobs.py, which unsets this); results do not depend on it.
 os.environ.setdefault("GCVD_FLOW_JOBS", "1")
+# A suite started in the background by a shell without job control (`cmd &` in a script) inherits
+# SIGINT ignored, and so would every run it starts: the interrupt tests' Ctrl-C would do nothing
+# (the run exits 0). A handler, unlike SIG_IGN, is reset to the default in the child at exec.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
