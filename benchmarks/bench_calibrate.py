@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -61,8 +62,8 @@ def main() -> None:
     kw = {k: _value(v) for k, v in (item.split("=", 1) for item in a.set)}
     t = time.time()
     res = calibrate.estimate_focal(ims, K, **kw)
-    f = res.get("estimate", res.focal) / s
-    out = {k: v for k, v in res.items() if isinstance(v, (int, float, str, bool))}
+    f = (res.estimate if res.estimate is not None else res.focal) / s
+    out = {k: v for k, v in asdict(res).items() if isinstance(v, (int, float, str, bool))}
     out.update(f_source=f, error_pct=100 * (f / a.true_fx - 1), seconds=round(time.time() - t, 1),
                n=len(ims), size=[W, H])
     out.update(_pp_fields(res, s, (w, h), a.true_pp))
@@ -79,13 +80,13 @@ def _value(v: str) -> Any:
             return v
 
 
-def _pp_fields(res: dict[str, Any], s: float, src: tuple[int, int], true_pp: str | None) -> dict[str, Any]:
+def _pp_fields(res: calibrate.FocalEstimate, s: float, src: tuple[int, int], true_pp: str | None) -> dict[str, Any]:
     """The principal point at the source resolution (pixel-centre scaling, as ingest) and its errors."""
     def source(c):
         return [(float(v) + 0.5) / s - 0.5 for v in c]
 
     out: dict[str, Any] = {"pp_source": source(res.principal_point), "pp_estimated": res.pp_estimated,
-                           "pp_reason": res.get("pp_reason", ""), "pp_z": res.pp_z}
+                           "pp_reason": res.pp_reason, "pp_z": res.pp_z}
     if res.pp_estimate is not None:
         out["pp_estimate_source"] = source(res.pp_estimate)
         out["pp_sigma_source"] = [float(v) / s for v in res.pp_sigma]

@@ -297,3 +297,57 @@ def test_focal_estimate_is_a_typed_record():
     with pytest.raises(TypeError, match="unexpected"):
         FocalEstimate.from_record({**base, "new_diagnostic": 1.0})
     assert {f.name for f in dataclasses.fields(FocalEstimate)} >= set(base)
+
+
+def _look_at(centre, target) -> np.ndarray:
+    """World-to-camera (4, 4) of a camera at ``centre`` looking at ``target`` (y down-ish)."""
+    z = np.asarray(target, float) - np.asarray(centre, float)
+    z /= np.linalg.norm(z)
+    x = np.cross([0, 1.0, 0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ np.asarray(centre, float)
+    return T
+
+
+def test_principal_point_is_estimated_from_the_largest_model_beside_a_degenerate_one():
+    """Two reconstructions of one camera (principal point (4, 6) px off the centre): an arc of 14
+    frames that determines it, and 4 frames panning on a 1 cm baseline whose free principal point is
+    near-singular. Adjusted jointly, the small model stalled the whole adjustment (120 LM iterations,
+    the estimate unmoved at the centre, std inf: what the real HoloLens walk did); the principal
+    point comes from the largest model and lands within 1 px of the truth with a finite std."""
+    from gcvd_flow.stages.frontend.calibrate import largest_model, principal_point
+    from gcvd_flow.stages.sfm.reconstruction import TRACK_KEY, adjust_focal
+
+    rng = np.random.default_rng(0)
+    size, f, true = (256, 192), 200.0, np.array([131.5, 101.5])
+    K_true = np.array([[f, 0, true[0]], [0, f, true[1]], [0, 0, 1]])
+    tracks: list[dict[int, np.ndarray]] = []
+    pts: dict[int, np.ndarray] = {}
+    T: dict[int, np.ndarray] = {}
+
+    def add(model: int, cams: dict[int, tuple], targets: dict[int, tuple], n: int, centre_z: float, spread: float):
+        T.update({fr: _look_at(c, targets[fr]) for fr, c in cams.items()})
+        for X in rng.uniform([-spread, -spread, centre_z - spread], [spread, spread, centre_z + spread], (n, 3)):
+            track = {}
+            for fr in cams:
+                Xc = T[fr][:3, :3] @ X + T[fr][:3, 3]
+                uv = (K_true @ Xc)[:2] / Xc[2] + rng.normal(0, 0.1, 2)
+                if 0 <= uv[0] < size[0] and 0 <= uv[1] < size[1]:
+                    track[fr] = uv
+            if len(track) >= 2:
+                pts[model * TRACK_KEY + len(tracks)] = X
+                tracks.append(track)
+
+    arc = np.linspace(-0.6, 0.6, 14)
+    add(0, {i: (4 * np.sin(a), 0.5 * np.cos(3 * a), 6 - 4 * np.cos(a)) for i, a in enumerate(arc)},
+        {i: (0, 0, 6) for i in range(14)}, 300, 6.0, 1.5)
+    add(1, {20 + k: (5 + 0.01 * k, 0, -20) for k in range(4)}, {20 + k: (5 + 0.3 * k, 0, -10) for k in range(4)},
+        80, -10.0, 1.0)
+    K = np.array([[f, 0, (size[0] - 1) / 2], [0, f, (size[1] - 1) / 2], [0, 0, 1]])
+    ba = adjust_focal(tracks, T, pts, K, robust_px=1.0, iterations=100, max_px=50.0)  # the centre's solution
+    assert sorted(largest_model(tracks, ba, K)["T"]) == list(range(14))
+    res = principal_point(tracks, ba, K, size)
+    assert np.all(np.abs(res["pp"] - true) < 1.0), res["pp"]
+    assert np.all(np.isfinite(res["sigma"])) and np.all(np.asarray(res["sigma"]) < 0.01 * np.asarray(size)), res

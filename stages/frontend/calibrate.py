@@ -732,6 +732,7 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     prior's width). Returns {pp (2,), focal, sigma (2,), sigma_blocks, sigma_formal (px),
     rel_sigma_blocks, rel_sigma_formal (of f), iterations}."""
     c0 = np.asarray(K, np.float64)[:2, 2]
+    ba = largest_model(tracks, ba, K)
     # the adjustment weighs every observation as 1 px of noise: the prior is widened by the residuals'
     # robust spread (0.07-0.5 px) so that it pulls as prior_frac x size would against the real noise
     # (unscaled it held the orbit's cy 3.6 px towards the centre at a formal std of 0.65 px)
@@ -757,6 +758,23 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     return {"pp": joint["pp"], "focal": joint["focal"], "sigma": np.hypot(spread, formal), "sigma_blocks": spread,
             "sigma_formal": formal, "rel_sigma_blocks": rel_b, "rel_sigma_formal": joint["rel_sigma_formal"],
             "block_estimates": [list(x) for x in est], "iterations": iters}
+
+
+def largest_model(tracks, ba: dict[str, Any], K: np.ndarray, max_px: float = 2.0) -> dict[str, Any]:
+    """``ba`` (T, pts keyed model * TRACK_KEY + track) restricted to the reconstruction seen by the
+    most frames (the lowest model number among equals). Why: with the principal point free, a small
+    model (3-7 frames of short baseline) is near-singular, and its indeterminate system stalls the
+    joint adjustment of all models (HoloLens walk: 60 LM iterations, the principal point unmoved,
+    formal std inf; its largest model alone, 18 of 40 frames, finds cy 0.5 px from the truth)."""
+    obs, _ = observations(tracks, ba["T"], ba["pts"], K, max_px)
+    frames: dict[int, set[int]] = {}
+    for i, o in obs.items():
+        frames.setdefault(i // TRACK_KEY, set()).update(f for f, _ in o)
+    if len(frames) <= 1:
+        return ba
+    best = max(sorted(frames), key=lambda m: len(frames[m]))
+    return {**ba, "T": {f: v for f, v in ba["T"].items() if f in frames[best]},
+            "pts": {i: X for i, X in ba["pts"].items() if i // TRACK_KEY == best}}
 
 
 def _split_models(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray, max_px: float
