@@ -187,7 +187,7 @@ def observations(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
 
 def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
             robust_px: float, iterations: int, max_px: float, marginal: bool = False,
-            pp_prior: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+            pp_prior: tuple[np.ndarray, np.ndarray] | None = None, rel_tol: float | None = None) -> dict[str, Any]:
     """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
     poses, points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected
     reconstructions (models) of one camera share the focal length. Gauge of each model: its first
@@ -247,6 +247,8 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
         graph.add(gtsam.PriorFactorPoint3(P(i0), gtsam.Point3(*pts[i0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
+    if rel_tol is not None:  # LM stops when the cost decreases by less than this fraction (gtsam: 1e-5)
+        params.setRelativeErrorTol(rel_tol)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
     res = opt.optimize()
     if pp_prior is None:
