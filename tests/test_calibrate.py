@@ -219,17 +219,20 @@ def test_user_masks_remove_the_focal_bias_of_a_patch_fixed_in_the_image():
 
 
 @pytest.mark.slow
-def test_principal_point_estimated_on_a_clip_rendered_off_centre():
+@pytest.mark.parametrize("seed", [0, 1])
+def test_principal_point_estimated_on_a_clip_rendered_off_centre(seed):
     """A loop rendered with its principal point 3 % of the height (and 1.6 % of the width) off the
     centre: the stage estimates it within 1 % of the image size, with a std that covers the error,
     and uses it in K; assumed at the centre (principal_point=centre) it stays 3 % off. (The same
-    loop at 160x120 and 30 frames fits the centre within 0.07 px: not determined there.)"""
+    loop at 160x120 and 30 frames fits the centre within 0.07 px: not determined there.) Seed 1
+    fails when the adjustment stops at LM's default tolerance: (-1.6, -2.1) px off at a std of
+    (0.14, 0.42) px, short of the minimum along the principal point / rotation valley."""
     from gcvd_flow import pipeline
 
     size = (256, 192)
     K_guess = default_intrinsics(size)
     true = np.array([131.5, 101.5])
-    clip = render_clip(60, "loop", size=size, seed=0, principal_point=tuple(true))
+    clip = render_clip(60, "loop", size=size, seed=seed, principal_point=tuple(true))
     ctx = _Ctx()
     out = pipeline.run_calibrate({"ingest": _Frames(list(clip.frames), K_guess, True)}, pipeline.CalibrateParams(), ctx)
     pp = out["principal_point"]
