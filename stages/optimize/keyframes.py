@@ -135,9 +135,10 @@ def optimize_keyframes(
 
 def _window_solver(win: Window, net: DepthNet, posenet: PoseNet | None, depth: DepthModel, losses: LossWeights,
                    kf: KeyframeSettings) -> Solver:
-    """A keyframe window's solver: the stage's lr, pair blocks, point allocation and plateau stop."""
+    """A keyframe window's solver: the stage's lr and its schedule, pair blocks, point allocation and
+    plateau stop."""
     return Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks, kf.points_by_weight,
-                  kf.stop_every, kf.stop_rel)
+                  kf.stop_every, kf.stop_rel, kf.lr_schedule, kf.lr_final_frac)
 
 
 def _window_stats(solver: Solver, kf: KeyframeSettings) -> torch.Tensor:

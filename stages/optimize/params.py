@@ -102,6 +102,12 @@ class KeyframeSettings:
                                        "window's loss for the points drawn (opt-in: cheaper steps, worse on some "
                                        "clips)")
     stop_every: int = _f(25, "keyframe windows: steps between plateau checks", ge=1)
+    lr_schedule: Literal["constant", "cosine", "linear"] = _f(
+        "constant", "keyframe windows: every learning rate (depth head, poses, meshes) over a window's steps: constant, "
+        "or decaying from its value at the first step to lr_final_frac of it at the last (cosine or linear; a "
+        "function of the step index, so a resumed window matches an uninterrupted one)")
+    lr_final_frac: float = _f(0.1, "keyframe windows: the learning rates at a window's last step as a fraction of "
+                              "their first-step values (lr_schedule cosine / linear)", ge=0, le=1)
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "
                          "less than this fraction below that of the stop_every steps before (0: never)", ge=0)
 
@@ -144,6 +150,10 @@ class SegmentSettings:
     points_by_weight: bool = _f(False, "a pair's points per step in proportion to its weight tau ** pair_power "
                                 "(see optimize_keyframes.points_by_weight)")
     stop_every: int = _f(20, "steps between plateau checks", ge=1)
+    lr_schedule: Literal["constant", "cosine", "linear"] = _f(
+        "constant", "every learning rate over a window's steps (see optimize_keyframes.lr_schedule)")
+    lr_final_frac: float = _f(0.1, "the learning rates at a window's last step as a fraction of their first-step "
+                              "values (lr_schedule cosine / linear)", ge=0, le=1)
     stop_rel: float = _f(0.0, "stop a window early when the mean loss of the last stop_every steps is less than "
                          "this fraction below that of the stop_every steps before (0: never)", ge=0)
 

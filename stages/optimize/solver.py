@@ -64,6 +64,8 @@ __all__ = [
     "Window",
     "Solver",
     "run_solver",
+    "lr_factor",
+    "LR_SCHEDULES",
 ]
 
 
@@ -233,12 +235,15 @@ class Solver:
     ``points_by_weight``: a pair gets ``kf.points`` * its weight / the largest pair weight points
     per step (at least ``_MIN_POINTS``) instead of ``kf.points`` each (see ``_points_per_pair``).
     ``stop_every`` / ``stop_rel``: the plateau test of ``plateaued`` (stop_rel 0: never).
+    ``lr_schedule`` / ``lr_final_frac``: every group's learning rate at step s of a window of
+    ``steps`` is its base rate times ``lr_factor(lr_schedule, s, steps, lr_final_frac)``
+    (``set_step``; "constant": the rates are never touched).
     """
 
     def __init__(
         self, win: Window, net: DepthNet, posenet: PoseNet | None, lr: float, depth: DepthModel,
         losses: LossWeights, kf: KeyframeSettings, pair_blocks: int = 1, points_by_weight: bool = False,
-        stop_every: int = 25, stop_rel: float = 0.0,
+        stop_every: int = 25, stop_rel: float = 0.0, lr_schedule: str = "constant", lr_final_frac: float = 0.1,
     ) -> None:
         self.w, self.net, self.posenet = win, net, posenet
         self.depth, self.losses, self.kf = depth, losses, kf
@@ -256,6 +261,10 @@ class Solver:
         groups.append({"params": [self.mesh], "lr": lr * kf.mesh_lr_mult * kf.mesh_shape_lr_frac})
         groups.append({"params": [self.lscale], "lr": lr * kf.mesh_lr_mult})
         self.opt = torch.optim.Adam(groups)
+        if lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule {lr_schedule!r}: one of {', '.join(LR_SCHEDULES)}")
+        self.lr_schedule, self.lr_final_frac = lr_schedule, lr_final_frac
+        self.base_lrs = [float(g["lr"]) for g in groups]
         h, w = win.imgs.shape[-2:]
         self.h, self.w_ = h, w
         self.rays = G.pixel_rays(h, w, win.K).to(torch.float32)  # (h*w, 3)
@@ -427,6 +436,15 @@ class Solver:
             total = total + r[0]
         return total + reg.detach()
 
+    def set_step(self, step: int, steps: int) -> None:
+        """Set every group's learning rate for step ``step`` (0-based) of ``steps``: a function of
+        the step index alone, so a window resumed at a checkpointed step gets the same rates."""
+        if self.lr_schedule == "constant":
+            return
+        f = lr_factor(self.lr_schedule, step, steps, self.lr_final_frac)
+        for g, base in zip(self.opt.param_groups, self.base_lrs):
+            g["lr"] = base * f
+
     def step(self, gen: torch.Generator) -> float:
         self.opt.zero_grad(set_to_none=True)
         if len(self.blocks) > 1:
@@ -502,12 +520,32 @@ def run_solver(
     loss = float("nan")
     every = max(1, solver.kf.checkpoint_every)
     for s in range(start, steps):
+        solver.set_step(s, steps)
         loss = solver.step(gen)
         if solver.plateaued():
             break
         if save is not None and (s + 1) % every == 0 and (s + 1) < steps:
             save(s + 1)
     return loss
+
+
+LR_SCHEDULES = ("constant", "cosine", "linear")
+
+
+def lr_factor(schedule: str, step: int, steps: int, final_frac: float) -> float:
+    """The learning-rate multiplier at step ``step`` (0-based) of a window of ``steps``:
+    "constant" 1; "cosine" 1 at the first step falling along a half cosine to ``final_frac`` at
+    the last; "linear" the same along a straight line. Adam at a fixed rate keeps moving at a
+    near-constant pace to the last step (its step size does not shrink with the gradient), so a
+    window stops where the noise of its sampled points leaves it; a decaying rate lets it settle."""
+    if schedule == "constant" or steps <= 1:
+        return 1.0
+    t = min(max(step, 0), steps - 1) / (steps - 1)
+    if schedule == "cosine":
+        return final_frac + (1.0 - final_frac) * 0.5 * (1.0 + math.cos(math.pi * t))
+    if schedule == "linear":
+        return final_frac + (1.0 - final_frac) * (1.0 - t)
+    raise ValueError(f"lr_schedule {schedule!r}: one of {', '.join(LR_SCHEDULES)}")
 
 
 _MIN_POINTS = 8  # points per pair and step with ``points_by_weight`` (at least; never more than ``points``)
