@@ -264,7 +264,7 @@ class Solver:
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule {lr_schedule!r}: one of {', '.join(LR_SCHEDULES)}")
         self.lr_schedule, self.lr_final_frac = lr_schedule, lr_final_frac
-        self.base_lrs = [float(g["lr"]) for g in groups]
+        self.base_lrs = [float(g["lr"]) for g in self.opt.param_groups]
         h, w = win.imgs.shape[-2:]
         self.h, self.w_ = h, w
         self.rays = G.pixel_rays(h, w, win.K).to(torch.float32)  # (h*w, 3)
