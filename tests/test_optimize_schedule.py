@@ -28,7 +28,12 @@ def test_lr_factor_values() -> None:
     assert math.isclose(lr_factor("linear", 2, 11, 0.0), 0.8)
     assert math.isclose(lr_factor("cosine", 2, 11, 0.0), 0.5 * (1 + math.cos(math.pi * 0.2)))
     assert all(lr_factor("constant", s, 11, 0.1) == 1.0 for s in range(11))
-    assert lr_factor("cosine", 0, 1, 0.1) == 1.0  # one step: the base rate
+    assert lr_factor("cosine", 0, 1, 0.1) == 1.0  # one step: the start rate
+    # from start_mult x the base rates at the first step to final_frac x them at the last
+    f = [lr_factor("cosine", s, 11, 0.1, 3.0) for s in range(11)]
+    assert f[0] == 3.0 and math.isclose(f[-1], 0.1) and math.isclose(f[5], 1.55)
+    assert math.isclose(lr_factor("linear", 5, 11, 0.0, 2.0), 1.0)
+    assert lr_factor("constant", 0, 11, 0.1, 3.0) == 1.0
     with pytest.raises(ValueError, match="lr_schedule 'step'"):
         lr_factor("step", 0, 10, 0.1)
 
@@ -60,7 +65,7 @@ def test_keyframe_window_steps_follow_the_schedule(tiny: dict) -> None:  # noqa:
     """Every group (head, poses, mesh shape, per-frame scale) steps at its base rate times the
     schedule's factor of the step index; constant leaves the base rates untouched; the schedule
     changes the result."""
-    over = dict(window=8, steps=12, lr_final_frac=0.05)
+    over = dict(window=8, steps=12, lr_final_frac=0.05, lr_start_mult=2.0)
     with _RateSpy() as spy:
         cos = _kf_run(tiny, lr_schedule="cosine", **over)
     assert len(spy.rates) == 12 and len(spy.rates[0]) == 4
@@ -68,15 +73,15 @@ def test_keyframe_window_steps_follow_the_schedule(tiny: dict) -> None:  # noqa:
     assert base == [SMALL.lr, SMALL.pose_lr, SMALL.lr * SMALL.mesh_lr_mult * SMALL.mesh_shape_lr_frac,
                     SMALL.lr * SMALL.mesh_lr_mult]
     for s, rates in enumerate(spy.rates):
-        assert rates == [b * lr_factor("cosine", s, 12, 0.05) for b in base]
-    assert math.isclose(spy.rates[-1][1], 0.05 * SMALL.pose_lr)
+        assert rates == [b * lr_factor("cosine", s, 12, 0.05, 2.0) for b in base]
+    assert spy.rates[0][1] == 2.0 * SMALL.pose_lr and math.isclose(spy.rates[-1][1], 0.05 * SMALL.pose_lr)
     with _RateSpy() as spy:
         const = _kf_run(tiny, lr_schedule="constant", **over)
     assert all(r == base for r in spy.rates)
     assert cos["poses"].tobytes() != const["poses"].tobytes()
     with _RateSpy() as spy:
         lin = _kf_run(tiny, lr_schedule="linear", **over)
-    assert spy.rates[6] == [b * (0.05 + 0.95 * (1 - 6 / 11)) for b in base]
+    assert all(math.isclose(r, b * (0.05 + 1.95 * (1 - 6 / 11))) for r, b in zip(spy.rates[6], base))
     assert lin["poses"].tobytes() != cos["poses"].tobytes()
 
 

@@ -138,7 +138,7 @@ def _window_solver(win: Window, net: DepthNet, posenet: PoseNet | None, depth: D
     """A keyframe window's solver: the stage's lr and its schedule, pair blocks, point allocation and
     plateau stop."""
     return Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks, kf.points_by_weight,
-                  kf.stop_every, kf.stop_rel, kf.lr_schedule, kf.lr_final_frac)
+                  kf.stop_every, kf.stop_rel, kf.lr_schedule, kf.lr_final_frac, kf.lr_start_mult)
 
 
 def _window_stats(solver: Solver, kf: KeyframeSettings) -> torch.Tensor:

@@ -104,10 +104,12 @@ class KeyframeSettings:
     stop_every: int = _f(25, "keyframe windows: steps between plateau checks", ge=1)
     lr_schedule: Literal["constant", "cosine", "linear"] = _f(
         "constant", "keyframe windows: every learning rate (depth head, poses, meshes) over a window's steps: constant, "
-        "or decaying from its value at the first step to lr_final_frac of it at the last (cosine or linear; a "
-        "function of the step index, so a resumed window matches an uninterrupted one)")
+        "or from lr_start_mult x its rate at the first step down to lr_final_frac x it at the last (cosine or "
+        "linear; a function of the step index, so a resumed window matches an uninterrupted one)")
+    lr_start_mult: float = _f(1.0, "keyframe windows: the learning rates at a window's first step as a multiple of "
+                              "lr, pose_lr and the mesh rates (lr_schedule cosine / linear)", gt=0)
     lr_final_frac: float = _f(0.1, "keyframe windows: the learning rates at a window's last step as a fraction of "
-                              "their first-step values (lr_schedule cosine / linear)", ge=0, le=1)
+                              "lr, pose_lr and the mesh rates (lr_schedule cosine / linear)", ge=0)
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "
                          "less than this fraction below that of the stop_every steps before (0: never)", ge=0)
 
@@ -152,8 +154,10 @@ class SegmentSettings:
     stop_every: int = _f(20, "steps between plateau checks", ge=1)
     lr_schedule: Literal["constant", "cosine", "linear"] = _f(
         "constant", "every learning rate over a window's steps (see optimize_keyframes.lr_schedule)")
-    lr_final_frac: float = _f(0.1, "the learning rates at a window's last step as a fraction of their first-step "
-                              "values (lr_schedule cosine / linear)", ge=0, le=1)
+    lr_start_mult: float = _f(1.0, "the learning rates at a window's first step as a multiple of lr and the "
+                              "keyframe stage's pose and mesh rates (lr_schedule cosine / linear)", gt=0)
+    lr_final_frac: float = _f(0.1, "the learning rates at a window's last step as a fraction of lr and the keyframe "
+                              "stage's pose and mesh rates (lr_schedule cosine / linear)", ge=0)
     stop_rel: float = _f(0.0, "stop a window early when the mean loss of the last stop_every steps is less than "
                          "this fraction below that of the stop_every steps before (0: never)", ge=0)
 

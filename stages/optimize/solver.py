@@ -235,15 +235,16 @@ class Solver:
     ``points_by_weight``: a pair gets ``kf.points`` * its weight / the largest pair weight points
     per step (at least ``_MIN_POINTS``) instead of ``kf.points`` each (see ``_points_per_pair``).
     ``stop_every`` / ``stop_rel``: the plateau test of ``plateaued`` (stop_rel 0: never).
-    ``lr_schedule`` / ``lr_final_frac``: every group's learning rate at step s of a window of
-    ``steps`` is its base rate times ``lr_factor(lr_schedule, s, steps, lr_final_frac)``
-    (``set_step``; "constant": the rates are never touched).
+    ``lr_schedule`` / ``lr_final_frac`` / ``lr_start_mult``: every group's learning rate at step s
+    of a window of ``steps`` is its base rate times ``lr_factor(lr_schedule, s, steps,
+    lr_final_frac, lr_start_mult)`` (``set_step``; "constant": the rates are never touched).
     """
 
     def __init__(
         self, win: Window, net: DepthNet, posenet: PoseNet | None, lr: float, depth: DepthModel,
         losses: LossWeights, kf: KeyframeSettings, pair_blocks: int = 1, points_by_weight: bool = False,
         stop_every: int = 25, stop_rel: float = 0.0, lr_schedule: str = "constant", lr_final_frac: float = 0.1,
+        lr_start_mult: float = 1.0,
     ) -> None:
         self.w, self.net, self.posenet = win, net, posenet
         self.depth, self.losses, self.kf = depth, losses, kf
@@ -263,7 +264,7 @@ class Solver:
         self.opt = torch.optim.Adam(groups)
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule {lr_schedule!r}: one of {', '.join(LR_SCHEDULES)}")
-        self.lr_schedule, self.lr_final_frac = lr_schedule, lr_final_frac
+        self.lr_schedule, self.lr_final_frac, self.lr_start_mult = lr_schedule, lr_final_frac, lr_start_mult
         self.base_lrs = [float(g["lr"]) for g in self.opt.param_groups]
         h, w = win.imgs.shape[-2:]
         self.h, self.w_ = h, w
@@ -441,7 +442,7 @@ class Solver:
         the step index alone, so a window resumed at a checkpointed step gets the same rates."""
         if self.lr_schedule == "constant":
             return
-        f = lr_factor(self.lr_schedule, step, steps, self.lr_final_frac)
+        f = lr_factor(self.lr_schedule, step, steps, self.lr_final_frac, self.lr_start_mult)
         for g, base in zip(self.opt.param_groups, self.base_lrs):
             g["lr"] = base * f
 
@@ -532,19 +533,21 @@ def run_solver(
 LR_SCHEDULES = ("constant", "cosine", "linear")
 
 
-def lr_factor(schedule: str, step: int, steps: int, final_frac: float) -> float:
+def lr_factor(schedule: str, step: int, steps: int, final_frac: float, start_mult: float = 1.0) -> float:
     """The learning-rate multiplier at step ``step`` (0-based) of a window of ``steps``:
-    "constant" 1; "cosine" 1 at the first step falling along a half cosine to ``final_frac`` at
-    the last; "linear" the same along a straight line. Adam at a fixed rate keeps moving at a
+    "constant" 1; "cosine" ``start_mult`` at the first step falling along a half cosine to
+    ``final_frac`` at the last; "linear" the same along a straight line. Adam at a fixed rate keeps moving at a
     near-constant pace to the last step (its step size does not shrink with the gradient), so a
     window stops where the noise of its sampled points leaves it; a decaying rate lets it settle."""
-    if schedule == "constant" or steps <= 1:
+    if schedule == "constant":
         return 1.0
+    if steps <= 1:
+        return start_mult
     t = min(max(step, 0), steps - 1) / (steps - 1)
     if schedule == "cosine":
-        return final_frac + (1.0 - final_frac) * 0.5 * (1.0 + math.cos(math.pi * t))
+        return final_frac + (start_mult - final_frac) * 0.5 * (1.0 + math.cos(math.pi * t))
     if schedule == "linear":
-        return final_frac + (1.0 - final_frac) * (1.0 - t)
+        return final_frac + (start_mult - final_frac) * (1.0 - t)
     raise ValueError(f"lr_schedule {schedule!r}: one of {', '.join(LR_SCHEDULES)}")
 
 
