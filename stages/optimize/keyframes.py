@@ -40,6 +40,7 @@ from gcvd_flow.stages.optimize.init import essential_chain
 from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
 from gcvd_flow.stages.optimize.solver import (
     Checkpointer,
+    LrSchedule,
     Pair,
     Solver,
     Window,
@@ -135,9 +136,10 @@ def optimize_keyframes(
 
 def _window_solver(win: Window, net: DepthNet, posenet: PoseNet | None, depth: DepthModel, losses: LossWeights,
                    kf: KeyframeSettings) -> Solver:
-    """A keyframe window's solver: the stage's lr, pair blocks, point allocation and plateau stop."""
+    """A keyframe window's solver: the stage's lr and its schedule, pair blocks, point allocation and
+    plateau stop."""
     return Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks, kf.points_by_weight,
-                  kf.stop_every, kf.stop_rel)
+                  kf.stop_every, kf.stop_rel, LrSchedule.of(kf))
 
 
 def _window_stats(solver: Solver, kf: KeyframeSettings) -> torch.Tensor:

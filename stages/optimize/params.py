@@ -102,6 +102,17 @@ class KeyframeSettings:
                                        "window's loss for the points drawn (opt-in: cheaper steps, worse on some "
                                        "clips)")
     stop_every: int = _f(25, "keyframe windows: steps between plateau checks", ge=1)
+    lr_schedule: Literal["constant", "cosine", "linear"] = _f(
+        "constant", "keyframe windows: the learning rates over a window's steps: constant (lr, pose_lr and the mesh "
+        "rates), or from a start rate (lr_start_mult, pose_lr_start_mult x them) at the first step down to "
+        "lr_final_frac of it at the last, along a half cosine or a line (a function of the step index, so a "
+        "resumed window matches an uninterrupted one)")
+    lr_start_mult: float = _f(1.0, "keyframe windows, lr_schedule cosine / linear: the depth head's and the mesh "
+                              "rates at a window's first step, as a multiple of lr and the mesh rates", gt=0)
+    pose_lr_start_mult: float = _f(1.0, "keyframe windows, lr_schedule cosine / linear: the pose rate at a window's "
+                                   "first step, as a multiple of pose_lr", gt=0)
+    lr_final_frac: float = _f(0.1, "keyframe windows, lr_schedule cosine / linear: every rate at a window's last "
+                              "step, as a fraction of its first-step rate", ge=0, le=1)
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "
                          "less than this fraction below that of the stop_every steps before (0: never)", ge=0)
 
@@ -144,6 +155,16 @@ class SegmentSettings:
     points_by_weight: bool = _f(False, "a pair's points per step in proportion to its weight tau ** pair_power "
                                 "(see optimize_keyframes.points_by_weight)")
     stop_every: int = _f(20, "steps between plateau checks", ge=1)
+    lr_schedule: Literal["constant", "cosine", "linear"] = _f(
+        "constant", "the learning rates over a window's steps (lr, and the keyframe stage's pose and mesh rates): "
+        "constant, or cosine / linear from the start rates to lr_final_frac of them (see "
+        "optimize_keyframes.lr_schedule)")
+    lr_start_mult: float = _f(1.0, "lr_schedule cosine / linear: the depth head's and the mesh rates at a window's "
+                              "first step, as a multiple of lr and the mesh rates", gt=0)
+    pose_lr_start_mult: float = _f(1.0, "lr_schedule cosine / linear: the pose rate at a window's first step, as a "
+                                   "multiple of optimize_keyframes.pose_lr", gt=0)
+    lr_final_frac: float = _f(0.1, "lr_schedule cosine / linear: every rate at a window's last step, as a fraction "
+                              "of its first-step rate", ge=0, le=1)
     stop_rel: float = _f(0.0, "stop a window early when the mean loss of the last stop_every steps is less than "
                          "this fraction below that of the stop_every steps before (0: never)", ge=0)
 

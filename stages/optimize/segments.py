@@ -41,6 +41,7 @@ from gcvd_flow.stages.optimize.init import interp_pose, pnp_init, transfer_depth
 from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights, SegmentSettings
 from gcvd_flow.stages.optimize.solver import (
     Checkpointer,
+    LrSchedule,
     Pair,
     Solver,
     Window,
@@ -406,7 +407,7 @@ def solve_window(job: WindowJob) -> WindowResult:
             keep=fr.keep,
         )
         solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf, 1, st.seg.points_by_weight,
-                        st.seg.stop_every, st.seg.stop_rel)
+                        st.seg.stop_every, st.seg.stop_rel, LrSchedule.of(st.seg))
         run_solver(solver, gen, st.seg.steps, 0, None)
         with torch.no_grad():
             poses, meshes = solver.poses().numpy(), solver.meshes().clone()

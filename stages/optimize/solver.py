@@ -64,6 +64,9 @@ __all__ = [
     "Window",
     "Solver",
     "run_solver",
+    "lr_factor",
+    "LrSchedule",
+    "LR_SCHEDULES",
 ]
 
 
@@ -233,12 +236,14 @@ class Solver:
     ``points_by_weight``: a pair gets ``kf.points`` * its weight / the largest pair weight points
     per step (at least ``_MIN_POINTS``) instead of ``kf.points`` each (see ``_points_per_pair``).
     ``stop_every`` / ``stop_rel``: the plateau test of ``plateaued`` (stop_rel 0: never).
+    ``schedule``: the learning rates over a window's steps (``LrSchedule``; None or "constant":
+    the base rates, never touched).
     """
 
     def __init__(
         self, win: Window, net: DepthNet, posenet: PoseNet | None, lr: float, depth: DepthModel,
         losses: LossWeights, kf: KeyframeSettings, pair_blocks: int = 1, points_by_weight: bool = False,
-        stop_every: int = 25, stop_rel: float = 0.0,
+        stop_every: int = 25, stop_rel: float = 0.0, schedule: LrSchedule | None = None,
     ) -> None:
         self.w, self.net, self.posenet = win, net, posenet
         self.depth, self.losses, self.kf = depth, losses, kf
@@ -256,6 +261,13 @@ class Solver:
         groups.append({"params": [self.mesh], "lr": lr * kf.mesh_lr_mult * kf.mesh_shape_lr_frac})
         groups.append({"params": [self.lscale], "lr": lr * kf.mesh_lr_mult})
         self.opt = torch.optim.Adam(groups)
+        self.schedule = schedule or LrSchedule()
+        if self.schedule.kind not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule {self.schedule.kind!r}: one of {', '.join(LR_SCHEDULES)}")
+        self.base_lrs = [float(g["lr"]) for g in self.opt.param_groups]  # head, poses, mesh shape, per-frame scale
+        sch = self.schedule
+        self.start_lrs = [b * m for b, m in zip(self.base_lrs, (sch.start_mult, sch.pose_start_mult, sch.start_mult,
+                                                                   sch.start_mult))]
         h, w = win.imgs.shape[-2:]
         self.h, self.w_ = h, w
         self.rays = G.pixel_rays(h, w, win.K).to(torch.float32)  # (h*w, 3)
@@ -427,6 +439,15 @@ class Solver:
             total = total + r[0]
         return total + reg.detach()
 
+    def set_step(self, step: int, steps: int) -> None:
+        """Set every group's learning rate for step ``step`` (0-based) of ``steps``: a function of
+        the step index alone, so a window resumed at a checkpointed step gets the same rates."""
+        if self.schedule.kind == "constant":
+            return
+        f = lr_factor(self.schedule.kind, step, steps, self.schedule.final_frac)
+        for g, start in zip(self.opt.param_groups, self.start_lrs):
+            g["lr"] = start * f
+
     def step(self, gen: torch.Generator) -> float:
         self.opt.zero_grad(set_to_none=True)
         if len(self.blocks) > 1:
@@ -502,12 +523,49 @@ def run_solver(
     loss = float("nan")
     every = max(1, solver.kf.checkpoint_every)
     for s in range(start, steps):
+        solver.set_step(s, steps)
         loss = solver.step(gen)
         if solver.plateaued():
             break
         if save is not None and (s + 1) % every == 0 and (s + 1) < steps:
             save(s + 1)
     return loss
+
+
+LR_SCHEDULES = ("constant", "cosine", "linear")
+
+
+@dataclass(frozen=True)
+class LrSchedule:
+    """A window's learning rates over its steps: at step s of ``steps`` a group's rate is its start
+    rate times ``lr_factor(kind, s, steps, final_frac)``; the start rate is its base rate times
+    ``start_mult`` (depth head, mesh shape, per-frame scale) or ``pose_start_mult`` (poses)."""
+
+    kind: str = "constant"
+    final_frac: float = 0.1
+    start_mult: float = 1.0
+    pose_start_mult: float = 1.0
+
+    @classmethod
+    def of(cls, s: Any) -> "LrSchedule":
+        """From a settings section's lr_schedule, lr_final_frac, lr_start_mult, pose_lr_start_mult."""
+        return cls(s.lr_schedule, s.lr_final_frac, s.lr_start_mult, s.pose_lr_start_mult)
+
+
+def lr_factor(schedule: str, step: int, steps: int, final_frac: float) -> float:
+    """The learning-rate multiplier at step ``step`` (0-based) of a window of ``steps``, relative
+    to the start rate: "constant" 1; "cosine" 1 at the first step falling along a half cosine to
+    ``final_frac`` at the last; "linear" the same along a straight line. Adam at a fixed rate keeps moving at a
+    near-constant pace to the last step (its step size does not shrink with the gradient), so a
+    window stops where the noise of its sampled points leaves it; a decaying rate lets it settle."""
+    if schedule == "constant" or steps <= 1:
+        return 1.0
+    t = min(max(step, 0), steps - 1) / (steps - 1)
+    if schedule == "cosine":
+        return final_frac + (1.0 - final_frac) * 0.5 * (1.0 + math.cos(math.pi * t))
+    if schedule == "linear":
+        return final_frac + (1.0 - final_frac) * (1.0 - t)
+    raise ValueError(f"lr_schedule {schedule!r}: one of {', '.join(LR_SCHEDULES)}")
 
 
 _MIN_POINTS = 8  # points per pair and step with ``points_by_weight`` (at least; never more than ``points``)
