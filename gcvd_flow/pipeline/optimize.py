@@ -114,7 +114,6 @@ PoseGraphParams = section("pose_graph", opt_params.PoseGraphSettings)
 def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[str, Any]:
     """Keyframe poses + sequential and loop edges -> globally consistent keyframe poses."""
     # heavy (torch / gtsam / scipy): imported when the stage runs, not when the CLI starts
-    from gcvd_flow.stages.geometry import se3
     from gcvd_flow.stages.optimize import pose_graph as pose_graph_mod
 
     okf = inputs["optimize_keyframes"]
@@ -123,15 +122,18 @@ def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[st
         return {"poses": T_w_k, "enabled": False, "iterations": 0, "initial_error": 0.0, "final_error": 0.0}
     # edges T_b_a = inv(T_w_b) @ T_w_a as the optimisations give them (the pose graph inverts)
     edges = [{"a": r["a"], "b": r["b"], "T_b_a": r["T_b_a"], "weight": 1.0 / r["tau"]} for r in okf["rel_poses"]]
-    rejected = []
-    for e in inputs["optimize_edges"]["edges"]:
-        # Gate gross outliers: drift bends a trajectory by degrees, not tens of degrees, so a
-        # loop measurement that disagrees that much with odometry is a failed edge optimisation.
-        angle = se3.loop_disagreement_deg(T_w_k[e["a"]], T_w_k[e["b"]], e["T_b_a"])
-        if angle > p.max_loop_rotation_deg:
-            rejected.append({"i": e["i"], "j": e["j"], "rotation_disagreement_deg": angle})
-            continue
-        edges.append({"a": e["a"], "b": e["b"], "T_b_a": e["T_b_a"], "weight": p.loop_weight})
+    K = np.asarray(inputs["calibrate"]["K"])
+
+    def own_rotation(e: dict[str, Any]) -> np.ndarray | None:  # the loop pair's two-view rotation, on demand
+        fl = next(f for f in inputs["association"]["edge_flows"] if (int(f["i"]), int(f["j"])) == (e["i"], e["j"]))
+        return pose_graph_mod.loop_pair_rotation(np.asarray(fl["fwd"]), np.asarray(fl["fwd_valid"]), K)
+
+    # Gate gross outliers: a loop measurement that disagrees by tens of degrees with odometry is a
+    # failed edge optimisation, unless (loop_self_check_deg) the pair's own geometry vouches for it
+    loops, rejected = pose_graph_mod.gate_loops(
+        T_w_k, inputs["optimize_edges"]["edges"], p.max_loop_rotation_deg, p.loop_weight,
+        self_check_deg=p.loop_self_check_deg, robust=p.loop_robust, own_rotation=own_rotation)
+    edges += loops
     if rejected:
         ctx.log(f"ignored {len(rejected)} loop edge(s) disagreeing with odometry by > {p.max_loop_rotation_deg} deg")
     res = pose_graph_mod.optimize_pose_graph(T_w_k, edges, kind=p.kind, max_iterations=p.max_iterations)
@@ -140,7 +142,7 @@ def run_pose_graph(inputs: dict[str, Any], p: Any, ctx: StageContext) -> dict[st
             "final_error": float(res["final_error"]), "rejected_loops": rejected}
 
 
-POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=(OPTIMIZE_KEYFRAMES, OPTIMIZE_EDGES),
+POSE_GRAPH = declare(Stage("pose_graph", run_pose_graph, deps=(CALIBRATE, ASSOCIATION, OPTIMIZE_KEYFRAMES, OPTIMIZE_EDGES),
                    params="pose_graph", kind="poses"))
 
 

@@ -177,7 +177,15 @@ class PoseGraphSettings:
     kind: Literal["se3", "sim3"] = "se3"
     max_iterations: int = _f(100, ge=1)
     loop_weight: float = _f(1.0, ge=0)
-    max_loop_rotation_deg: float = _f(30.0, "loop edges disagreeing more with odometry are ignored", gt=0)
+    max_loop_rotation_deg: float = _f(30.0, "loop edges disagreeing more with odometry are ignored, unless "
+                                      "they pass loop_self_check_deg", gt=0)
+    loop_self_check_deg: float = _f(0.0, "keep a loop edge the odometry gate rejects when its rotation is within "
+                                    "this many degrees of the loop pair's own two-view rotation (from the pair's "
+                                    "flow, independent of the drifting odometry); 0 = off", ge=0)
+    # a kernel cannot tell a correct loop far from drifted odometry from a wrong one: at 0.1 it
+    # bounds a wrong loop but also holds back a correct one 60+ degrees off (tests/test_loop_gate.py)
+    loop_robust: float = _f(0.0, "Cauchy scale of the whitened residual of loop edges kept by "
+                            "loop_self_check_deg (0 = plain least squares)", ge=0)
 
 
 @dataclass(frozen=True)

@@ -23,10 +23,12 @@ gtsam's Similarity3(R, t, s) has matrix [R t; 0 1/s], i.e. the projective equiva
 from __future__ import annotations
 
 import logging
-from typing import Any, Literal, TypedDict
+from typing import Any, Callable, Literal, TypedDict
 
 import gtsam
 import numpy as np
+
+from gcvd_flow.stages.geometry.se3 import loop_disagreement_deg
 
 log = logging.getLogger(__name__)
 
@@ -146,6 +148,56 @@ def optimize_pose_graph(
     )
 
 
+def _rotation_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def gate_loops(T_w_k: np.ndarray, loops: list[dict[str, Any]], max_rotation_deg: float, weight: float,
+               self_check_deg: float = 0.0, robust: float = 0.0,
+               own_rotation: Callable[[dict[str, Any]], np.ndarray | None] | None = None,
+               ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Loop edges {a, b, i, j, T_b_a} -> (pose-graph edges, rejected).
+
+    An edge whose rotation agrees with the odometry T_w_k (K, 4, 4) within ``max_rotation_deg``
+    is kept (weight ``weight``). The odometry drifts, and over a long loop its rotation error alone
+    can pass any fixed gate, so an edge that fails it is kept on its own evidence when
+    ``self_check_deg`` > 0 and ``own_rotation(edge)`` (the loop pair's two-view rotation R_b_a
+    (3, 3) from its own flow, or None: no evidence) is within ``self_check_deg`` of the edge's:
+    the edge's optimisation and the pair's epipolar geometry agree independently of the odometry.
+    Such an edge carries a Cauchy kernel of scale ``robust`` (0: none) in the graph, so a
+    consistent but wrong loop (a look-alike place) bends the trajectory less.
+    Rejected: {i, j, rotation_disagreement_deg, and own_rotation_deg where the pair's own rotation
+    was compared}."""
+    kept: list[dict[str, Any]] = []
+    rejected: list[dict[str, Any]] = []
+    for e in loops:
+        angle = loop_disagreement_deg(T_w_k[e["a"]], T_w_k[e["b"]], e["T_b_a"])
+        edge = {"a": e["a"], "b": e["b"], "T_b_a": e["T_b_a"], "weight": weight}
+        if angle <= max_rotation_deg:
+            kept.append(edge)
+            continue
+        own = own_rotation(e) if self_check_deg > 0 and own_rotation is not None else None
+        own_deg = None if own is None else _rotation_deg(np.asarray(own).T @ np.asarray(e["T_b_a"])[:3, :3])
+        if own_deg is not None and own_deg <= self_check_deg:
+            kept.append({**edge, "robust": robust} if robust > 0 else edge)
+            continue
+        rejected.append({"i": e["i"], "j": e["j"], "rotation_disagreement_deg": angle,
+                         **({} if own_deg is None else {"own_rotation_deg": own_deg})})
+    return kept, rejected
+
+
+def loop_pair_rotation(fwd: np.ndarray, valid: np.ndarray, K: np.ndarray, min_pixels: int = 200) -> np.ndarray | None:
+    """The rotation R_b_a (3, 3) of a loop pair from its own forward flow a -> b (H, W, 2) px on
+    the consistent pixels ``valid`` (H, W) (essential matrix, or a homography when the pair barely
+    translates: ``stages.optimize.init.two_view_pose``); None with fewer than ``min_pixels``."""
+    from gcvd_flow.stages.optimize.init import two_view_pose
+
+    if int(np.count_nonzero(valid)) < min_pixels:
+        return None
+    T_b_a, _ = two_view_pose(np.asarray(fwd, np.float32), np.asarray(valid, bool), np.asarray(K, np.float64))
+    return T_b_a[:3, :3]
+
+
 def _build_graph(
     init: np.ndarray, edges: list[dict[str, Any]], sim: bool, fixed: int
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
@@ -174,7 +226,10 @@ def _build_graph(
         weight = float(e.get("weight", 1.0))
         if not weight > 0:
             raise ValueError(f"edge ({a}, {b}) weight must be > 0, got {weight}")
-        noise = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / np.sqrt(weight))
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / np.sqrt(weight))
+        robust = float(e.get("robust", 0.0))
+        if robust > 0:  # Cauchy on the whitened residual: a wrong edge pulls less the more it disagrees
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(robust), noise)
         T_a_b = _edge_T_a_b(e, a, b)
         if sim:
             s_a_b = float(e.get("s_a_b", 1.0))
