@@ -204,7 +204,7 @@ def run_depth_filter(inputs: dict[str, Any], p: depth_params.DepthFilterSettings
 
 
 DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=(INGEST, FLOW, MASKS, DEPTH_FUSION), params="depth_filter",
-                        kind="depth", items=_filter_items))
+                        kind="depth", items=_filter_items, share_inputs=True))  # the +-radius window, once per worker
 
 
 # ============================================================================== depth_consensus
