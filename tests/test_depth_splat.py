@@ -339,3 +339,41 @@ def test_the_stage_reuses_sources_across_items_with_the_same_bits():
     for hits in (0, 1):
         shared = run_depth_consensus(_stage_inputs(depth, conf, True), p, ctx)
         assert shared["depth"].tobytes() == plain["depth"].tobytes() and ctx.cache.hits == hits
+
+
+def test_the_stage_names_sources_by_their_input_digests_and_hashes_no_array(monkeypatch):
+    """With the digests of its inputs (the engine's ctx.input_digest), run_depth_consensus names a
+    splat reference's source by the digests of its depth_filter and masks items: the items that
+    read one reference compute its source once and hash none of its arrays; a reference whose
+    depth or mask item differs is a new source; the bits are those without the cache."""
+    import gcvd_flow.stages.depth.consensus as consensus
+    from gcvd_flow.pipeline import DepthConsensusParams, run_depth_consensus
+    from gcvd_flow.stages.depth.consensus import SourceCache
+
+    class Ctx:
+        def __init__(self, digests: dict) -> None:
+            self.cache, self.digests = SourceCache(), digests
+
+        def resource(self, name: str) -> SourceCache:
+            return self.cache
+
+        def input_digest(self, name: str) -> list[str]:
+            return self.digests[name]
+
+    computed = []
+    real = consensus.splat_source
+    monkeypatch.setattr(consensus, "splat_source", lambda *a: computed.append(1) or real(*a))
+    depth, conf = _far_off_frame()
+    p = DepthConsensusParams(offsets=(8,), splat_offsets=(1,))
+    plain = run_depth_consensus(_stage_inputs(depth, conf, True), p, None)
+    assert len(computed) == 1
+    ctx = Ctx({"refs": ["filter-1"], "static": ["masks-0", "masks-1"]})
+    for _ in range(3):  # three items reading frame 1
+        shared = run_depth_consensus(_stage_inputs(depth, conf, True), p, ctx)
+        assert shared["depth"].tobytes() == plain["depth"].tobytes()
+    assert len(computed) == 2 and ctx.cache.hits == 2 and ctx.cache.hashed == 0
+    for digests in ({"refs": ["filter-1b"], "static": ["masks-0", "masks-1"]},
+                    {"refs": ["filter-1"], "static": ["masks-0", "masks-1b"]}):
+        ctx.digests = digests
+        run_depth_consensus(_stage_inputs(depth, conf, True), p, ctx)
+    assert len(computed) == 4 and ctx.cache.hashed == 0

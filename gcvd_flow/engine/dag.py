@@ -125,6 +125,11 @@ class MapStage(Stage):
     # Parameters that choose *which* items exist (start/end/stride) rather than how one is
     # computed: they are left out of item keys so that a trimmed clip re-uses its items.
     selection_params: tuple[str, ...] = ()
+    # Items that read the same inputs (a window of frames around each item): each worker keeps
+    # what it loaded for this stage, by digest, and hands the next item that reads it the same
+    # value, read only (loaded, verified and decoded once per worker rather than once per item;
+    # executors.SharedInputs). The stage function must not modify its inputs.
+    share_inputs: bool = False
 
     @property
     def is_map(self) -> bool:

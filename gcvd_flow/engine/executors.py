@@ -32,6 +32,8 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
 
+import numpy as np
+
 from gcvd_flow.engine.artifacts import Encoder, decode_tree, load_value
 from gcvd_flow.engine.errors import WorkerError
 from gcvd_flow.engine.names import ENV_JOBS, TOOL
@@ -75,6 +77,7 @@ class ItemTask:
     resources: dict[str, Callable[[Any], Any]] | None = None
     resource_key: str = ""  # digest of the parameters the resources are opened with
     preimage: Any = None  # what ``key`` is the digest of (goes into the record)
+    share_scope: str | None = None  # the stage's key when its items share inputs (MapStage.share_inputs)
 
 
 @dataclass
@@ -109,15 +112,25 @@ def open_resource(stage: str, name: str, opener: Callable[[Any], Any] | None, pa
 
 
 class ItemContext:
-    """The ``ctx`` a map item sees: its stage name, the seed, a logger and its resources."""
+    """The ``ctx`` a map item sees: its stage name, the seed, a logger, its resources and the
+    digests of its inputs."""
 
     def __init__(self, stage: str, seed: int, index: int, params: Any = None,
-                 resources: dict[str, Callable[[Any], Any]] | None = None, resource_key: str = ""):
+                 resources: dict[str, Callable[[Any], Any]] | None = None, resource_key: str = "",
+                 refs: dict[str, ResolvedRef] | None = None):
         self.stage = stage
         self.seed = seed
         self.index = index
         self.checkpointer = None
         self._params, self._resources, self._resource_key = params, resources or {}, resource_key
+        self._refs = refs or {}
+
+    def input_digest(self, name: str) -> Any:
+        """The content digest of input ``name`` (a list of them for a list of references): two
+        inputs with the same digest are the same value, so a stage can key what it derives from
+        an input on it instead of hashing the value again (None: not known)."""
+        r = self._refs.get(name)
+        return None if r is None else _digests(r)
 
     def log(self, msg: str) -> None:
         import sys
@@ -126,6 +139,93 @@ class ItemContext:
 
     def resource(self, name: str) -> Any:
         return open_resource(self.stage, name, self._resources.get(name), self._params, self._resource_key)
+
+
+def _digests(r: ResolvedRef) -> Any:
+    return [_digests(x) for x in r.payload] if r.how == "list" else r.digest
+
+
+# What a worker keeps of the inputs of a ``share_inputs`` stage (MapStage.share_inputs), at most
+# this many bytes of arrays: a window of frames (depth_consensus: +-64 frames of depth,
+# confidence and masks, ~60 MB at 256x192) fits at 4x that resolution.
+SHARED_INPUTS_BYTES = 256 << 20
+
+
+class SharedInputs:
+    """The inputs this process loaded for the items of one ``share_inputs`` stage, by digest: an
+    input that many items read (a window's frames) is read from the store, verified and decoded
+    once per worker, and every item gets the same arrays, made read only (an item that wrote
+    into one would change what the next item reads: it raises instead). Dicts and lists are
+    fresh per item. Least recently used values go first beyond ``budget`` bytes; everything goes
+    when a task of another stage (or run) arrives (``begin``). ``loads``: values read from the
+    store, ``hits``: values served again."""
+
+    def __init__(self, budget: int = SHARED_INPUTS_BYTES):
+        from collections import OrderedDict
+
+        self.budget = budget
+        self.scope: tuple[str, str] | None = None
+        self._values: OrderedDict[tuple[str, str], tuple[Any, int]] = OrderedDict()
+        self.bytes = self.loads = self.hits = 0
+
+    def begin(self, scope: tuple[str, str] | None) -> None:
+        if scope != self.scope:
+            self._values.clear()
+            self.scope, self.bytes = scope, 0
+
+    def load(self, ref: ResolvedRef, store: Store) -> Any:
+        if ref.how == "list":
+            return [self.load(r, store) for r in ref.payload]
+        if ref.how == "const":
+            return ref.payload
+        k = (ref.how, ref.digest)
+        got = self._values.get(k)
+        if got is not None:
+            self._values.move_to_end(k)
+            self.hits += 1
+            return _fresh_containers(got[0])
+        value = _read_only(ref.load(store))
+        self.loads += 1
+        n = _nbytes(value)
+        if n <= self.budget:
+            self._values[k] = (value, n)
+            self.bytes += n
+            while self.bytes > self.budget:
+                self.bytes -= self._values.popitem(last=False)[1][1]
+        return _fresh_containers(value)
+
+
+def _read_only(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        v.flags.writeable = False
+    elif isinstance(v, dict):
+        for x in v.values():
+            _read_only(x)
+    elif isinstance(v, list):
+        for x in v:
+            _read_only(x)
+    return v
+
+
+def _fresh_containers(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {k: _fresh_containers(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_fresh_containers(x) for x in v]
+    return v
+
+
+def _nbytes(v: Any) -> int:
+    if isinstance(v, np.ndarray):
+        return int(v.nbytes)
+    if isinstance(v, dict):
+        return 64 + sum(_nbytes(x) for x in v.values())
+    if isinstance(v, list):
+        return 64 + sum(_nbytes(x) for x in v)
+    return 32
+
+
+SHARED = SharedInputs()  # this process's (a pool worker's, or the run's for in-process items)
 
 
 _STORES: dict[tuple[str, bool], Store] = {}
@@ -146,9 +246,11 @@ def compute_item(task: ItemTask) -> ItemResult:
         with store.lock(task.key):
             rec = store.get_record(task.key)  # another process may have finished it meanwhile
             if rec is None:
-                inputs = {name: r.load(store) for name, r in task.refs.items()}
+                SHARED.begin(None if task.share_scope is None else (task.store_root, task.share_scope))
+                inputs = {name: r.load(store) if task.share_scope is None else SHARED.load(r, store)
+                          for name, r in task.refs.items()}
                 ctx = ItemContext(task.stage_name, task.seed, task.index, task.params, task.resources,
-                                  task.resource_key)
+                                  task.resource_key, task.refs)
                 value = task.fn(inputs, task.params, ctx)
                 enc = Encoder(store)
                 out = enc.manifest(task.kind, value)

@@ -20,7 +20,7 @@ from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
 from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, PipelineError, Stage, stage_name
 from gcvd_flow.engine.errors import UsageError
-from gcvd_flow.engine.executors import InProcessExecutor, ItemTask, ResolvedRef, closing, make_executor, open_resource
+from gcvd_flow.engine.executors import SHARED, InProcessExecutor, ItemTask, ResolvedRef, closing, make_executor, open_resource
 from gcvd_flow.engine.store import Store
 
 # ------------------------------------------------------------------------------ reports
@@ -558,7 +558,7 @@ class Runner:
             item_keys.append(ik)
             tasks.append(ItemTask(str(self.store.root), self.store.verify, stage.name, stage.fn,
                                   stage.kind, ik, refs, params, self.seed, i, stage.resources or None,
-                                  keys.key_of(f["params"]), pre))
+                                  keys.key_of(f["params"]), pre, key if stage.share_inputs else None))
         outputs: list[str | None] = [None] * len(tasks)
         objects: dict[str, int] = {}
         prog = Progress(stage.name, len(tasks), progress_enabled(self.json_mode))
@@ -587,6 +587,7 @@ class Runner:
                 prog.update()
         finally:
             prog.close()
+            SHARED.begin(None)  # what items computed here kept of their shared inputs
         enc = Encoder(self.store)
         summary_tree = enc.tree(summary) if summary is not None else None
         if summary_tree is not None and stage.summary_kind:

@@ -204,7 +204,7 @@ def run_depth_filter(inputs: dict[str, Any], p: depth_params.DepthFilterSettings
 
 
 DEPTH_FILTER = declare(MapStage("depth_filter", run_depth_filter, deps=(INGEST, FLOW, MASKS, DEPTH_FUSION), params="depth_filter",
-                        kind="depth", items=_filter_items))
+                        kind="depth", items=_filter_items, share_inputs=True))  # the +-radius window, once per worker
 
 
 # ============================================================================== depth_consensus
@@ -228,6 +228,17 @@ def _consensus_items(view, p: depth_params.DepthConsensusSettings):
 
 def _open_source_cache(p: depth_params.DepthConsensusSettings) -> Any:
     return depth_consensus.SourceCache()
+
+
+def _source_names(ctx: Any, sel: list[int]) -> list[str] | None:
+    """Per splat reference k in ``sel``: the digests of its depth_filter item and its masks item
+    (its static mask, eroded by the user's --masks, is a function of that item), which name what
+    its splat source is computed from (None: the engine gave no digests)."""
+    digest = getattr(ctx, "input_digest", None)
+    refs, static = (digest("refs"), digest("static")) if digest is not None else (None, None)
+    if not isinstance(refs, list) or not isinstance(static, list):
+        return None
+    return [f"{refs[k]}:{static[1 + k]}" for k in sel]
 
 
 def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSettings, ctx: ItemContext) -> dict[str, Any]:
@@ -260,7 +271,7 @@ def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSe
         gray = np.asarray(inputs["image"]["image"], np.float64).mean(axis=2) / 255.0
         sources = None if ctx is None else depth_consensus.reference_sources(  # each reference once per worker
             [refs[k] for k in sel], [static[1 + k] for k in sel], K, p.splat_min_confidence,
-            p.splat_ref_edge_jump or None, cache=ctx.resource("splat_sources"))
+            p.splat_ref_edge_jump or None, cache=ctx.resource("splat_sources"), names=_source_names(ctx, sel))
         out = depth_consensus.splat_consensus(out, conf, pose, [refs[k] for k in sel], K, guide=gray, sources=sources,
                                               min_confidence=p.splat_min_confidence, front=p.splat_front,
                                               static=static[0], ref_static=[static[1 + k] for k in sel],
@@ -274,6 +285,6 @@ def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSe
 DEPTH_CONSENSUS = declare(MapStage("depth_consensus", run_depth_consensus,
                                    deps=(INGEST, CALIBRATE, MASKS, OPTIMIZE_SEGMENTS, DEPTH_FILTER),
                                    params="depth_consensus", resources={"splat_sources": _open_source_cache},
-                                   kind="depth", items=_consensus_items,
+                                   kind="depth", items=_consensus_items, share_inputs=True,
                                    description="filtered depth averaged with what confident views of the "
                                                "same points say, carried with the final poses"))

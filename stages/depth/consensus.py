@@ -64,7 +64,11 @@ class _Camera:
 
     def moved(self, T: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, ...]:
         """Pixels (u, v) at depth z (H, W) each, in the frame T moves them to: (u', v', z')."""
-        M = self.motion(T).astype(np.float32)
+        return self.moved_by(self.motion(T).astype(np.float32), u, v, z)
+
+    @staticmethod
+    def moved_by(M: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``moved`` with T's float32 ``motion`` M (3, 4) given (computed once per pair of frames)."""
         pts = np.stack([u * z, v * z, z]).reshape(3, -1)
         out = M[:, :3] @ pts
         out += np.ascontiguousarray(M[:, 3:])  # (a broadcast from the strided column is 10x slower)
@@ -91,12 +95,30 @@ def carry_depth(cam: _Camera, rows: slice, depth_i: np.ndarray, depth_j: np.ndar
     """
     if valid_j is None:
         valid_j = (depth_j > 0).astype(np.float32)
+    return _carry(cam, rows, depth_i, _CarryRef(cam, T_j_i, depth_j, conf_j, valid_j))
+
+
+class _CarryRef:
+    """A reference j of frame i as ``_carry`` reads it: the float32 motions i -> j and j -> i
+    (``_Camera.motion``, once per pair rather than once per block of rows), j's depth,
+    confidence and valid (float32, 1 = valid and static)."""
+
+    __slots__ = ("to_j", "to_i", "depth", "conf", "valid")
+
+    def __init__(self, cam: _Camera, T_j_i: np.ndarray, depth_j: np.ndarray, conf_j: np.ndarray, valid_j: np.ndarray):
+        self.to_j = cam.motion(T_j_i).astype(np.float32)
+        self.to_i = cam.motion(np.linalg.inv(T_j_i)).astype(np.float32)
+        self.depth, self.conf, self.valid = depth_j, conf_j, valid_j
+
+
+def _carry(cam: _Camera, rows: slice, depth_i: np.ndarray, view: _CarryRef) -> tuple[np.ndarray, ...]:
+    """``carry_depth`` of one reference (the same arithmetic)."""
     u, v = cam.u[rows], cam.v[rows]
-    qu, qv, _ = cam.moved(T_j_i, u, v, depth_i)
+    qu, qv, _ = cam.moved_by(view.to_j, u, v, depth_i)
     dj, cj, vj = (cv2.remap(a, qu, qv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-                  for a in (depth_j, conf_j, valid_j))
+                  for a in (view.depth, view.conf, view.valid))
     # j's point at the landing position, moved back into frame i
-    pu, pv, pz = cam.moved(np.linalg.inv(T_j_i), qu, qv, dj)
+    pu, pv, pz = cam.moved_by(view.to_i, qu, qv, dj)
     ok = (vj > 0.999) & (pz > 1e-6)
     err2 = (pu - u) ** 2 + (pv - v) ** 2
     return np.where(ok, pz, 1.0), cj, err2, ok
@@ -127,9 +149,9 @@ def consensus_depth(
     cam = _Camera(K, *depth.shape)
     pose = np.asarray(pose, np.float64)
     statics: Sequence[np.ndarray | None] = [None] * len(refs) if ref_static is None else ref_static
-    views: list[tuple[np.ndarray, ...]] = [(np.linalg.inv(np.asarray(pose_j, np.float64)) @ pose, np.asarray(depth_j, np.float32),
-              np.asarray(conf_j, np.float32),
-              ((np.asarray(depth_j) > 0) & (True if st is None else np.asarray(st) > 0)).astype(np.float32))
+    views = [_CarryRef(cam, np.linalg.inv(np.asarray(pose_j, np.float64)) @ pose, np.asarray(depth_j, np.float32),
+                   np.asarray(conf_j, np.float32),
+                   ((np.asarray(depth_j) > 0) & (True if st is None else np.asarray(st) > 0)).astype(np.float32))
              for (depth_j, conf_j, pose_j), st in zip(refs, statics)]
     out = np.zeros_like(depth)
     # blocks of rows: every temporary stays small (heap-allocated, in cache); whole 256x192
@@ -143,16 +165,15 @@ def consensus_depth(
 
 
 def _consensus_rows(cam: _Camera, rows: slice, depth: np.ndarray, confidence: np.ndarray,
-                    views: list[tuple[np.ndarray, ...]], max_log_dev: float,
-                    reproj_sigma_px: float) -> np.ndarray:
-    """``consensus_depth`` of the pixels in ``rows``; views [(T_j_i, depth_j, confidence_j, valid_j)]."""
+                    views: list[_CarryRef], max_log_dev: float, reproj_sigma_px: float) -> np.ndarray:
+    """``consensus_depth`` of the pixels in ``rows``."""
     valid = depth > 0
     log_d = np.log(np.where(valid, depth, 1.0))
     own = confidence ** CONFIDENCE_POWER + PRIOR_WEIGHT
     num, den = own * log_d, own.copy()
     inv_var = 1.0 / np.float32(reproj_sigma_px) ** 2
-    for T_j_i, depth_j, conf_j, valid_j in views:
-        z, c, err2, ok = carry_depth(cam, rows, depth, depth_j, conf_j, T_j_i, valid_j)
+    for view in views:
+        z, c, err2, ok = _carry(cam, rows, depth, view)
         log_z = np.log(z)
         use = ok & (np.abs(log_z - log_d) < max_log_dev)
         wgt = np.where(use, (c ** CONFIDENCE_POWER + PRIOR_WEIGHT) * np.exp(-err2 * inv_var), 0.0)
@@ -199,36 +220,59 @@ def splat_source(K: np.ndarray, depth_j: np.ndarray, weight_j: np.ndarray) -> Sp
 
 class SplatTarget:
     """A target mask (bool (H, W)) with what ``project_source`` reads of it computed once: the flat
-    mask and where a landing's footprint reaches it."""
+    mask and, flat over the landing positions -2 <= u <= W, -2 <= v <= H (floor; -2 and W / H stand
+    for every position further out), whether a landing's footprint reaches it."""
 
     __slots__ = ("flat", "reach")
 
     def __init__(self, target: np.ndarray):
         target = np.asarray(target, bool)
-        self.flat, self.reach = target.ravel(), _footprint_reach(target)
+        h, w = target.shape
+        reach = np.zeros((h + 3, w + 3), bool)
+        reach[1:h + 2, 1:w + 2] = _footprint_reach(target)
+        self.flat, self.reach = target.ravel(), reach.ravel()
 
 
 def project_source(src: SplatSource, K: np.ndarray, shape: tuple[int, int], T_i_j: np.ndarray,
                    target: SplatTarget | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``splat_points`` of a precomputed reference (the same arithmetic, so the same bits)."""
+    """``splat_points`` of a precomputed reference.
+
+    The arithmetic of every landing is that of the first version (two float64 products on all
+    the points: BLAS gives other last bits on a subset of them, 5 of 480 subsets tried), so the
+    bits are the same; what changed is the bookkeeping around it (no copy when every point is in
+    front, the landing tested against ``target`` in one lookup on the floored floats, only the
+    few that reach it converted to int): 1.4 -> 0.6 ms per call on ICL, 3.7 % of the points
+    reach a target there (docs/log/2026-11-28-cons.md)."""
     h, w = shape
     K = np.asarray(K, np.float64)
-    Y = T_i_j[:3, :3] @ src.X + T_i_j[:3, 3:4]
+    Y = T_i_j[:3, :3] @ src.X
+    Y += T_i_j[:3, 3:4]
     front = Y[2] > 1e-6
-    Y, wj = Y[:, front], src.weight[front]
-    q = K @ Y
-    uf, vf = np.floor(q[0] / q[2]).astype(np.int64), np.floor(q[1] / q[2]).astype(np.int64)
-    if target is not None:  # first drop the points whose whole footprint misses the targets (same landings)
-        near = np.flatnonzero((uf >= -1) & (uf < w) & (vf >= -1) & (vf < h))
-        sel = near[target.reach[vf[near] + 1, uf[near] + 1]]
-        uf, vf, zj, wj = uf[sel], vf[sel], Y[2, sel], wj[sel]
+    if front.all():
+        wj = src.weight
     else:
-        zj = Y[2]
+        Y, wj = Y[:, front], src.weight[front]
+    q = K @ Y
+    u = np.divide(q[0], q[2])
+    v = np.divide(q[1], q[2])
+    np.floor(u, out=u)
+    np.floor(v, out=v)
+    if target is not None:  # first drop the points whose whole footprint misses the targets (same landings)
+        np.clip(u, -2, w, out=u)  # -2 and w (h): every position whose footprint is outside
+        np.clip(v, -2, h, out=v)
+        code = v + 2
+        code *= w + 3
+        code += u
+        code += 2
+        sel = np.flatnonzero(target.reach[code.astype(np.intp)])
+        uf, vf, zj, wj = u[sel].astype(np.int64), v[sel].astype(np.int64), Y[2, sel], wj[sel]
+    else:
+        uf, vf, zj = u.astype(np.int64), v.astype(np.int64), Y[2]
     idx, zs, ws = [], [], []
     for du, dv in SPLAT_FOOTPRINT:
-        u, v = uf + du, vf + dv
-        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        flat = v[ok] * w + u[ok]
+        uu, vv = uf + du, vf + dv
+        ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+        flat = vv[ok] * w + uu[ok]
         if target is not None:
             hit = target.flat[flat]
             ok[ok] = hit
@@ -339,15 +383,19 @@ def _landings(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], sources
 
 def reference_sources(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
                       ref_static: Sequence[np.ndarray | None] | None, K: np.ndarray, min_confidence: float,
-                      ref_edge_jump: float | None, cache: SourceCache | None = None) -> list[SplatSource | None]:
+                      ref_edge_jump: float | None, cache: SourceCache | None = None,
+                      names: Sequence[str] | None = None) -> list[SplatSource | None]:
     """Per reference, its confident static pixels (weight confidence^2; with ``ref_edge_jump`` the
     confidence lowered at its own depth edges) as a ``SplatSource`` (None: nothing to splat). They
     do not depend on the target frame: compute them once for all the frames a reference serves
-    (``cache``: a ``SourceCache`` kept across the frames, keyed by the inputs' content)."""
+    (``cache``: a ``SourceCache`` kept across the frames). ``names``: per reference a string that
+    names its depth, confidence and static mask exactly (the store's digests of the values they
+    come from); without, the cache keys on a hash of their content."""
     out: list[SplatSource | None] = []
     for k, (depth_j, conf_j, _) in enumerate(refs):
         st = None if ref_static is None else ref_static[k]
-        key = b"" if cache is None else cache.key(K, depth_j, conf_j, st, min_confidence, ref_edge_jump)
+        key = b"" if cache is None else cache.key(K, depth_j, conf_j, st, min_confidence, ref_edge_jump,
+                                                  None if names is None else names[k])
         if cache is not None and key in cache:
             out.append(cache.get(key))
             continue
@@ -363,26 +411,39 @@ def reference_sources(refs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     return out
 
 
-class SourceCache:
-    """The ``SplatSource`` of the last ``capacity`` references, keyed by a hash of everything they
-    are computed from (depth, confidence, static mask, K, min_confidence, ref_edge_jump): a frame
-    serves as reference to every frame within the largest splat offset, each time the same source.
-    Memory: ~32 bytes per splatted pixel per entry (ICL 256x192: ~1.4 MB)."""
+SOURCE_CACHE_BYTES = 256 << 20
 
-    def __init__(self, capacity: int = 136):
+
+class SourceCache:
+    """The ``SplatSource`` of the references seen last, at most ``capacity`` of them and ``budget``
+    bytes (least recently used first out), keyed by everything they are computed from (depth,
+    confidence, static mask, K, min_confidence, ref_edge_jump): a frame serves as reference to
+    every frame within the largest splat offset, each time the same source. ~32 bytes per
+    splatted pixel per entry (ICL 256x192: ~1.3 MB); the +-64 window of the defaults touches
+    ~170 references over the 16 frames between two uses of a far one, so the budget holds ~190."""
+
+    def __init__(self, capacity: int = 100_000, budget: int = SOURCE_CACHE_BYTES):
         from collections import OrderedDict
 
-        self.capacity = capacity
-        self._d: OrderedDict[bytes, SplatSource | None] = OrderedDict()
+        self.capacity, self.budget = capacity, budget
+        self._d: OrderedDict[bytes, tuple[SplatSource | None, int]] = OrderedDict()
+        self.bytes = 0
         self.hits = 0
+        self.hashed = 0  # keys computed from the arrays' content (no ``name``)
 
-    @staticmethod
-    def key(K: np.ndarray, depth: np.ndarray, conf: np.ndarray, static: np.ndarray | None, min_confidence: float,
-            ref_edge_jump: float | None) -> bytes:
+    def key(self, K: np.ndarray, depth: np.ndarray, conf: np.ndarray, static: np.ndarray | None,
+            min_confidence: float, ref_edge_jump: float | None, name: str | None = None) -> bytes:
+        """The key of a reference's source; with ``name`` (exactly naming depth, confidence and
+        static mask, e.g. their store digests) the arrays are not read."""
         import hashlib
 
         hsh = hashlib.blake2b(repr((float(min_confidence), ref_edge_jump)).encode(), digest_size=20)
-        for a in (np.asarray(K, np.float64), np.asarray(depth), np.asarray(conf), static):
+        hsh.update(np.ascontiguousarray(K, np.float64).data)
+        if name is not None:
+            hsh.update(b"name:" + name.encode())
+            return hsh.digest()
+        self.hashed += 1
+        for a in (np.asarray(depth), np.asarray(conf), static):
             if a is None:
                 hsh.update(b"none")
                 continue
@@ -397,12 +458,16 @@ class SourceCache:
     def get(self, key: bytes) -> SplatSource | None:
         self._d.move_to_end(key)
         self.hits += 1
-        return self._d[key]
+        return self._d[key][0]
 
     def put(self, key: bytes, src: SplatSource | None) -> None:
-        self._d[key] = src
-        while len(self._d) > self.capacity:
-            self._d.popitem(last=False)
+        n = 64 if src is None else 64 + src.X.nbytes + src.weight.nbytes
+        if key in self._d:
+            self.bytes -= self._d[key][1]
+        self._d[key] = (src, n)
+        self.bytes += n
+        while len(self._d) > self.capacity or self.bytes > self.budget:
+            self.bytes -= self._d.popitem(last=False)[1][1]
 
 
 def _splat_targets(conf: np.ndarray, valid: np.ndarray, min_confidence: float, keep_confidence: float | None,
