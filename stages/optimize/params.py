@@ -179,7 +179,7 @@ class PoseGraphSettings:
     loop_weight: float = _f(1.0, ge=0)
     max_loop_rotation_deg: float = _f(30.0, "loop edges disagreeing more with odometry are ignored, unless "
                                       "they pass loop_self_check_deg", gt=0)
-    loop_self_check_deg: float = _f(0.0, "keep a loop edge the odometry gate rejects when its rotation is within "
+    loop_self_check_deg: float = _f(5.0, "keep a loop edge the odometry gate rejects when its rotation is within "
                                     "this many degrees of the loop pair's own two-view rotation (from the pair's "
                                     "flow, independent of the drifting odometry); 0 = off", ge=0)
     # a kernel cannot tell a correct loop far from drifted odometry from a wrong one: at 0.1 it
