@@ -188,7 +188,8 @@ def run_calibrate(inputs: dict[str, Any], p: frontend_params.CalibrateSettings, 
     from gcvd_flow.stages.frontend import calibrate as calibrate_mod
 
     with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
-        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep)
+        # pixels are square at the source: the working resize (sx, sy) makes fy / fx = sy / sx
+        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep, aspect=sy / sx)
     out.update(pairs=int(res.pairs), rotation_pairs=int(res.rotation_pairs), method=res.method,
                median_px=float(res.median_px), frames=int(res.frames), points=int(res.points),
                iterations=int(res.iterations))
@@ -202,9 +203,9 @@ def run_calibrate(inputs: dict[str, Any], p: frontend_params.CalibrateSettings, 
         return out
     f = float(res.focal)
     K = K.copy()
-    K[0, 0] = K[1, 1] = f
+    K[0, 0], K[1, 1] = f, f * sy / sx
     K[0, 2], K[1, 2] = (float(v) for v in res.principal_point)
-    out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sy],
+    out.update(K=K, estimated=True, guessed=False, focal_source=[f / sx, f / sx],
                origin=f"estimated from the video: f = {f:.1f} px +- {100 * rel:.1f} % at {cam['width']}x"
                       f"{cam['height']} ({len(frames)} frames, {res.pairs} pairs)")
     ctx.log(f"focal length estimated: {f:.1f} px +- {100 * rel:.1f} % (guess {cam['K'][0][0]:.1f}; {res.method}: "

@@ -384,7 +384,7 @@ def _chosen(feat: Any, n: int, target: float, knn: UniqueRatioMatcher) -> list[i
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: CalibrateSettings | None = None, *,
                    min_pairs: int = 6, robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    passes: int = 4, motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
-                   keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False,
+                   keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False, aspect: float = 1.0,
                    **overrides: Any) -> FocalEstimate:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) ->
     :class:`FocalEstimate` (focal, its relative std rel_sigma from the jackknife over frame blocks
@@ -403,13 +403,20 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle
     adjustment sees one (:func:`sift_features`).
 
+    ``aspect``: fy / fx of the frames' pixels (the working resize's sy / sx: the source's pixels are
+    square, a 540x360 frame at 256x170 is not); the estimate is made in square pixels (keypoint rows
+    divided by it) and returned for the frames' pixels: ``focal`` is fx, fy = aspect x fx.
+
     ``settings``: the calibrate stage's :class:`CalibrateSettings` (None: its defaults), with
     ``overrides`` by field name; ``mode`` is the caller's (whether to estimate at all)."""
     cfg = settings_with(CalibrateSettings, settings, overrides)
     c = np.asarray(K_guess, np.float64)[:2, 2].copy()
+    c[1] = (c[1] + 0.5) / aspect - 0.5  # rows in square pixels (pixel-centre convention)
     f_guess = float(K_guess[0, 0])
     knn = UniqueRatioMatcher(SIFT_RATIO)
     sel, feats = _select_by_motion(images, cfg.max_frames, cfg.features, motion_frac, knn=knn, keep=keep)
+    if aspect != 1.0:
+        feats = [((pos + [0.0, 0.5]) / [1.0, aspect] - [0.0, 0.5], des) for pos, des in feats]
     pairs = _frame_pairs(sel, feats, knn, ransac_px)
     n_rot = sum(g.kind == "rotation" for g in pairs)
     out: dict[str, Any] = {"focal": f_guess, "determined": False, "rel_sigma": float("inf"), "pairs": len(pairs),
@@ -420,7 +427,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     if len(pairs) < min_pairs:
         out["reason"] = (f"only {len(pairs)} frame pair(s) with enough matched motion (need {min_pairs}): "
                          "the camera hardly moves")
-        return FocalEstimate.from_record(out)
+        return _frames_pixels(out, aspect)
     size = np.asarray(images[sel[0]]).shape[1::-1]
     if n_rot >= rotation_share * len(pairs):
         f, rel = _rotation_focal([g for g in pairs if g.kind == "rotation"], c, f_guess, blocks, cfg.pp_frac, size, out)
@@ -436,6 +443,18 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
                               robust_px=robust_px, blocks=blocks, pp_prior=pp_prior)
     else:
         _not_determined(f, rel, out, max_forward_share)
+    return _frames_pixels(out, aspect)
+
+
+def _frames_pixels(out: dict[str, Any], aspect: float) -> FocalEstimate:
+    """estimate_focal's record (square pixels) as a :class:`FocalEstimate` in the frames' pixels:
+    principal-point rows and their std times ``aspect`` (fy / fx)."""
+    def row(v: list[float] | None, centre: bool) -> list[float] | None:
+        return None if v is None else [v[0], (v[1] + 0.5) * aspect - 0.5 if centre else v[1] * aspect]
+
+    if aspect != 1.0:
+        out.update(principal_point=row(out["principal_point"], True), pp_estimate=row(out.get("pp_estimate"), True),
+                   **{k: row(out.get(k), False) for k in ("pp_sigma", "pp_sigma_blocks", "pp_sigma_formal")})
     return FocalEstimate.from_record(out)
 
 

@@ -76,7 +76,7 @@ def make_camera(src_w: int, src_h: int, work_w: int, work_h: int,
     sx, sy = work_w / src_w, work_h / src_h
     if intrinsics is None:
         f = DEFAULT_FOCAL_PER_LONG_SIDE * max(work_w, work_h)
-        fx = fy = f
+        fx, fy = f, f * sy / sx  # square source pixels; the working resize may not keep them square
         cx, cy = (work_w - 1) / 2.0, (work_h - 1) / 2.0
         origin = "guess: f = 300/384 * long side (GCVD authors), centred principal point"
     else:
