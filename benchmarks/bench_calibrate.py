@@ -61,7 +61,9 @@ def main() -> None:
     K = np.array([[f0, 0, (W - 1) / 2], [0, f0, (H - 1) / 2], [0, 0, 1.0]])
     kw = {k: _value(v) for k, v in (item.split("=", 1) for item in a.set)}
     t = time.time()
-    res = calibrate.estimate_focal(ims, K, **kw)
+    aspect = (H / h) / (W / w)  # fy / fx of the working pixels (square at the source), as the stage passes it
+    K[1, 1] = f0 * aspect
+    res = calibrate.estimate_focal(ims, K, aspect=aspect, **kw)
     f = (res.estimate if res.estimate is not None else res.focal) / s
     out = {k: v for k, v in asdict(res).items() if isinstance(v, (int, float, str, bool))}
     out.update(f_source=f, error_pct=100 * (f / a.true_fx - 1), seconds=round(time.time() - t, 1),
