@@ -407,7 +407,9 @@ def solve_window(job: WindowJob) -> WindowResult:
             keep=fr.keep,
         )
         solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf, 1, st.seg.points_by_weight,
-                        st.seg.stop_every, st.seg.stop_rel, LrSchedule.of(st.seg))
+                        st.seg.stop_every, st.seg.stop_rel,
+                        LrSchedule(st.seg.lr_schedule, st.seg.lr_final_frac, st.seg.lr_start_mult,
+                                   st.seg.pose_lr_start_mult))
         run_solver(solver, gen, st.seg.steps, 0, None)
         with torch.no_grad():
             poses, meshes = solver.poses().numpy(), solver.meshes().clone()

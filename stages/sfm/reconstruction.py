@@ -245,11 +245,7 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
                 continue
         i0 = next(i for i in ids if i // TRACK_KEY == m)
         graph.add(gtsam.PriorFactorPoint3(P(i0), gtsam.Point3(*pts[i0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(iterations)
-    if rel_tol is not None:  # LM stops when the cost decreases by less than this fraction (gtsam: 1e-5)
-        params.setRelativeErrorTol(rel_tol)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, _lm_params(iterations, rel_tol))
     res = opt.optimize()
     if pp_prior is None:
         f, pp = float(res.atCal3f(KEY).fx()), np.asarray(K)[:2, 2].copy()
@@ -267,6 +263,18 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
         if pp_prior is not None:
             out["pp_sigma_formal"] = np.sqrt(np.diag(cov)[3:5]) if cov is not None else np.full(2, np.inf)
     return out
+
+
+def _lm_params(iterations: int, rel_tol: float | None):
+    """gtsam LM parameters: at most ``iterations``; with ``rel_tol`` LM stops when the cost
+    decreases by less than this fraction (gtsam's default 1e-5)."""
+    import gtsam
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    if rel_tol is not None:
+        params.setRelativeErrorTol(rel_tol)
+    return params
 
 
 def add_pp_factors(graph, key: int, f: float, pp_prior: tuple[np.ndarray, np.ndarray]) -> None:
