@@ -354,3 +354,25 @@ def test_principal_point_is_estimated_from_the_largest_model_beside_a_degenerate
     res = principal_point(tracks, ba, K, size)
     assert np.all(np.abs(res["pp"] - true) < 1.0), res["pp"]
     assert np.all(np.isfinite(res["sigma"])) and np.all(np.asarray(res["sigma"]) < 0.01 * np.asarray(size)), res
+
+
+@pytest.mark.slow
+def test_focal_of_frames_resized_to_non_square_pixels():
+    """Square source pixels resized anisotropically (256x192 -> 256x176, as 540x360 -> 256x170 is
+    by 0.4 %): the estimate made in square pixels (``aspect`` = fy / fx of the frames) recovers fx
+    within 0.5 %; treating the frames' pixels as square (aspect 1, the stage before 0f9a62c) is
+    1.6 % off. The principal point comes back in the frames' pixels (the centre, kept here)."""
+    import cv2
+
+    K_guess = default_intrinsics((256, 192))
+    clip = render_clip(60, "loop", size=(256, 192), seed=0, focal=K_guess[0, 0] * 1.1)
+    a = 176 / 192
+    frames = [cv2.resize(np.asarray(f), (256, 176), interpolation=cv2.INTER_AREA) for f in clip.frames]
+    K = K_guess.copy()
+    K[1, 1], K[1, 2] = K[1, 1] * a, (176 - 1) / 2
+    true_fx = clip.K[0, 0]
+    res = estimate_focal(frames, K, aspect=a)
+    assert res.determined and abs(res.focal / true_fx - 1) < 0.005, res.focal / true_fx
+    assert np.allclose(res.principal_point, [127.5, 87.5], atol=0.5), res.principal_point
+    square = estimate_focal(frames, K, aspect=1.0)
+    assert abs(square.focal / true_fx - 1) > 0.01, square.focal / true_fx
