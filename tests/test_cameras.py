@@ -352,3 +352,13 @@ def test_the_undistorted_border_repeats_the_frame_edge_not_black():
     assert outside.mean() > 0.03
     assert und.min() >= 59 and und[outside].min() >= 59  # no black anywhere
     assert np.all(und[:10, :10] == 60) and np.all(und[-10:, -10:] == 128)  # each corner: its own edge
+
+
+def test_the_guessed_camera_has_square_source_pixels():
+    """Without intrinsics the guess f = 300/384 x long side holds in the source's (square) pixels:
+    a 540x360 frame at 256x170 is resized by 0.4 % more in y, so fy = fx x sy / sx."""
+    from gcvd_flow.stages.frontend.ingest import make_camera
+
+    cam = make_camera(540, 360, 256, 170, None)
+    K = np.asarray(cam["K"])
+    assert cam["guessed"] and K[1, 1] / K[0, 0] == pytest.approx((170 / 360) / (256 / 540))
