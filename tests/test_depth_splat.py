@@ -122,7 +122,8 @@ def test_the_stage_splats_only_with_splat_offsets():
     mask[REGION] = True
     before = _log_err(depth, mask)
     off = run_depth_consensus(_stage_inputs(depth, conf, False), DepthConsensusParams(offsets=(1,)), None)
-    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,), splat_keep_edges=0.0),
+    on = run_depth_consensus(_stage_inputs(depth, conf, True), DepthConsensusParams(offsets=(8,), splat_offsets=(1,), splat_keep_edges=0.0,
+                                                                            smooth_lambda=0.0),
                              None)
     assert _log_err(off["depth"], mask) > 0.9 * before
     assert _log_err(on["depth"], mask) < 0.05 * before

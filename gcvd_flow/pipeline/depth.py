@@ -14,7 +14,13 @@ from gcvd_flow.pipeline.masks import MASKS, _has_user_masks, _user_mask_refs
 from gcvd_flow.pipeline.optimize import OPTIMIZE_SEGMENTS
 from gcvd_flow.pipeline.registry import declare, section
 from gcvd_flow.pipeline.shared import _eroded_keep, _far_flow, _fusion_refs
-from gcvd_flow.stages.depth import consensus as depth_consensus, filter as depth_filter, fusion as depth_fusion, params as depth_params
+from gcvd_flow.stages.depth import (
+    consensus as depth_consensus,
+    filter as depth_filter,
+    fusion as depth_fusion,
+    params as depth_params,
+    smooth as depth_smooth,
+)
 from gcvd_flow.stages.frontend import (
     user_masks,
 )
@@ -222,7 +228,8 @@ def _consensus_items(view, p: depth_params.DepthConsensusSettings):
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)), "depth": ItemRef(DEPTH_FILTER, i),
                     "refs": [ItemRef(DEPTH_FILTER, j) for j in both], "ref_indices": Const(both),
                     "static": [ItemRef(MASKS, j) for j in [i, *both]] if both else [],
-                    **({"splat_indices": Const(splat), "image": ItemRef(INGEST, i)} if splat else {})})
+                    **({"splat_indices": Const(splat)} if splat else {}),
+                    **({"image": ItemRef(INGEST, i)} if splat or (p.enabled and p.smooth_lambda > 0) else {})})
     return out
 
 
@@ -244,8 +251,9 @@ def _source_names(ctx: Any, sel: list[int]) -> list[str] | None:
 def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's filtered depth averaged with the depths its references see at its pixels (moving
     pixels, by the masks stage, left out), then (splat_offsets) corrected with their confident
-    depth splatted into it -> {depth float32 (H, W), confidence float32 (H, W): depth_filter's,
-    unchanged}."""
+    depth splatted into it, then (smooth_lambda) its log depth averaged edge-aware over the image by
+    confidence -> {depth float32 (H, W), confidence float32 (H, W): depth_filter's, lowered at the
+    output's depth edges (edge_jump)}."""
     own = inputs["depth"]
     depth = np.asarray(own["depth"], np.float32)
     conf = np.asarray(own.get("confidence", np.zeros_like(depth)), np.float32)
@@ -279,6 +287,12 @@ def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSe
                                               ref_edge_jump=p.splat_ref_edge_jump or None)
     if p.edge_jump > 0:
         conf = depth_consensus.edge_confidence(out, conf, p.edge_jump)
+    if p.smooth_lambda > 0 and "image" in inputs:  # unconfident depth's blotches averaged out along the image
+        # (the masks stage's moving pixels take part: on these clips they are mostly static surfaces it
+        # flags, and leaving them out measured worse; a user-masked pixel (--masks) neither gives nor takes)
+        user = inputs["static"][0].get("user_keep")
+        out = depth_smooth.smooth_depth(out, conf, np.asarray(inputs["image"]["image"]), p.smooth_lambda,
+                                        p.smooth_sigma, p.smooth_keep, static=user)
     return {"depth": out, "confidence": conf}
 
 

@@ -120,3 +120,10 @@ class DepthConsensusSettings:
                                     "keep their depth (0 = off)", ge=0)
     edge_jump: float = param(0.1, "the output confidence is scaled by 0.45 within 2 px of a jump of the output's log depth "
                              "larger than this (an occlusion boundary: a mix of two surfaces); 0 = off", ge=0)
+    smooth_lambda: float = param(300.0, "the output's log depth averaged edge-aware over the RGB image, weighted by "
+                                 "confidence^2 + 0.01 (a fast global smoother, stages.depth.smooth): its smoothness "
+                                 "weight; 0 = off", ge=0)
+    smooth_sigma: float = param(0.03, "colour difference (RGB in [0, 1]) at which the smoothing between neighbours "
+                                "falls to 1/e", gt=0)
+    smooth_keep: float = param(0.7, "pixels at least this confident keep their depth through the smoothing; less "
+                               "confident ones take it in proportion, (1 - (c / smooth_keep)^2)", ge=0, le=1)
