@@ -17,8 +17,9 @@ smoothness lambda falling as 1.5 * 4^(T - t - 1) / (4^T - 1). Neighbour weights 
 exp(-|I_p - I_q|^2 / sigma^2) on the RGB image in [0, 1] (a colour edge with little grey-level
 contrast stops it too: the synthetic clips' coloured walls). ~15 ms per 256x192 frame.
 
-Measured on main's outputs (docs/log/2026-11-28-depth4.md): AbsRel HoloLens 0.1205 -> 0.106,
-synthetic loop 0.034 -> 0.024, 300-frame walk 0.046 -> 0.036, ICL 0.0413 -> 0.040.
+Through the pipeline against main at ef8095f (docs/log/2026-11-28-depth4.md): AbsRel HoloLens
+0.1205 -> 0.1058, ICL 0.0413 -> 0.0394, synthetic loop 0.0344 -> 0.0239, 300-frame walk 0.0459 ->
+0.0359; confident AbsRel equal or lower (walk +0.1 %); poses untouched.
 
 Pure numpy / SciPy, deterministic (LAPACK's banded LU, no threads involved in the result).
 Shapes: depth float32 (H, W) (0 = invalid), confidence (H, W) in [0, 1], image (H, W, 3) uint8
