@@ -73,6 +73,11 @@ class KeyframeSettings:
                                      "disagrees with the composed pairs' by more than this (degrees) get the rotation"
                                      " medoid of their own and two bridged estimates and a translation re-estimated "
                                      "with it (stages/optimize/chain_check.py; 0 = off)", ge=0)
+    chain_prior_scale_below: float = _f(0.0, "essential chain: a pair whose parallax (flow left after its rotation) "
+                                             "is below this fraction of its flow (rotation-dominated), or a rotation-only "
+                                             "pair, carries the scale by moving the previous frame's depth along the flow "
+                                             "instead of same-pixel triangulated depth ratios (stages/optimize/init.py "
+                                             "essential_chain; 0 = off)", ge=0, le=1)
     checkpoint_every: int = _f(50, "steps between checkpoints", ge=1)
     schedule: Literal["chained", "independent"] = _f(
         "chained", "chained (the authors'): each window starts from the previous one's optimised, "
