@@ -209,6 +209,9 @@ class BundleAdjustmentSettings:
     prior_rot_sigma: float = _f(2.0, "weak prior to the pose graph, rad", gt=0)
     prior_trans_frac: float = _f(2.0, "weak prior to the pose graph, x median depth", gt=0)
     max_iterations: int = _f(30, ge=1)
+    restarts: int = _f(0, "adjust again this many times from the last adjustment's poses, each keyframe's depth "
+                          "rescaled as its landmarks moved (landmarks re-initialised); gets a first adjustment "
+                          "out of a local minimum (stages/optimize/bundle_adjustment.py)", ge=0)
     consistent_px: float = _f(0.25, "keep the pose graph's poses when they already reproject the tracks "
                               "to this median error, px (flow noise, no drift)", ge=0)
     solver: Literal["schur", "gtsam"] = _f("schur", "Levenberg-Marquardt of the same cost: 'schur' (numpy, analytic "
