@@ -210,26 +210,7 @@ def essential_chain(
     n = len(flows) + 1
     if pair_poses is None:
         pair_poses = chain_pair_poses(flows, static_masks, K)
-    T_next_cur: list[np.ndarray] = []  # T_{k+1}_k: camera k -> camera k+1, unit translation
-    d_fwd: list[np.ndarray | None] = []  # depth of frame k from pair (k, k+1), unit baseline
-    d_bwd: list[np.ndarray | None] = []  # depth of frame k+1 from pair (k, k+1), unit baseline
-    grid_uv = None
-    for k in range(n - 1):
-        fl = flows[k]
-        fv, bv = pair_masks(fl, static_masks, k)
-        T_k1_k, corr = pair_poses[k][0].copy(), pair_poses[k][1]
-        T_next_cur.append(T_k1_k)
-        if corr is None:
-            d_fwd.append(None)
-            d_bwd.append(None)
-            continue
-        da, grid_uv = _grid_depths(np.asarray(fl["fwd"]), fv, K, T_k1_k, stride)
-        db, _ = _grid_depths(np.asarray(fl["bwd"]), bv, K, np.linalg.inv(T_k1_k), stride)
-        d_fwd.append(da if np.isfinite(da).sum() >= 20 else None)
-        d_bwd.append(db if np.isfinite(db).sum() >= 20 else None)
-        if d_fwd[-1] is None or d_bwd[-1] is None:
-            d_fwd[-1] = d_bwd[-1] = None
-            T_next_cur[-1][:3, 3] = 0.0
+    T_next_cur, d_fwd, d_bwd, grid_uv = _pair_depths(flows, static_masks, K, pair_poses, stride)
 
     def ref_ratio(k: int, d: np.ndarray) -> float:
         m = np.isfinite(d).ravel()
@@ -272,6 +253,35 @@ def essential_chain(
             known = False
         poses[k + 1] = poses[k] @ np.linalg.inv(T_k1_k)  # T_w_{k+1} = T_w_k @ T_k_{k+1}
     return poses, log_m
+
+
+def _pair_depths(
+    flows: Sequence[Mapping[str, np.ndarray]], static_masks: np.ndarray, K: np.ndarray,
+    pair_poses: Sequence[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]], stride: int,
+) -> tuple[list[np.ndarray], list[np.ndarray | None], list[np.ndarray | None], np.ndarray | None]:
+    """Per consecutive pair (k, k + 1): T_{k+1}_k (unit translation; zero when the pair cannot
+    triangulate), the grid depths of frame k and of frame k + 1 at unit baseline (None together:
+    rotation-only or fewer than 20 usable), and the grid's pixels (None without any)."""
+    T_next_cur: list[np.ndarray] = []  # T_{k+1}_k: camera k -> camera k+1, unit translation
+    d_fwd: list[np.ndarray | None] = []  # depth of frame k from pair (k, k+1), unit baseline
+    d_bwd: list[np.ndarray | None] = []  # depth of frame k+1 from pair (k, k+1), unit baseline
+    grid_uv = None
+    for k, fl in enumerate(flows):
+        fv, bv = pair_masks(fl, static_masks, k)
+        T_k1_k, corr = pair_poses[k][0].copy(), pair_poses[k][1]
+        T_next_cur.append(T_k1_k)
+        if corr is None:
+            d_fwd.append(None)
+            d_bwd.append(None)
+            continue
+        da, grid_uv = _grid_depths(np.asarray(fl["fwd"]), fv, K, T_k1_k, stride)
+        db, _ = _grid_depths(np.asarray(fl["bwd"]), bv, K, np.linalg.inv(T_k1_k), stride)
+        d_fwd.append(da if np.isfinite(da).sum() >= 20 else None)
+        d_bwd.append(db if np.isfinite(db).sum() >= 20 else None)
+        if d_fwd[-1] is None or d_bwd[-1] is None:
+            d_fwd[-1] = d_bwd[-1] = None
+            T_next_cur[-1][:3, 3] = 0.0
+    return T_next_cur, d_fwd, d_bwd, grid_uv
 
 
 def _grid(valid: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray]:
