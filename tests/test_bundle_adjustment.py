@@ -7,7 +7,7 @@ import pytest
 from geometry_ref import rigid_flow
 from scipy.spatial.transform import Rotation
 
-from gcvd_flow.evaluate.metrics import ate
+from gcvd_flow.evaluate.metrics import ate, umeyama_alignment
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.stages.geometry import se3
 from gcvd_flow.stages.optimize import ba_solver
@@ -157,6 +157,42 @@ def test_depth_scale_follows_the_adjusted_landmarks():
     assert abs(scale[5] - 1 / 1.1) < 0.02, scale
     assert np.all(np.abs(np.delete(scale, 5) - 1) < 0.02), scale
 
+
+
+def _shrunk_start(c: float = 16.0):
+    """The walk's first third of keyframes ``c`` times too small (poses about the first keyframe
+    and their depths with them, the rest following rigidly): the HoloLens walk's turning start as
+    the keyframe windows leave it (6-16x)."""
+    K, T_gt, depths, edges, kf = _keyframe_problem(n_frames=60, step=3)
+    m = len(kf) // 3
+    T0, d0 = T_gt.copy(), [d / c if k <= m else d for k, d in enumerate(depths)]
+    for k in range(1, len(kf)):
+        j = min(k, m)
+        T0[k, :3, 3] = T_gt[0, :3, 3] + (T_gt[j, :3, 3] - T_gt[0, :3, 3]) / c + (T_gt[k, :3, 3] - T_gt[j, :3, 3])
+    return K, T_gt, T0, d0, edges, kf, np.arange(len(kf)) <= m
+
+
+def test_a_restart_adjusts_again_from_the_rescaled_depths():
+    """``restarts=1`` is a second adjustment from the first one's poses with each keyframe's depth
+    scaled by its depth_scale (depth_scale then the product); on the shrunk start it gets the
+    start's scale closer to the truth than the first adjustment alone."""
+    K, T_gt, T0, d0, edges, kf, start = _shrunk_start()
+    kw = dict(stride=12, track_length=16, min_views=3, consistent_px=0.0, max_iterations=3)
+    one = bundle_adjust(T0, d0, edges, kf, K, **kw)
+    two = bundle_adjust(T0, d0, edges, kf, K, restarts=1, **kw)
+    again = bundle_adjust(one["poses"], [d * np.float32(s) for d, s in zip(d0, one["depth_scale"])], edges, kf, K, **kw)
+    np.testing.assert_array_equal(two["poses"], again["poses"])
+    np.testing.assert_array_equal(two["depth_scale"], one["depth_scale"] * again["depth_scale"])
+    assert two["iterations"] == one["iterations"] + again["iterations"]
+    assert two["initial_median_px"] == one["initial_median_px"]
+
+    def start_scale(T: np.ndarray) -> float:  # > 1: the start is too small against the whole walk
+        s_all = umeyama_alignment(T[:, :3, 3], T_gt[:, :3, 3])[0]
+        return umeyama_alignment(T[start, :3, 3], T_gt[start, :3, 3])[0] / s_all
+
+    assert start_scale(T0) > 10
+    assert start_scale(two["poses"]) < start_scale(one["poses"]) - 2
+    np.testing.assert_array_equal(bundle_adjust(T0, d0, edges, kf, K, restarts=0, **kw)["poses"], one["poses"])
 
 # ------------------------------------------------------------------ the Schur solver against gtsam
 def _synthetic_problem(seed: int = 0, n_kf: int = 5, n_lm: int = 300, noise_px: float = 0.3,

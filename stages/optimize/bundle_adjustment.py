@@ -28,7 +28,7 @@ poses T_w_k (K, 4, 4) camera-to-world, OpenCV axes.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Mapping, Sequence, TypedDict
+from typing import TYPE_CHECKING, Any, Mapping, NamedTuple, Sequence, TypedDict
 
 import numpy as np
 
@@ -209,13 +209,20 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     Levenberg-Marquardt, the reference). ``keep``: the user's (--masks) kept pixels per keyframe
     (bool (H, W)) or None (:func:`flow_tracks`). ``settings``: the stage's
     :class:`BundleAdjustmentSettings` (None: its defaults) with ``overrides`` by field name;
-    ``enabled`` is the caller's."""
+    ``enabled`` is the caller's.
+
+    ``restarts``: adjust again that many times from the last adjustment's poses, each keyframe's
+    depth scaled by its ``depth_scale`` (landmarks re-initialised, the weak prior re-centred);
+    ``depth_scale`` is then the product over the passes. On the HoloLens walk a first adjustment
+    started from a turning start 6-16x too small stops at 2.2-2.8x; the restart reaches the same
+    window scales from every start (docs/log/2026-11-28-scale5.md)."""
     cfg = settings_with(BundleAdjustmentSettings, settings, overrides)
     stride, track_length, min_views, robust_px = cfg.stride, cfg.track_length, cfg.min_views, cfg.robust_px
-    prior_rot_sigma, prior_trans_frac, max_iterations = cfg.prior_rot_sigma, cfg.prior_trans_frac, cfg.max_iterations
-    consistent_px, solver = cfg.consistent_px, cfg.solver
-    if solver not in ("schur", "gtsam"):
-        raise ValueError(f"unknown bundle adjustment solver {solver!r}")
+    # read here, before any early return (tests/test_settings_reach.py records what this function reads)
+    solve = _Solve(cfg.prior_rot_sigma, cfg.prior_trans_frac, cfg.max_iterations, cfg.consistent_px, cfg.solver)
+    restarts = cfg.restarts
+    if solve.solver not in ("schur", "gtsam"):
+        raise ValueError(f"unknown bundle adjustment solver {solve.solver!r}")
     T_w_k = np.asarray(T_w_k, np.float64)
     n = len(T_w_k)
     h, w = np.asarray(depths[0]).shape
@@ -225,22 +232,55 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
                           "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
     if n < 3 or not tracks:
         return none
+    res = _adjust_once(T_w_k, depths, tracks, K, robust_px, solve)
+    if res is None:
+        return none
+    for _ in range(restarts if not res["skipped"] else 0):
+        # restart from the adjusted poses with each keyframe's depth rescaled as its landmarks moved:
+        # the landmarks start consistent with the new poses (a stuck first adjustment gets out)
+        scaled = [np.asarray(d) * np.float32(sc) for d, sc in zip(depths, res["depth_scale"])]
+        again = _adjust_once(res["poses"], scaled, tracks, K, robust_px, solve)
+        if again is None or again["skipped"]:
+            break
+        res = {**again, "initial_median_px": res["initial_median_px"],
+               "iterations": res["iterations"] + again["iterations"],
+               "depth_scale": res["depth_scale"] * again["depth_scale"]}
+    return res
+
+
+class _Solve(NamedTuple):
+    """The settings one adjustment reads (``BundleAdjustmentSettings``' fields of the same names)."""
+
+    prior_rot_sigma: float
+    prior_trans_frac: float
+    max_iterations: int
+    consistent_px: float
+    solver: str
+
+
+def _adjust_once(T_w_k: np.ndarray, depths: Sequence[np.ndarray], tracks: list[Track], K: np.ndarray,
+                 robust_px: float, opt: _Solve) -> BundleResult | None:
+    """One adjustment of poses T_w_k (K, 4, 4) with landmarks starting at ``depths``, its weak prior
+    centred on T_w_k (translation sigma: ``prior_trans_frac`` x the depths' median); None without a
+    landmark."""
+    n = len(T_w_k)
     med = float(np.median([np.median(d[d > 0]) for d in depths if (d > 0).any()] or [1.0]))
-    weak = np.array([prior_rot_sigma] * 3 + [prior_trans_frac * med] * 3)
+    weak = np.array([opt.prior_rot_sigma] * 3 + [opt.prior_trans_frac * med] * 3)
     problem, lm0 = _problem(tracks, depths, K, robust_px, T_w_k, weak)
     n_lm, n_obs = len(lm0), len(problem.uv)
     if not n_lm:
-        return none
+        return None
     e0 = _median_error(problem, T_w_k, lm0)
-    if e0 < consistent_px:
-        return {**none, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0, "final_median_px": e0}
-    if solver == "schur":
-        res = ba_solver.solve(problem, T_w_k, lm0, max_iterations=max_iterations)
+    if e0 < opt.consistent_px:
+        return {"poses": T_w_k, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
+                "final_median_px": e0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
+    if opt.solver == "schur":
+        res = ba_solver.solve(problem, T_w_k, lm0, max_iterations=opt.max_iterations)
     else:
-        res = solve_gtsam(problem, T_w_k, lm0, weak, max_iterations=max_iterations)
+        res = solve_gtsam(problem, T_w_k, lm0, weak, max_iterations=opt.max_iterations)
     e1 = _median_error(problem, res.poses, res.landmarks)
     log.debug("bundle adjustment (%s): %d landmarks, %d observations, median %.3f -> %.3f px, %d iterations",
-              solver, n_lm, n_obs, e0, e1, res.iterations)
+              opt.solver, n_lm, n_obs, e0, e1, res.iterations)
     return {"poses": res.poses, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
             "final_median_px": e1, "iterations": int(res.iterations), "skipped": False,
             "depth_scale": _depth_scale(lm0[:, 2], res.landmarks[:, 2], problem.anchor, n)}

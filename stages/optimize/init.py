@@ -181,6 +181,7 @@ def essential_chain(
     K: np.ndarray,
     stride: int = 2,
     pair_poses: Sequence[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]] | None = None,
+    prior_scale_below: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Chain of two-view poses with consistent scale.
 
@@ -196,16 +197,76 @@ def essential_chain(
 
     pair_poses: the pairs' ``two_view_pose`` results (T_{k+1}_k, correspondences or None) when
     already computed (``chain_pair_poses``, possibly repaired by ``stages.optimize.chain_check``).
+
+    prior_scale_below (opt-in, 0 = off): a rotation-dominated pair, whose median parallax (flow
+    left after its rotation) is below this fraction of its median flow, or a rotation-only pair,
+    does not propagate the scale by same-pixel depth ratios (ill-conditioned: on the HoloLens
+    walk's turning start they inflate the first window 4-15x). Its translation is scaled so that
+    frame k's triangulated depth matches frame k's known depth (prior x scale) in median, and
+    frame k + 1's scale comes from frame k's depth carried through the pair's motion along the
+    flow (``_transferred_log_scale``): the same 3D points, so the scale passes through however
+    small the parallax.
     """
     n = len(flows) + 1
     if pair_poses is None:
         pair_poses = chain_pair_poses(flows, static_masks, K)
+    T_next_cur, d_fwd, d_bwd, grid_uv = _pair_depths(flows, static_masks, K, pair_poses, stride)
+
+    def ref_ratio(k: int, d: np.ndarray) -> float:
+        m = np.isfinite(d).ravel()
+        r = d.ravel()[m] / sample_np(ref_depths[k], grid_uv[m])  # type: ignore[index]
+        return float(np.median(r))
+
+    log_m = np.zeros(n)  # log depth scale of frame k relative to ref_depths[k]
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    known = False  # whether log_m[k] is anchored by a triangulation
+    prev_scale = 1.0  # the previous pair's scale s (read only once known)
+    for k in range(n - 1):
+        T_k1_k = T_next_cur[k].copy()
+        fwd, bwd = d_fwd[k], d_bwd[k]
+        weak = prior_scale_below > 0 and _parallax_fraction(flows[k], static_masks, k, K, T_k1_k, stride) < prior_scale_below
+        if fwd is not None:
+            assert bwd is not None  # a pair's two depth maps are None together (above)
+            if weak:  # rotation-dominated: the scale from frame k's known depth, carried along the flow
+                s = math.exp(log_m[k]) / ref_ratio(k, fwd)
+                T_k1_k[:3, 3] *= s
+                prev_scale, known = s, True
+                log_m[k + 1] = _transferred_log_scale(flows[k], static_masks, k, ref_depths, log_m[k], K, T_k1_k, stride)
+            else:
+                if k > 0 and (prev_bwd := d_bwd[k - 1]) is not None and known:
+                    # same-pixel ratio: depth of frame k (previous pair, already scaled) / (this pair)
+                    prev = prev_bwd * prev_scale
+                    both = np.isfinite(prev) & np.isfinite(fwd)
+                    if both.sum() >= 20:
+                        s = float(np.median(prev[both] / fwd[both]))
+                    else:
+                        s = math.exp(log_m[k]) / ref_ratio(k, fwd)
+                else:
+                    s = math.exp(log_m[k]) / ref_ratio(k, fwd)
+                T_k1_k[:3, 3] *= s
+                prev_scale = s
+                log_m[k + 1] = math.log(s * ref_ratio(k + 1, bwd))
+                known = True
+        else:
+            log_m[k + 1] = (_transferred_log_scale(flows[k], static_masks, k, ref_depths, log_m[k], K, T_k1_k, stride)
+                            if prior_scale_below > 0 else log_m[k])
+            known = False
+        poses[k + 1] = poses[k] @ np.linalg.inv(T_k1_k)  # T_w_{k+1} = T_w_k @ T_k_{k+1}
+    return poses, log_m
+
+
+def _pair_depths(
+    flows: Sequence[Mapping[str, np.ndarray]], static_masks: np.ndarray, K: np.ndarray,
+    pair_poses: Sequence[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]], stride: int,
+) -> tuple[list[np.ndarray], list[np.ndarray | None], list[np.ndarray | None], np.ndarray | None]:
+    """Per consecutive pair (k, k + 1): T_{k+1}_k (unit translation; zero when the pair cannot
+    triangulate), the grid depths of frame k and of frame k + 1 at unit baseline (None together:
+    rotation-only or fewer than 20 usable), and the grid's pixels (None without any)."""
     T_next_cur: list[np.ndarray] = []  # T_{k+1}_k: camera k -> camera k+1, unit translation
     d_fwd: list[np.ndarray | None] = []  # depth of frame k from pair (k, k+1), unit baseline
     d_bwd: list[np.ndarray | None] = []  # depth of frame k+1 from pair (k, k+1), unit baseline
     grid_uv = None
-    for k in range(n - 1):
-        fl = flows[k]
+    for k, fl in enumerate(flows):
         fv, bv = pair_masks(fl, static_masks, k)
         T_k1_k, corr = pair_poses[k][0].copy(), pair_poses[k][1]
         T_next_cur.append(T_k1_k)
@@ -220,40 +281,50 @@ def essential_chain(
         if d_fwd[-1] is None or d_bwd[-1] is None:
             d_fwd[-1] = d_bwd[-1] = None
             T_next_cur[-1][:3, 3] = 0.0
+    return T_next_cur, d_fwd, d_bwd, grid_uv
 
-    def ref_ratio(k: int, d: np.ndarray) -> float:
-        m = np.isfinite(d).ravel()
-        r = d.ravel()[m] / sample_np(ref_depths[k], grid_uv[m])  # type: ignore[index]
-        return float(np.median(r))
 
-    log_m = np.zeros(n)  # log depth scale of frame k relative to ref_depths[k]
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    known = False  # whether log_m[k] is anchored by a triangulation
-    prev_scale = 1.0  # the previous pair's scale s (read only once known)
-    for k in range(n - 1):
-        T_k1_k = T_next_cur[k].copy()
-        fwd, bwd = d_fwd[k], d_bwd[k]
-        if fwd is not None:
-            assert bwd is not None  # a pair's two depth maps are None together (above)
-            if k > 0 and (prev_bwd := d_bwd[k - 1]) is not None and known:
-                # same-pixel ratio: depth of frame k (previous pair, already scaled) / (this pair)
-                prev = prev_bwd * prev_scale
-                both = np.isfinite(prev) & np.isfinite(fwd)
-                if both.sum() >= 20:
-                    s = float(np.median(prev[both] / fwd[both]))
-                else:
-                    s = math.exp(log_m[k]) / ref_ratio(k, fwd)
-            else:
-                s = math.exp(log_m[k]) / ref_ratio(k, fwd)
-            T_k1_k[:3, 3] *= s
-            prev_scale = s
-            log_m[k + 1] = math.log(s * ref_ratio(k + 1, bwd))
-            known = True
-        else:
-            log_m[k + 1] = log_m[k]
-            known = False
-        poses[k + 1] = poses[k] @ np.linalg.inv(T_k1_k)  # T_w_{k+1} = T_w_k @ T_k_{k+1}
-    return poses, log_m
+def _grid(valid: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2) of a regular grid over an (H, W) mask and the mask there (M,)."""
+    h, w = valid.shape
+    ys, xs = np.mgrid[stride // 2 : h : stride, stride // 2 : w : stride]
+    return np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64), valid[ys.ravel(), xs.ravel()]
+
+
+def _parallax_fraction(
+    fl: Mapping[str, np.ndarray], static_masks: np.ndarray, k: int, K: np.ndarray, T_k1_k: np.ndarray, stride: int
+) -> float:
+    """Median parallax (the flow left after the pair's rotation, px) over the median flow (px) of
+    pair (k, k + 1) on ``pair_masks``' grid pixels: near 0 for a rotation-dominated pair, 1 for a
+    pure translation (1.0 when no pixel is usable: nothing to judge)."""
+    uv, ok = _grid(pair_masks(fl, static_masks, k)[0], stride)
+    if ok.sum() < 20:
+        return 1.0
+    uv = uv[ok]
+    uv2 = uv + np.asarray(fl["fwd"], np.float64)[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+    r = rays(uv, K) @ T_k1_k[:3, :3].T
+    rot = r[:, :2] / r[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    flow = float(np.median(np.linalg.norm(uv2 - uv, axis=1)))
+    return float(np.median(np.linalg.norm(uv2 - rot, axis=1))) / flow if flow > 0 else 1.0
+
+
+def _transferred_log_scale(
+    fl: Mapping[str, np.ndarray], static_masks: np.ndarray, k: int, ref_depths: np.ndarray, log_m_k: float,
+    K: np.ndarray, T_k1_k: np.ndarray, stride: int,
+) -> float:
+    """log depth scale of frame k + 1 relative to ref_depths[k + 1]: frame k's depth
+    (ref_depths[k] * exp(log_m_k)) on ``pair_masks``' grid pixels, moved into camera k + 1 by
+    T_k1_k (translation in the chain's scale) and compared with frame k + 1's reference depth
+    where the flow lands (median log ratio); log_m_k when fewer than 20 points land in front."""
+    uv, ok = _grid(pair_masks(fl, static_masks, k)[0], stride)
+    uv = uv[ok]
+    uv2 = uv + np.asarray(fl["fwd"], np.float64)[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+    d = sample_np(ref_depths[k], uv) * math.exp(log_m_k)
+    z = ((rays(uv, K) * d[:, None]) @ T_k1_k[:3, :3].T + T_k1_k[:3, 3])[:, 2]
+    front = z > 1e-6
+    if front.sum() < 20:
+        return log_m_k
+    return float(np.median(np.log(z[front] / sample_np(ref_depths[k + 1], uv2[front]))))
 
 
 def interp_pose(T_w_a: np.ndarray, T_w_b: np.ndarray, s: float) -> np.ndarray:

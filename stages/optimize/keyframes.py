@@ -210,7 +210,8 @@ def _initial_solution(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Initial poses (K, 4, 4) float64 T_w_c and log-scale meshes (K, gh, gw) float32 (one
     value per frame): the essential-matrix chain (its pairs checked and repaired first with
-    ``kf.chain_check_deg`` > 0: ``stages.optimize.chain_check``), or identity poses / zero meshes."""
+    ``kf.chain_check_deg`` > 0: ``stages.optimize.chain_check``; rotation-dominated pairs carrying
+    the scale along the flow with ``kf.chain_prior_scale_below`` > 0), or identity poses / zero meshes."""
     nk = len(images)
     if kf.init == "essential" and nk > 1:
         ref = init_depth_full(net, images, priors)
@@ -219,7 +220,8 @@ def _initial_solution(
             pair_poses, changed, _ = checked_pair_poses(flows, np.asarray(static_masks), K, kf.chain_check_deg)
             if changed:
                 log.info("essential chain: %d pair(s) repaired by the three-view check: %s", len(changed), changed)
-        init_np, log_m = essential_chain(flows, np.asarray(static_masks), ref, K, pair_poses=pair_poses)
+        init_np, log_m = essential_chain(flows, np.asarray(static_masks), ref, K, pair_poses=pair_poses,
+                                         prior_scale_below=kf.chain_prior_scale_below)
     else:
         init_np, log_m = np.tile(np.eye(4), (nk, 1, 1)), np.zeros(nk)
     mesh_init = torch.as_tensor(log_m, dtype=torch.float32)[:, None, None].expand(nk, *gshape).clone()

@@ -73,6 +73,11 @@ class KeyframeSettings:
                                      "disagrees with the composed pairs' by more than this (degrees) get the rotation"
                                      " medoid of their own and two bridged estimates and a translation re-estimated "
                                      "with it (stages/optimize/chain_check.py; 0 = off)", ge=0)
+    chain_prior_scale_below: float = _f(0.0, "essential chain: a pair whose parallax (flow left after its rotation) "
+                                             "is below this fraction of its flow (rotation-dominated), or a rotation-only "
+                                             "pair, carries the scale by moving the previous frame's depth along the flow "
+                                             "instead of same-pixel triangulated depth ratios (stages/optimize/init.py "
+                                             "essential_chain; 0 = off)", ge=0, le=1)
     checkpoint_every: int = _f(50, "steps between checkpoints", ge=1)
     schedule: Literal["chained", "independent"] = _f(
         "chained", "chained (the authors'): each window starts from the previous one's optimised, "
@@ -204,6 +209,9 @@ class BundleAdjustmentSettings:
     prior_rot_sigma: float = _f(2.0, "weak prior to the pose graph, rad", gt=0)
     prior_trans_frac: float = _f(2.0, "weak prior to the pose graph, x median depth", gt=0)
     max_iterations: int = _f(30, ge=1)
+    restarts: int = _f(0, "adjust again this many times from the last adjustment's poses, each keyframe's depth "
+                          "rescaled as its landmarks moved (landmarks re-initialised); gets a first adjustment "
+                          "out of a local minimum (stages/optimize/bundle_adjustment.py)", ge=0)
     consistent_px: float = _f(0.25, "keep the pose graph's poses when they already reproject the tracks "
                               "to this median error, px (flow noise, no drift)", ge=0)
     solver: Literal["schur", "gtsam"] = _f("schur", "Levenberg-Marquardt of the same cost: 'schur' (numpy, analytic "
