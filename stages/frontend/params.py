@@ -115,6 +115,10 @@ class PriorsSettings:
                 "references no longer find the span/2 pairs)")
     preset: DisPreset = param("fine", "DIS preset of the prior's direct flows ('fine': full-resolution finest level)")
     fb_thresh: float = param(1.0, gt=0)
+    chain_fallback: bool = param(
+        True, "when no direct flow to the references keeps enough consistent pixels (fast motion: on the HoloLens walk"
+              " 8 frames apart keep 0.1-2 %), triangulate the chain of adjacent flows toward the reference instead"
+              " (its longest prefix that keeps them) rather than fall back to a constant prior")
     weights: str | None = param(None, "MiDaS weights file", json_schema_extra=WEIGHTS_FILE)
 
     def check(self) -> None:
