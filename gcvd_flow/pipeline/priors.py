@@ -69,7 +69,7 @@ def run_priors(inputs: dict[str, Any], p: frontend_params.PriorsSettings, ctx: I
             if keep:  # no triangulation of, or from, a user-masked pixel
                 valid = valid & keep[0] & user_masks.flow_target_kept(fwd, keep[k + 1])
             flows.append((fwd, valid))
-    chain = [_far_flow(fl, inputs["chain_dir"]) for fl in inputs.get("chain", [])] if not flows else []
+    chain = [_far_flow(fl, inputs["chain_dir"]) for fl in inputs.get("chain", [])] if not flows and p.chain_fallback else []
     if keep and chain:  # frame i's user mask (the chain's other frames have theirs in flow's masks)
         chain[0] = (chain[0][0], chain[0][1] & keep[0])
     out = priors_mod.prior_with_fallback(image, K, flows, chain)
