@@ -39,9 +39,9 @@ def _prior_items(view, p: frontend_params.PriorsSettings):
         js = _prior_refs(i, n, p)
         if js:
             it.update(_far_refs(index, i, js, p.preset, p.fb_thresh), **_user_mask_refs(user, [i, *js]))
-            if p.chain_fallback:  # adjacent flows toward the reference, for when the direct ones fail
+            if p.chain_fallback:  # the adjacent flow toward the references, for when the direct ones fail
                 direction, ks = references.flow_chain(i, n, p.span)
-                it.update(chain_dir=Const(direction), chain=[ItemRef(FLOW, k) for k in ks])
+                it.update(chain_dir=Const(direction), chain=[ItemRef(FLOW, k) for k in ks[:p.chain_links]])
         out.append(it)
     return out
 

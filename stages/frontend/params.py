@@ -117,8 +117,10 @@ class PriorsSettings:
     fb_thresh: float = param(1.0, gt=0)
     chain_fallback: bool = param(
         True, "when no direct flow to the references keeps enough consistent pixels (fast motion: on the HoloLens walk"
-              " 8 frames apart keep 0.1-2 %), triangulate the chain of adjacent flows toward the reference instead"
-              " (its longest prefix that keeps them) rather than fall back to a constant prior")
+              " 8 frames apart keep 0.1-2 %), triangulate the chain of chain_links adjacent flows toward the reference"
+              " instead (its longest prefix that keeps them) rather than fall back to a constant prior")
+    chain_links: int = param(1, "adjacent flows the fallback may chain (HoloLens prior slope on GT: 1 link 0.99,"
+                                " 3 links 0.76: chaining drifts)", ge=1)
     weights: str | None = param(None, "MiDaS weights file", json_schema_extra=WEIGHTS_FILE)
 
     def check(self) -> None:
