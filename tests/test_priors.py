@@ -88,8 +88,7 @@ def test_fast_motion_falls_back_to_the_adjacent_flow_chain():
     failed = {**far, "fwd_valid": np.zeros_like(far["fwd_valid"]), "bwd_valid": np.zeros_like(far["bwd_valid"])}
     inputs = {"image": {"image": clip.frames[i]}, "K": clip.K, "refs": [failed], "ref_dirs": ["fwd"],
               "chain_dir": "fwd", "chain": [_pair(clip, j, j + 1) for j in range(i, i + 5)]}
-    p = PriorsSettings()
-    assert p.chain_fallback
+    p = replace(PriorsSettings(), chain_fallback=True)
     r = run_priors(inputs, p, None)
     rho = spearmanr(r["inv_depth"].ravel(), 1.0 / clip.depth[i].ravel())[0]
     print(f"chain-fallback prior Spearman vs GT inverse depth: {rho:.3f}")
