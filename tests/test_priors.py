@@ -67,3 +67,37 @@ def test_fine_flow_and_second_reference_improve_the_prior():
     print(f"prior AbsRel medium/1 ref {np.round(old, 3).tolist()} -> fine/2 refs {np.round(new, 3).tolist()}")
     assert np.mean(new) < 0.8 * np.mean(old)
     assert np.mean(new) < 0.08
+
+
+def _pair(clip, a, b):
+    return compute_pair_flow(clip.frames[a], clip.frames[b])
+
+
+def test_fast_motion_falls_back_to_the_adjacent_flow_chain():
+    """When the direct flows to the references fail their forward-backward check (fast motion:
+    the HoloLens walk keeps 0.1-2 % of the pixels 8 frames apart), run_priors triangulates the
+    chain of adjacent flows instead of returning a constant prior (priors.chain_fallback)."""
+    from dataclasses import replace
+
+    from gcvd_flow.pipeline.priors import run_priors
+    from gcvd_flow.stages.frontend.params import PriorsSettings
+
+    clip = render_clip(N, "orbit", size=(256, 192), seed=0)
+    i = 3
+    far = _pair(clip, i, i + 8)
+    failed = {**far, "fwd_valid": np.zeros_like(far["fwd_valid"]), "bwd_valid": np.zeros_like(far["bwd_valid"])}
+    inputs = {"image": {"image": clip.frames[i]}, "K": clip.K, "refs": [failed], "ref_dirs": ["fwd"],
+              "chain_dir": "fwd", "chain": [_pair(clip, j, j + 1) for j in range(i, i + 5)]}
+    p = replace(PriorsSettings(), chain_fallback=True)
+    r = run_priors(inputs, p, None)
+    rho = spearmanr(r["inv_depth"].ravel(), 1.0 / clip.depth[i].ravel())[0]
+    print(f"chain-fallback prior Spearman vs GT inverse depth: {rho:.3f}")
+    assert rho >= 0.7 and r["confidence"].mean() > 0.3
+    # without the fallback (or without a chain) the failed direct flow gives the constant prior
+    for q, inp in ((replace(p, chain_fallback=False), inputs), (p, {**inputs, "chain": []})):
+        c = run_priors(inp, q, None)
+        assert np.all(c["inv_depth"] == 1.0) and np.all(c["confidence"] == 0.0)
+    # a usable direct flow is used as before: the chain does not change the prior
+    ok = run_priors({**inputs, "refs": [far]}, p, None)
+    ref = geometric_prior(clip.frames[i], clip.K, [(far["fwd"], far["fwd_valid"])])
+    assert np.array_equal(ok["inv_depth"], ref["inv_depth"])

@@ -6,10 +6,10 @@ from typing import Any
 
 import numpy as np
 
-from gcvd_flow.engine.dag import ItemRef, MapStage, PartRef
+from gcvd_flow.engine.dag import Const, ItemRef, MapStage, PartRef
 from gcvd_flow.io.weights import open_model
 from gcvd_flow.pipeline.context import ItemContext
-from gcvd_flow.pipeline.frontend import CALIBRATE, FLOW_FAR, INGEST, _far_index, _far_refs
+from gcvd_flow.pipeline.frontend import CALIBRATE, FLOW, FLOW_FAR, INGEST, _far_index, _far_refs
 from gcvd_flow.pipeline.masks import MASKS, _has_user_masks, _user_mask_refs
 from gcvd_flow.pipeline.registry import declare, section
 from gcvd_flow.pipeline.shared import _far_flow, _prior_refs
@@ -18,6 +18,7 @@ from gcvd_flow.stages.frontend import (
     priors as priors_mod,
     user_masks,
 )
+from gcvd_flow.stages.graph import references
 
 # ============================================================================== priors
 PriorsParams = section("priors", frontend_params.PriorsSettings)
@@ -38,6 +39,9 @@ def _prior_items(view, p: frontend_params.PriorsSettings):
         js = _prior_refs(i, n, p)
         if js:
             it.update(_far_refs(index, i, js, p.preset, p.fb_thresh), **_user_mask_refs(user, [i, *js]))
+            if p.chain_fallback:  # the adjacent flow toward the references, for when the direct ones fail
+                direction, ks = references.flow_chain(i, n, p.span)
+                it.update(chain_dir=Const(direction), chain=[ItemRef(FLOW, k) for k in ks[:p.chain_links]])
         out.append(it)
     return out
 
@@ -65,14 +69,14 @@ def run_priors(inputs: dict[str, Any], p: frontend_params.PriorsSettings, ctx: I
             if keep:  # no triangulation of, or from, a user-masked pixel
                 valid = valid & keep[0] & user_masks.flow_target_kept(fwd, keep[k + 1])
             flows.append((fwd, valid))
-    out = priors_mod.geometric_prior(image, K, flows[:1], extra=flows[1:]) if flows else None
-    if out is None:
-        h, w = image.shape[:2]
-        out = {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
+    chain = [_far_flow(fl, inputs["chain_dir"]) for fl in inputs.get("chain", [])] if not flows and p.chain_fallback else []
+    if keep and chain:  # frame i's user mask (the chain's other frames have theirs in flow's masks)
+        chain[0] = (chain[0][0], chain[0][1] & keep[0])
+    out = priors_mod.prior_with_fallback(image, K, flows, chain)
     return {"inv_depth": out["inv_depth"].astype(np.float32),
             "confidence": out["confidence"].astype(np.float32)}
 
 
-PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, CALIBRATE, FLOW_FAR, MASKS), params="priors", kind="prior",
+PRIORS = declare(MapStage("priors", run_priors, deps=(INGEST, CALIBRATE, FLOW, FLOW_FAR, MASKS), params="priors", kind="prior",
                   items=_prior_items, resources={"model": _open_midas},
                   description="MiDaS-shaped relative inverse depth"))

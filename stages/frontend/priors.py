@@ -172,3 +172,20 @@ def geometric_prior(image: np.ndarray, K: np.ndarray, chain: Sequence[tuple[np.n
     if not np.isfinite(med) or med <= 0:
         return _constant(h, w)
     return {"inv_depth": (dense / med).astype(np.float32), "confidence": support.astype(np.float32)}
+
+
+def prior_with_fallback(image: np.ndarray, K: np.ndarray, direct: Sequence[tuple[np.ndarray, np.ndarray]],
+                        chain: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> dict[str, np.ndarray]:
+    """geometric_prior from the direct flows [(flow, valid), ...] to the references (the caller keeps
+    those with MIN_VALID_FRACTION of their pixels consistent; the first is the main reference); when there is none (fast motion:
+    a direct flow over many frames fails its forward-backward check almost everywhere), from the
+    chain of adjacent flows toward the reference instead (geometric_prior keeps its longest prefix
+    that stays consistent); a constant prior when there is neither."""
+    usable = [(f, np.asarray(v, bool)) for f, v in direct]
+    if usable:
+        return geometric_prior(image, K, usable[:1], extra=usable[1:])
+    if chain:
+        log.info("prior: no direct flow is consistent enough; triangulating the adjacent-flow chain")
+        return geometric_prior(image, K, chain)
+    h, w = image.shape[:2]
+    return _constant(h, w)
