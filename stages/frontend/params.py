@@ -116,12 +116,10 @@ class PriorsSettings:
     preset: DisPreset = param("fine", "DIS preset of the prior's direct flows ('fine': full-resolution finest level)")
     fb_thresh: float = param(1.0, gt=0)
     chain_fallback: bool = param(
-        False, "opt-in (HoloLens AbsRel 0.1058 -> 0.1024, ATE 6.08 -> 5.68 cm, but window scales to 1.16 and KITTI"
-               " 0.297 -> 0.298 m): when no direct flow to the references keeps enough consistent pixels (fast motion: on the HoloLens walk"
-              " 8 frames apart keep 0.1-2 %), triangulate the chain of chain_links adjacent flows toward the reference"
-              " instead (its longest prefix that keeps them) rather than fall back to a constant prior")
-    chain_links: int = param(8, "adjacent flows the fallback may chain, at most span (HoloLens: 8 links AbsRel 0.1024,"
-                                " 2 links 0.1056, 1 link 0.1038, 12 % of its frames then keep a constant prior)", ge=1)
+        True, "when no direct flow to the references keeps enough consistent pixels (fast motion), triangulate the "
+              "chain of chain_links adjacent flows toward the reference instead (its longest prefix that keeps them) "
+              "rather than fall back to a constant prior")
+    chain_links: int = param(8, "adjacent flows the fallback may chain, at most span", ge=1)
     weights: str | None = param(None, "MiDaS weights file", json_schema_extra=WEIGHTS_FILE)
 
     def check(self) -> None:
