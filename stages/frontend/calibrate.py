@@ -20,7 +20,7 @@ focal length from the frames (principal point fixed, at the image centre unless 
    bundle adjustments with f free whenever the registered frames grew by half, and a new
    reconstruction where the track chain breaks), then a gtsam bundle adjustment of all
    reconstructions with one shared focal length (``Cal3f``; two rounds, the second on the
-   observations within 2 px); repeated from its f while that moves > 1 %; finally one adjustment
+   observations within 2 px); repeated from its f while that moves > 1 % (``pass_tol``, at most ``passes``); finally one adjustment
    over all tracks from that solution (the capped set alone left the synthetic loop's f 1-2 %
    towards the guess). Two-view geometry alone was 8-10 % off on handheld footage (near the
    two-view degenerate configuration); the multi-view adjustment is what determines f
@@ -383,7 +383,7 @@ def _chosen(feat: Any, n: int, target: float, knn: UniqueRatioMatcher) -> list[i
 
 def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: CalibrateSettings | None = None, *,
                    min_pairs: int = 6, robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
-                   passes: int = 4, motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
+                   motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
                    keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False, aspect: float = 1.0,
                    **overrides: Any) -> FocalEstimate:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) ->
@@ -396,7 +396,10 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     Mostly-rotating clips (a share >= ``rotation_share`` of the frame pairs explained by a
     homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
     structure from motion at the guess followed by a bundle adjustment with the focal length free
-    (repeated from its result, at most ``passes`` times, while that moves by more than 1 %), on at
+    (repeated from its result, at most ``cfg.passes`` times, while that moves by more than ``cfg.pass_tol``;
+    each pass moves f only part of the way: stopping at 1 % (the default) leaves the estimate depending on
+    the guess, the lens-free loop at f 205.2 / 207.4 / 209.9 px from guesses 200 / 190 / 215, true 206.9;
+    with pass_tol 0.001 and 12 passes 208.1 from both 200 and 190, docs/log/2026-11-28-cams6.md), on at
     most about ``tracks_per_frame`` tracks per frame (:func:`select_tracks`).
 
     ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
@@ -434,7 +437,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
         out.update(frames=len(sel))
     else:
         f, rel = _tracks_focal(feats, len(sel), c, f_guess, size, cfg, out, ransac_px=ransac_px, knn=knn,
-                               robust_px=robust_px, passes=passes, blocks=blocks)
+                               robust_px=robust_px, blocks=blocks)
     out["rel_sigma"] = rel
     ba, polish = out.pop("_ba", None), out.pop("_polish", None)
     if _focal_determined(f, rel, f_guess, out, cfg.max_rel_sigma, max_forward_share):
@@ -472,16 +475,15 @@ def _frame_pairs(sel: list[int], feats: list[Any], knn: Any, ransac_px: float) -
 
 
 def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, size: Any, cfg: CalibrateSettings,
-                  out: dict[str, Any], *, ransac_px: float, knn: Any, robust_px: float, passes: int,
-                  blocks: int) -> tuple[float, float]:
+                  out: dict[str, Any], *, ransac_px: float, knn: Any, robust_px: float, blocks: int) -> tuple[float, float]:
     """(focal, rel_sigma) from tracks over the selected frames: a small structure from motion and
     a bundle adjustment with the focal length free (:func:`_sfm_focal`); rel_sigma inf when it
     registered fewer than max(3, a quarter of) the frames."""
     all_tracks = feature_tracks(feats, ransac_px=ransac_px, knn=knn)
     tracks = select_tracks(all_tracks, size, cfg.tracks_per_frame)
     out["tracks"] = len(tracks)
-    f, rel = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, passes, 0.04 * max(size), blocks,
-                        cfg.pp_frac, size, out)
+    f, rel = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), blocks,
+                        cfg.pp_frac, size, out, pass_tol=cfg.pass_tol)
     if out["frames"] < max(3, 0.25 * n_sel):
         rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
     return f, rel
@@ -603,8 +605,8 @@ def _jackknife_rel(fs: Sequence[float]) -> float:
 
 
 def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust_px: float, passes: int,
-               parallax: float, blocks: int, pp_frac: float, size: tuple[int, int], out: dict[str, Any]
-               ) -> tuple[float, float]:
+               parallax: float, blocks: int, pp_frac: float, size: tuple[int, int], out: dict[str, Any],
+               pass_tol: float = 0.01) -> tuple[float, float]:
     """Focal length (px) from reconstructions of ``tracks`` (the capped set, :func:`select_tracks`)
     over ``n`` frames, polished by one bundle adjustment over ``all_tracks`` (the cap alone biased
     the synthetic loop's f by 1-2 % towards the guess), and its relative uncertainty
@@ -631,7 +633,7 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
         moved = abs(np.log(ba["focal"] / f))
         f, final = ba["focal"], ba
         out.update(method="bundle adjustment", median_px=ba["median_px"], frames=ba["frames"], points=ba["points"])
-        if moved < 0.01:
+        if moved < pass_tol:
             break
     if final is None:
         out["iterations"] = iters[0]
