@@ -52,9 +52,8 @@ class CalibrateSettings:
                                   "one final adjustment uses all): bounds the work on richly textured clips", ge=0)
     passes: int = param(4, "structure-from-motion passes at most, each restarted from the last focal length", ge=1)
     pass_tol: float = param(0.01, "the passes stop when f moves less than this (relative); each pass moves f only part "
-                            "of the way, so 0.01 leaves the estimate depending on the guess (lens-free loop: "
-                            "205.2-209.9 px from guesses 190-215, true 206.9); 0.001 with passes 12 converges "
-                            "(208.1 from both; experimental, not the default: its runs did not score better)", gt=0)
+                            "of the way, so at 0.01 the estimate still depends on its guess; 0.001 with passes 12 "
+                            "converges (experimental)", gt=0)
     pp_frac: float = param(0.02, "the principal point is assumed at the centre; the uncertainty includes how far f "
                            "moves if it is off by this x the image size (x and y)", ge=0)
     principal_point: Literal["auto", "centre"] = param(
