@@ -51,7 +51,8 @@ def test_changed_run_differences_are_measured(runs):
 
     doc = cli_json("compare", str(runs["a"]), str(runs["b"]), "--cache", str(runs["cache"]), "--max-items", "100")
     st = _by_stage(doc)
-    assert doc["identical"] is False and st["ingest"]["equal"] and st["priors"]["equal"]
+    # flow_far reads ingest alone (its own preset); priors read the adjacent flows too (chain_fallback)
+    assert doc["identical"] is False and st["ingest"]["equal"] and st["flow_far"]["equal"]
     assert not st["flow"]["equal"] and not st["masks"]["equal"] and not st["depth_filter"]["equal"]
     fa, fb = (api.recorded_output(runs[k], "flow", str(runs["cache"])) for k in ("a", "b"))
     epe = np.mean([np.mean(np.linalg.norm(fb[i]["fwd"] - fa[i]["fwd"], axis=-1)) for i in range(len(fa))])
