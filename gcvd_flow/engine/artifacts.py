@@ -183,12 +183,90 @@ class Encoder:
 # -------------------------------------------------------------------------------- decoding
 
 
+# .npy headers this process has parsed (numpy parses each with ast.literal_eval: a map stage's
+# thousands of small arrays share a few headers): header bytes -> (dtype, shape, element count).
+_NPY_HEADERS: dict[bytes, tuple[np.dtype, tuple[int, ...], int]] = {}
+_NPY_HEADERS_KEEP = 4096
+
+
+def npy_array(data: bytes) -> np.ndarray:
+    """The array of .npy bytes, as ``np.lib.format.read_array(..., allow_pickle=False)`` gives it (a
+    fresh, writable array): a version 1.0 header numpy has parsed here before, C order, no objects,
+    with exactly its data after it, is not parsed again; anything else goes through numpy."""
+    head_end = 10 + int.from_bytes(data[8:10], "little") if data[:8] == b"\x93NUMPY\x01\x00" else 0
+    seen = _NPY_HEADERS.get(data[:head_end]) if head_end else None
+    if seen is not None and len(data) - head_end == seen[2] * seen[0].itemsize:
+        dtype, shape, count = seen
+        return np.frombuffer(data, dtype, count, head_end).reshape(shape).copy()
+    a = np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
+    if head_end and len(data) >= head_end:
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(io.BytesIO(data[8:head_end]))
+        count = math.prod(shape)
+        if not fortran and not dtype.hasobject and count > 0 and len(data) - head_end == count * dtype.itemsize:
+            if len(_NPY_HEADERS) >= _NPY_HEADERS_KEEP:
+                _NPY_HEADERS.clear()
+            _NPY_HEADERS[data[:head_end]] = (dtype, tuple(shape), count)
+    return a
+
+
+# Decoded PNG objects this process keeps, by digest, at most this many bytes of arrays: video
+# frames and masks are read by many items of many stages (each ICL frame was decoded ~19 times in
+# a run), and decoding is what reading a PNG object costs.
+DECODED_PNG_BYTES = 128 << 20
+
+
+class DecodedMemo:
+    """Least recently used decoded arrays of this process by object digest, at most ``budget``
+    bytes; the memo's copies are read only, callers get fresh writable copies (an item that writes
+    into its input changes nothing here). ``hits`` / ``misses`` are counted, never timed."""
+
+    def __init__(self, budget: int = DECODED_PNG_BYTES):
+        from collections import OrderedDict
+
+        self.budget = budget
+        self._arrays: OrderedDict[str, np.ndarray] = OrderedDict()
+        self.bytes = self.hits = self.misses = 0
+
+    def get(self, digest: str) -> np.ndarray | None:
+        a = self._arrays.get(digest)
+        if a is None:
+            self.misses += 1
+            return None
+        self._arrays.move_to_end(digest)
+        self.hits += 1
+        return a.copy()
+
+    def put(self, digest: str, a: np.ndarray) -> None:
+        if a.nbytes > self.budget // 4 or digest in self._arrays:
+            return
+        kept = a.copy()
+        kept.flags.writeable = False
+        self._arrays[digest] = kept
+        self.bytes += kept.nbytes
+        while self.bytes > self.budget:
+            self.bytes -= self._arrays.popitem(last=False)[1].nbytes
+
+    def clear(self) -> None:
+        self._arrays.clear()
+        self.bytes = 0
+
+
+PNG_MEMO = DecodedMemo()
+
+
 def decode_leaf(store: Store, node: dict[str, Any]) -> Any:
     if "$npy" in node:
-        data = store.get_bytes(node["$npy"])
-        return np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
+        return npy_array(store.get_bytes(node["$npy"]))
     if "$png" in node:
-        return png_array(store.get_bytes(node["$png"]), f"object {node['$png'][:12]}")
+        digest = node["$png"]
+        # read (and verified) as always: a corrupt or missing object is found on every read; only
+        # the decoding of an object this process decoded before is saved
+        data = store.get_bytes(digest)
+        a = PNG_MEMO.get(digest)
+        if a is None:
+            a = png_array(data, f"object {digest[:12]}")
+            PNG_MEMO.put(digest, a)
+        return a
     if "$safetensors" in node:
         from safetensors.numpy import load
 

@@ -16,6 +16,7 @@ import importlib.util
 import inspect
 import json
 import math
+import re
 import struct
 import sys
 import textwrap
@@ -65,8 +66,11 @@ def digest_file(path: str | Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+_HEX_DIGEST = re.compile(r"[0-9a-f]{64}")
+
+
 def is_digest(s: Any) -> bool:
-    return isinstance(s, str) and len(s) == DIGEST_HEX_LEN and all(c in "0123456789abcdef" for c in s)
+    return isinstance(s, str) and len(s) == DIGEST_HEX_LEN and _HEX_DIGEST.fullmatch(s) is not None
 
 
 # --------------------------------------------------------------------------------------------
@@ -127,28 +131,38 @@ def key_of(obj: Any) -> str:
 # code fingerprints
 
 
-class _StripDocstrings(ast.NodeTransformer):
-    """Removes docstrings so that documentation edits do not invalidate caches."""
+_DOCUMENTED = (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)
 
-    def _strip(self, node: Any) -> Any:  # a Module / FunctionDef / ClassDef: they have .body
-        self.generic_visit(node)
-        body = getattr(node, "body", None)
-        if (
-            body
-            and isinstance(body[0], ast.Expr)
-            and isinstance(body[0].value, ast.Constant)
-            and isinstance(body[0].value.value, str)
-        ):
-            node.body = body[1:] or [ast.Pass()]
-        return node
+# How many times this process parsed source text (tests check that a module is parsed once).
+PARSES = {"count": 0}
 
-    visit_Module = visit_FunctionDef = visit_AsyncFunctionDef = visit_ClassDef = _strip
+
+def _parse(source: str) -> ast.AST:
+    PARSES["count"] += 1
+    return ast.parse(source)
+
+
+def _strip_docstrings(tree: ast.AST) -> ast.AST:
+    """Removes docstrings (the first statement of a module, function or class body when it is a
+    string constant; an emptied body becomes ``pass``) so that documentation edits do not
+    invalidate caches."""
+    for node in ast.walk(tree):
+        if isinstance(node, _DOCUMENTED):
+            body = node.body
+            if (body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                    and isinstance(body[0].value.value, str)):
+                node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def _tree_digest(tree: ast.AST) -> str:
+    """Digest of a parsed tree without docstrings, comments or layout (changes ``tree``)."""
+    return digest_bytes(ast.dump(_strip_docstrings(tree), annotate_fields=True, include_attributes=False).encode())
 
 
 def normalized_ast_digest(source: str) -> str:
     """Digest of a source text's AST without docstrings, comments or layout."""
-    tree = _StripDocstrings().visit(ast.parse(source))
-    return digest_bytes(ast.dump(tree, annotate_fields=True, include_attributes=False).encode())
+    return _tree_digest(_parse(source))
 
 
 def _is_project_module(name: str, packages: Packages) -> bool:
@@ -196,12 +210,13 @@ def _project_imports(tree: ast.AST, package: str, packages: Packages) -> set[str
     return found
 
 
-def _imported_project_modules(name: str, source: str, packages: Packages) -> set[str]:
-    """Project modules that module ``name`` imports (absolute and relative imports)."""
+def _imported_project_modules(name: str, tree: ast.AST, packages: Packages) -> set[str]:
+    """Project modules that module ``name`` (parsed: ``tree``) imports (absolute and relative
+    imports)."""
     spec = importlib.util.find_spec(name)
     is_pkg = spec is not None and spec.origin is not None and spec.origin.endswith("__init__.py")
     package = name if is_pkg else name.rpartition(".")[0]
-    found = _project_imports(ast.parse(source), package, packages)
+    found = _project_imports(tree, package, packages)
     # a module also depends on its parent packages' __init__ (executed on import)
     parts = name.split(".")
     for i in range(1, len(parts)):
@@ -217,7 +232,9 @@ def _module_digest(name: str, packages: Packages) -> tuple[str, str, frozenset[s
     if src is None:
         return None
     text, rel = src
-    return normalized_ast_digest(text), rel, frozenset(_imported_project_modules(name, text, packages))
+    tree = _parse(text)  # once: its imports first, then its digest (which strips its docstrings)
+    deps = frozenset(_imported_project_modules(name, tree, packages))
+    return _tree_digest(tree), rel, deps
 
 
 def module_closure(roots: Iterable[str], packages: Packages) -> dict[str, str]:
@@ -257,20 +274,15 @@ def _object_module(obj: Any) -> str | None:
     return mod if isinstance(mod, str) else None
 
 
-def _source_digest(obj: Any) -> str | None:
+def _object_code(obj: Any, own_module: str, packages: Packages) -> tuple[str | None, set[str]]:
+    """(AST digest of a function's or class's source, or None when it is not available; the
+    project modules imported *inside* its body, ``from stages import x``), from one parse."""
     try:
-        return normalized_ast_digest(textwrap.dedent(inspect.getsource(obj)))
+        tree = _parse(textwrap.dedent(inspect.getsource(obj)))
     except (OSError, TypeError, SyntaxError):
-        return None
-
-
-def _local_imports(obj: Any, own_module: str, packages: Packages) -> set[str]:
-    """Project modules imported *inside* a function or class body (``from stages import x``)."""
-    try:
-        tree = ast.parse(textwrap.dedent(inspect.getsource(obj)))
-    except (OSError, TypeError, SyntaxError):
-        return set()
-    return _project_imports(tree, own_module.rpartition(".")[0], packages)
+        return None, set()
+    imports = _project_imports(tree, own_module.rpartition(".")[0], packages)
+    return _tree_digest(tree), imports
 
 
 def code_fingerprint(fn: Callable, packages: Packages,
@@ -300,12 +312,12 @@ def _code_fingerprint_cached(fn: Callable, packages: Packages,
         if id(obj) in seen:
             continue
         seen.add(id(obj))
-        digest = _source_digest(obj)
+        obj_module = _object_module(obj) or own_module
+        digest, local_imports = _object_code(obj, obj_module, packages)
         if digest is None:
             raise EncodingError(f"cannot fingerprint {obj!r}: its source is not available")
-        obj_module = _object_module(obj) or own_module
         files[f"{obj_module}:{obj.__qualname__}"] = digest
-        modules.update(_local_imports(obj, obj_module, packages))
+        modules.update(local_imports)
         code_objs = [obj] if inspect.isfunction(obj) else [
             m for m in vars(obj).values() if inspect.isfunction(m)
         ]

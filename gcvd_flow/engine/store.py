@@ -175,42 +175,49 @@ class Store:
         # object is invisible; a read-through run sets the remote's, see ObjectSource)
         self.fallback: ObjectSource | None = None
         self.fsync_always = os.environ.get(ENV_FSYNC, "") == "always"
-        self._dirs: set[Path] = set()  # fan-out directories known to exist (saves mkdir calls)
+        self._dirs: set[str] = set()  # fan-out directories known to exist (saves mkdir calls)
+        self._objects = str(self.root / "objects")
+        self._tmp = str(self.root / "tmp")
         for sub in ("objects", "records", "locks", "tmp", "runs", "pins", "quarantine"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
 
-    def _ensure_dir(self, d: Path) -> None:
-        if d not in self._dirs:
-            d.mkdir(parents=True, exist_ok=True)
-            self._dirs.add(d)
+    def _ensure_dir(self, d: str | Path) -> None:
+        k = str(d)
+        if k not in self._dirs:
+            os.makedirs(k, exist_ok=True)
+            self._dirs.add(k)
 
     # ---------------------------------------------------------------- objects
 
     def object_path(self, digest: str) -> Path:
+        return Path(self._object_file(digest))
+
+    def _object_file(self, digest: str) -> str:
+        """object_path as a string (the hot paths: pathlib's joins cost more than the reads)."""
         if not is_digest(digest):
             raise StoreError(f"not a digest: {digest!r}")
-        return self.root / "objects" / digest[:2] / digest[2:]
+        return f"{self._objects}/{digest[:2]}/{digest[2:]}"
 
     def has(self, digest: str) -> bool:
-        return self.object_path(digest).exists()
+        return os.path.exists(self._object_file(digest))
 
     def _tmp_file(self) -> Path:
-        return self.root / "tmp" / f"{os.getpid()}-{uuid.uuid4().hex}"
+        return Path(f"{self._tmp}/{os.getpid()}-{uuid.uuid4().hex}")
 
     def _publish(self, tmp: Path, digest: str) -> None:
         """Rename a complete temp file into place as an immutable object. An existing object of
         another size (truncated by a crash or by hand) is replaced, never trusted."""
-        dest = self.object_path(digest)
+        dest = self._object_file(digest)
         size = self.object_size(digest)
-        if size is not None and size == tmp.stat().st_size:
+        if size is not None and size == os.stat(tmp).st_size:
             tmp.unlink(missing_ok=True)
             return
         # chmod before rename: an object is never visible writable
-        self._ensure_dir(dest.parent)
+        self._ensure_dir(os.path.dirname(dest))
         os.chmod(tmp, 0o444)
         os.replace(tmp, dest)
         if self.fsync_always:
-            _fsync_dir(dest.parent)
+            _fsync_dir(Path(dest).parent)
 
     def put_bytes(self, data: bytes | memoryview) -> str:
         digest = digest_bytes(data)
@@ -244,7 +251,7 @@ class Store:
             w.tmp.unlink(missing_ok=True)
 
     def get_bytes(self, digest: str, verify: bool | None = None) -> bytes:
-        path = self.object_path(digest)
+        path = self._object_file(digest)
         data = self._read(path)
         want = self.fallback.size(digest) if self.fallback is not None else None
         if want is not None and (data is None or len(data) != want):
@@ -259,7 +266,7 @@ class Store:
         return data
 
     @staticmethod
-    def _read(path: Path) -> bytes | None:
+    def _read(path: str | Path) -> bytes | None:
         """The bytes of a regular file; None when absent or not a regular file (a FIFO or a
         device put in the cache would block a read, or never end)."""
         try:
@@ -296,7 +303,7 @@ class Store:
 
     def object_size(self, digest: str) -> int | None:
         try:
-            return self.object_path(digest).stat().st_size
+            return os.stat(self._object_file(digest)).st_size
         except (FileNotFoundError, NotADirectoryError):
             return None
 
