@@ -551,6 +551,7 @@ class Runner:
         item_params = self._item_params(stage, f)
         tasks = []
         item_keys = []
+        params_key = keys.key_of(f["params"])  # the resources' parameter digest: the same for every item
         for i, it in enumerate(items):
             refs = {n: self._resolve(r) for n, r in sorted(it.items())}
             pre = self._preimage("item", stage, f, item_params, {n: r.digest for n, r in refs.items()})
@@ -558,7 +559,7 @@ class Runner:
             item_keys.append(ik)
             tasks.append(ItemTask(str(self.store.root), self.store.verify, stage.name, stage.fn,
                                   stage.kind, ik, refs, params, self.seed, i, stage.resources or None,
-                                  keys.key_of(f["params"]), pre, key if stage.share_inputs else None))
+                                  params_key, pre, key if stage.share_inputs else None))
         outputs: list[str | None] = [None] * len(tasks)
         objects: dict[str, int] = {}
         prog = Progress(stage.name, len(tasks), progress_enabled(self.json_mode))
