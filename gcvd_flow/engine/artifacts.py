@@ -221,34 +221,41 @@ class DecodedMemo:
     into its input changes nothing here). ``hits`` / ``misses`` are counted, never timed."""
 
     def __init__(self, budget: int = DECODED_PNG_BYTES):
+        import threading
         from collections import OrderedDict
 
         self.budget = budget
         self._arrays: OrderedDict[str, np.ndarray] = OrderedDict()
         self.bytes = self.hits = self.misses = 0
+        self._lock = threading.Lock()  # a run's threads (map stages beside a whole stage) share it
 
     def get(self, digest: str) -> np.ndarray | None:
-        a = self._arrays.get(digest)
-        if a is None:
-            self.misses += 1
-            return None
-        self._arrays.move_to_end(digest)
-        self.hits += 1
+        with self._lock:
+            a = self._arrays.get(digest)
+            if a is None:
+                self.misses += 1
+                return None
+            self._arrays.move_to_end(digest)
+            self.hits += 1
         return a.copy()
 
     def put(self, digest: str, a: np.ndarray) -> None:
-        if a.nbytes > self.budget // 4 or digest in self._arrays:
+        if a.nbytes > self.budget // 4:
             return
         kept = a.copy()
         kept.flags.writeable = False
-        self._arrays[digest] = kept
-        self.bytes += kept.nbytes
-        while self.bytes > self.budget:
-            self.bytes -= self._arrays.popitem(last=False)[1].nbytes
+        with self._lock:
+            if digest in self._arrays:
+                return
+            self._arrays[digest] = kept
+            self.bytes += kept.nbytes
+            while self.bytes > self.budget:
+                self.bytes -= self._arrays.popitem(last=False)[1].nbytes
 
     def clear(self) -> None:
-        self._arrays.clear()
-        self.bytes = 0
+        with self._lock:
+            self._arrays.clear()
+            self.bytes = 0
 
 
 PNG_MEMO = DecodedMemo()

@@ -20,7 +20,17 @@ from gcvd_flow.engine import keys
 from gcvd_flow.engine.artifacts import Encoder, Stored, Tensors, decode_tree, is_leaf, leaf_digests, load_manifest, load_value, validate
 from gcvd_flow.engine.dag import Const, ExternalRef, ItemRef, MapStage, MapValue, PartRef, Pipeline, PipelineError, Stage, stage_name
 from gcvd_flow.engine.errors import UsageError
-from gcvd_flow.engine.executors import SHARED, InProcessExecutor, ItemTask, ResolvedRef, closing, make_executor, open_resource
+from gcvd_flow.engine.executors import (
+    SHARED,
+    InProcessExecutor,
+    ItemTask,
+    ProcessPoolItemExecutor,
+    ResolvedRef,
+    closing,
+    make_executor,
+    open_resource,
+)
+from gcvd_flow.engine.names import ENV_OVERLAP
 from gcvd_flow.engine.store import Store
 
 # ------------------------------------------------------------------------------ reports
@@ -470,21 +480,41 @@ class Runner:
         executor = self.shared_executor or make_executor(self.jobs, self.pipeline.worker_init,
                                                          self.executor_kind, self.scheduler)
         stages = list(self.pipeline.upto(target))
-        last_reader = {d: k for k, st in enumerate(stages) for d in st.deps}
-        # an executor of this run is closed with it (at once, its workers ended, on Ctrl-C,
-        # SIGTERM or SIGHUP); a shared one by its owner
-        with closing(executor) if executor is not self.shared_executor else contextlib.nullcontext():
-            for k, stage in enumerate(stages):
-                self.reports[stage.name] = rep = self._run_stage(stage, executor)
-                if self.records is not None:  # write-through (`run --push`)
-                    self.records.stage_done(rep.key, rep.executed)
-                # decoded outputs no later stage reads are dropped (decoded again if asked
-                # for): a long clip's keyframe depths need not live until the last stage
-                for name in [n for n in self._values if last_reader.get(n, -1) <= k]:
-                    del self._values[name]
+        beside = _Beside(self, executor) if self._may_overlap(executor) else None
+        try:
+            # an executor of this run is closed with it (at once, its workers ended, on Ctrl-C,
+            # SIGTERM or SIGHUP); a shared one by its owner
+            with closing(executor) if executor is not self.shared_executor else contextlib.nullcontext():
+                self._run_stages(stages, executor, beside)
+        finally:
+            if beside is not None:
+                beside.close()
         return [self.reports[s.name] for s in self.pipeline.upto(target)]
 
-    def _run_stage(self, stage: Stage, executor) -> StageReport:
+    def _run_stages(self, stages: list[Stage], executor: Any, beside: "_Beside | None") -> None:
+        last_reader = {d: k for k, st in enumerate(stages) for d in st.deps}
+        for k, stage in enumerate(stages):
+            rep = beside.take(stage.name) if beside is not None else None
+            if rep is None:
+                if beside is not None and not stage.is_map:
+                    beside.start(stages[k + 1:])
+                rep = self._run_stage(stage, executor)
+            self.reports[stage.name] = rep
+            if self.records is not None:  # write-through (`run --push`)
+                self.records.stage_done(rep.key, rep.executed)
+            # decoded outputs no later stage reads are dropped (decoded again if asked
+            # for): a long clip's keyframe depths need not live until the last stage
+            for name in [n for n in list(self._values) if last_reader.get(n, -1) <= k]:
+                self._values.pop(name, None)
+
+    def _may_overlap(self, executor: Any) -> bool:
+        """Whether map stages may run beside a whole stage (``_Beside``): on a local process pool
+        of two or more workers, without a remote (whose write-through and read-through follow the
+        stages one at a time), unless ``$GCVD_FLOW_OVERLAP`` is ``0``."""
+        return (os.environ.get(ENV_OVERLAP, "1").strip() != "0" and isinstance(executor, ProcessPoolItemExecutor)
+                and executor.jobs >= 2 and self.records is None and self.store.fallback is None)
+
+    def _run_stage(self, stage: Stage, executor, beside: bool = False) -> StageReport:
         t0 = time.perf_counter()
         ins = self._input_digests(stage)
         assert ins is not None
@@ -506,7 +536,7 @@ class Runner:
             return rep
         rep.action = "run"
         if isinstance(stage, MapStage):
-            self._run_map(stage, f, key, rep, executor)
+            self._run_map(stage, f, key, rep, executor, beside)
         else:
             self._run_whole(stage, f, key, rep, executor)
         rep.output = self._outputs[stage.name]
@@ -541,7 +571,9 @@ class Runner:
         self._outputs[stage.name] = rec["outputs"]
 
     def _run_map(self, stage: MapStage, f: dict[str, Any], key: str, rep: StageReport,
-                 executor) -> None:
+                 executor, beside: bool = False) -> None:
+        """``beside``: running beside a whole stage (``_Beside``): its items on the workers, however
+        few, and no progress line."""
         t0 = time.perf_counter()
         params = self.stage_params(stage)
         view = _View(self, stage)
@@ -562,7 +594,7 @@ class Runner:
                                   params_key, pre, key if stage.share_inputs else None))
         outputs: list[str | None] = [None] * len(tasks)
         objects: dict[str, int] = {}
-        prog = Progress(stage.name, len(tasks), progress_enabled(self.json_mode))
+        prog = Progress(stage.name, len(tasks), progress_enabled(self.json_mode) and not beside)
         if self.records is not None:  # read-through: the items this store lacks, in one batch
             self.records.prefetch([t.key for t in tasks])
         # cached items are resolved here without a round trip through a worker process
@@ -576,7 +608,7 @@ class Runner:
                 prog.update()
             else:
                 todo.append(t)
-        run_exec = executor if len(todo) >= max(2, getattr(executor, "min_items", 2)) else InProcessExecutor()
+        run_exec = executor if beside or len(todo) >= max(2, getattr(executor, "min_items", 2)) else InProcessExecutor()
         try:
             for res in run_exec.run(self._with_inputs(todo)):
                 outputs[res.index] = res.output
@@ -588,7 +620,8 @@ class Runner:
                 prog.update()
         finally:
             prog.close()
-            SHARED.begin(None)  # what items computed here kept of their shared inputs
+            if run_exec is not executor:
+                SHARED.begin(None)  # what items computed here kept of their shared inputs
         enc = Encoder(self.store)
         summary_tree = enc.tree(summary) if summary is not None else None
         if summary_tree is not None and stage.summary_kind:
@@ -636,6 +669,46 @@ class Runner:
 
 
 INPUT_CHUNK = 32  # map tasks whose input objects a read-through run fetches in one batch
+
+
+class _Beside:
+    """Map stages run beside a whole stage. A whole stage runs in the run's process, on one core
+    (unless it spreads calls with ``ctx.map``), while the workers wait; a later map stage whose
+    inputs are all there already (it cannot depend on the whole stage) is started on a thread
+    of the run that hands its items to the same workers, and the loop takes its report when it
+    reaches it. Outputs are those of running the stages one after another: an item's result
+    does not depend on where or when it ran, and each stage is still keyed, written and
+    recorded by itself (records last)."""
+
+    def __init__(self, runner: Runner, executor: Any):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.runner, self.executor = runner, executor
+        self._threads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="beside")
+        self._running: dict[str, Any] = {}
+        self.started: list[str] = []  # stage names, in the order they were started beside
+
+    def start(self, later: list[Stage]) -> None:
+        for st in later:
+            if (st.is_map and st.name not in self._running and st.name not in self.runner._outputs
+                    and all(d in self.runner._outputs for d in st.deps)):
+                self._running[st.name] = self._threads.submit(self.runner._run_stage, st, self.executor, True)
+                self.started.append(st.name)
+
+    def take(self, name: str) -> StageReport | None:
+        """The report of stage ``name`` if it was started beside (waits for it), else None."""
+        fut = self._running.pop(name, None)
+        return None if fut is None else fut.result()
+
+    def close(self) -> None:
+        """Wait for what is still running (after an error: its items were cancelled with the
+        executor, or run to their end on a shared one), its errors dropped: the run's own error
+        is the one reported."""
+        for fut in self._running.values():
+            with contextlib.suppress(BaseException):
+                fut.result()
+        self._running.clear()
+        self._threads.shutdown(wait=True)
 
 
 def _flat_refs(refs: list[ResolvedRef]) -> list[ResolvedRef]:
