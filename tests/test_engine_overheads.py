@@ -169,6 +169,19 @@ def test_a_memoised_png_is_still_read_and_verified(store):
         decode_leaf(store, node2)
 
 
+def test_unverified_reads_are_not_memoised(tmp_path, store):
+    a = np.full((16, 16), 7, np.uint8)
+    loose = Store(tmp_path / "loose", verify=False)
+    node = _png_node(loose, a)
+    path = loose.object_path(node["$png"])
+    path.chmod(0o644)
+    path.write_bytes(png_bytes(np.full((16, 16), 9, np.uint8)))  # not the bytes its name says
+    assert decode_leaf(loose, node)[0, 0] == 9  # --no-verify: read as it is
+    assert artifacts.PNG_MEMO.bytes == 0  # ... and not kept for verified readers
+    node2 = _png_node(store, a)
+    assert node2["$png"] == node["$png"] and decode_leaf(store, node2)[0, 0] == 7
+
+
 def test_the_png_memo_stays_within_its_budget(store):
     memo = artifacts.DecodedMemo(budget=4 * 32 * 32)
     for i in range(10):

@@ -272,7 +272,8 @@ def decode_leaf(store: Store, node: dict[str, Any]) -> Any:
         a = PNG_MEMO.get(digest)
         if a is None:
             a = png_array(data, f"object {digest[:12]}")
-            PNG_MEMO.put(digest, a)
+            if store.verify:  # only bytes that matched their digest (``--no-verify`` reads are not kept)
+                PNG_MEMO.put(digest, a)
         return a
     if "$safetensors" in node:
         from safetensors.numpy import load
