@@ -108,3 +108,19 @@ def test_an_error_beside_or_in_the_whole_stage_is_the_runs_and_leaves_no_thread(
     again.run()  # the same cache, healthy now: the stage records written were whole
     assert again.reports["final"].executed == 1
     assert again.reports["src"].executed == 0 and again.reports["src"].cached == N
+
+
+def test_the_overlap_is_opt_in_and_only_on_a_local_pool(tmp_path, monkeypatch):
+    from gcvd_flow.engine.executors import InProcessExecutor, ProcessPoolItemExecutor
+
+    monkeypatch.delenv("GCVD_FLOW_OVERLAP", raising=False)
+    runner = Runner(_pipeline(), Store(tmp_path / "cache"), config=_config(tmp_path / "marks"), jobs=2)
+    pool = ProcessPoolItemExecutor(2)
+    try:
+        assert not runner._may_overlap(pool)  # the default: one stage after another
+        monkeypatch.setenv("GCVD_FLOW_OVERLAP", "1")
+        assert runner._may_overlap(pool) and not runner._may_overlap(InProcessExecutor())
+        runner.records = object()  # a remote's write-through follows the stages one at a time
+        assert not runner._may_overlap(pool)
+    finally:
+        pool.close()

@@ -9,4 +9,4 @@ ENV_CACHE = "GCVD_FLOW_CACHE"  # default cache directory
 ENV_JOBS = "GCVD_FLOW_JOBS"  # default number of worker processes
 ENV_REMOTES = "GCVD_FLOW_REMOTES"  # default remotes file
 ENV_FSYNC = "GCVD_FLOW_FSYNC"  # "always": fsync every object and record
-ENV_OVERLAP = "GCVD_FLOW_OVERLAP"  # "0": never run map stages beside a whole stage (runner._Beside)
+ENV_OVERLAP = "GCVD_FLOW_OVERLAP"  # "1": run ready map stages beside a whole stage (runner._Beside)

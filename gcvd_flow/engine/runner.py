@@ -508,10 +508,11 @@ class Runner:
                 self._values.pop(name, None)
 
     def _may_overlap(self, executor: Any) -> bool:
-        """Whether map stages may run beside a whole stage (``_Beside``): on a local process pool
-        of two or more workers, without a remote (whose write-through and read-through follow the
-        stages one at a time), unless ``$GCVD_FLOW_OVERLAP`` is ``0``."""
-        return (os.environ.get(ENV_OVERLAP, "1").strip() != "0" and isinstance(executor, ProcessPoolItemExecutor)
+        """Whether map stages may run beside a whole stage (``_Beside``): opt-in (``$GCVD_FLOW_OVERLAP``
+        is ``1``: it did not measure better on the 2-core machine, docs/log/2026-11-28-fastengine.md),
+        on a local process pool of two or more workers, without a remote (whose write-through and
+        read-through follow the stages one at a time)."""
+        return (os.environ.get(ENV_OVERLAP, "").strip() == "1" and isinstance(executor, ProcessPoolItemExecutor)
                 and executor.jobs >= 2 and self.records is None and self.store.fallback is None)
 
     def _run_stage(self, stage: Stage, executor, beside: bool = False) -> StageReport:
