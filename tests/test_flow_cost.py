@@ -99,3 +99,75 @@ def test_fb_consistency_and_chain_equal_the_former_code():
         for k in (1, 2, 6):
             (f, v), (f0, v0) = F.chain_flows(links[:k]), _former_chain(links[:k])
             assert np.array_equal(f, f0) and np.array_equal(v, v0) and v.any()
+
+
+def _former_motion_residual(K, flow, valid, seed=0):
+    import cv2
+
+    from gcvd_flow.stages.frontend import masks as M
+
+    pa, pb = M._correspondences(flow, valid)
+    if len(pa) < M.MIN_POINTS:
+        return None
+    cv2.setRNGSeed(seed)
+    E, inl_e = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
+    Hm, inl_h = cv2.findHomography(pa, pb, cv2.RANSAC, 1.5)
+    n_e = int(inl_e.sum()) if inl_e is not None and E is not None and E.shape == (3, 3) else -1
+    n_h = int(inl_h.sum()) if inl_h is not None and Hm is not None else -1
+    h, w = flow.shape[:2]
+    v, u = np.mgrid[0:h, 0:w]
+    p = np.stack([u, v], -1).reshape(-1, 2).astype(np.float64)
+    q = p + flow.reshape(-1, 2).astype(np.float64)
+    if n_h >= 0.9 * max(n_e, 0) and n_h > 0:
+        ph = np.concatenate([p, np.ones((len(p), 1))], 1) @ Hm.T
+        pred = ph[:, :2] / np.maximum(np.abs(ph[:, 2:3]), 1e-9) * np.sign(ph[:, 2:3])
+        res = np.linalg.norm(pred - q, axis=1)
+    elif n_e > 0:
+        Kinv = np.linalg.inv(K)
+        res = np.sqrt(M._sampson(Kinv.T @ E @ Kinv, p, q))
+    else:
+        return None
+    return res.reshape(h, w).astype(np.float32)
+
+
+def _former_ratio(K, flows, sigma_mult, min_threshold=1.0, seed=0):
+    h, w = flows[0][0].shape[:2]
+    ratio = np.zeros((h, w), np.float32)
+    for flow, valid in flows:
+        valid = np.asarray(valid, bool)
+        res = _former_motion_residual(K, flow, valid, seed)
+        if res is None:
+            continue
+        r = res[valid]
+        if r.size == 0:
+            continue
+        sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+        thr = max(min_threshold, float(np.median(r) + sigma_mult * sigma))
+        ratio = np.maximum(ratio, np.where(valid, res / thr, 0.0).astype(np.float32))
+    return ratio
+
+
+def test_motion_masks_equal_the_former_code():
+    """masks: the residual statistics computed once per neighbour (both thresholds read them) and
+    the pixel grid shared: the same ratios and masks as the former code."""
+    from gcvd_flow.evaluate.synth import render_clip
+    from gcvd_flow.stages.frontend import masks as M
+
+    clip = render_clip(8, "orbit", size=(96, 72), seed=2)
+    pairs = [F.compute_pair_flow(clip.frames[j], clip.frames[j + 1]) for j in range(6)]
+    links = [(p["fwd"], p["fwd_valid"]) for p in pairs]
+    flows = [links[0], F.chain_flows(links)]
+    for fl in (flows, [links[0]]):
+        assert all(np.array_equal(M.motion_residual(clip.K, f, np.asarray(v, bool)),
+                                  _former_motion_residual(clip.K, f, np.asarray(v, bool))) for f, v in fl)
+        for sm in (4.0, 5.0):
+            got = M._residual_ratio(clip.K, fl, sm, 1.0, 0)
+            assert np.array_equal(got, _former_ratio(clip.K, fl, sm)) and got.max() > 0
+    static, solve = M.motion_masks(clip.K, flows, image=clip.frames[0], sigma_mult=5.0, texture_frac=1.0)
+    weighted = _former_ratio(clip.K, flows, 5.0) * M.texture_weight(clip.frames[0], 1.0)
+    want_static = M._clean(weighted > 1.0, 0.002, 5)
+    want_solve = np.minimum(want_static, M._clean(_former_ratio(clip.K, flows, 4.0) > 1.0, 0.002, 5))
+    assert np.array_equal(static, want_static) and np.array_equal(solve, want_solve)
+    # a neighbour without a valid pixel carries no evidence (as before)
+    empty = [(flows[0][0], np.zeros_like(flows[0][1], bool))]
+    assert not M._residual_ratio(clip.K, empty, 5.0, 1.0, 0).any()

@@ -26,6 +26,7 @@ __all__ = [
     "fb_consistency",
     "warp_sample",
     "chain_flows",
+    "pixel_grid",
     "DIS_PRESETS",
 ]
 
@@ -115,7 +116,8 @@ def _inside(tgt: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _grid_cached(h: int, w: int) -> np.ndarray:
+def pixel_grid(h: int, w: int) -> np.ndarray:
+    """_grid(h, w), computed once per size and read-only (callers add to it, never write it)."""
     g = _grid(h, w)
     g.setflags(write=False)
     return g
@@ -130,7 +132,7 @@ def _grid(h: int, w: int) -> np.ndarray:
 def _targets(flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Target coordinates p + flow(p) (H, W, 2) float64 and their in-image mask (H, W)."""
     h, w = flow.shape[:2]
-    tgt = _grid_cached(h, w) + flow.astype(np.float64)
+    tgt = pixel_grid(h, w) + flow.astype(np.float64)
     return tgt, _inside(tgt, h, w)
 
 
@@ -161,7 +163,7 @@ def chain_flows(
         raise ValueError("chain_flows needs at least one flow")
     f0, v0 = flows[0]
     h, w = f0.shape[:2]
-    base = _grid_cached(h, w)
+    base = pixel_grid(h, w)
     total = f0.astype(np.float64).copy()
     valid = np.asarray(v0, bool).copy()
     pos = base + total
