@@ -41,8 +41,8 @@ def _pairs(n: int, **sections) -> list[tuple]:
 
 def test_graph_priors_and_fusion_read_flow_far():
     names = gp.PIPELINE.names()
-    assert names.index("flow_far") < names.index("priors")
-    assert "flow_far" in gp.PIPELINE.get("priors").deps
+    assert names.index("flow_far") < names.index("priors_direct") < names.index("priors")
+    assert "flow_far" in gp.PIPELINE.get("priors_direct").deps and "priors_direct" in gp.PIPELINE.get("priors").deps
     assert "flow_far" in gp.PIPELINE.get("depth_fusion").deps
 
 

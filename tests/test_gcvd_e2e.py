@@ -50,7 +50,8 @@ def test_outputs_and_metrics(reference_run, loop_clip):
     cams = json.loads((run / "cameras.json").read_text())
     assert cams["width"] == 128 and cams["keyframes"][0] == 0 and cams["keyframes"][-1] == 39
     rj = json.loads((run / "run.json").read_text())
-    assert rj["stage_order"] == ["ingest", "user_masks", "calibrate", "flow", "flow_far", "masks", "priors", "keyframes", "association",
+    assert rj["stage_order"] == ["ingest", "user_masks", "calibrate", "flow", "flow_far", "masks", "priors_direct", "priors",
+                                  "keyframes", "association",
                                   "optimize_keyframes", "optimize_edges", "pose_graph", "bundle_adjustment",
                                   "optimize_segments", "fusion_samples", "fusion_references", "fusion_flow", "depth_fusion", "depth_filter",
                                   "depth_consensus"]

@@ -1,7 +1,8 @@
 """The GCVD pipeline: its configuration and its DAG, one block per stage.
 
     ingest [map: frame] -> flow [map: pair i,i+1] -> flow_far [map: pair i,j] -> masks [map: frame]
-    -> priors [map: frame] (reads flow_far) -> keyframes -> association -> optimize_keyframes
+    -> priors_direct [map: frame] (reads flow_far) -> priors [map: frame] (passes priors_direct's on,
+    or reads the adjacent-flow chain where no direct flow held) -> keyframes -> association -> optimize_keyframes
     -> optimize_edges -> pose_graph
     -> bundle_adjustment -> optimize_segments -> fusion_samples [map: frame]
     -> fusion_references [map: one item] -> fusion_flow [map: pair i,j]
@@ -141,10 +142,12 @@ from gcvd_flow.pipeline.optimize import (
 )
 from gcvd_flow.pipeline.priors import (
     PRIORS as PRIORS,
+    PRIORS_DIRECT as PRIORS_DIRECT,
     PriorsParams as PriorsParams,
     _open_midas as _open_midas,
     _prior_items as _prior_items,
     run_priors as run_priors,
+    run_priors_direct as run_priors_direct,
 )
 from gcvd_flow.pipeline.registry import (
     _SECTIONS as _SECTIONS,

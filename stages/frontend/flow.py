@@ -9,6 +9,7 @@ forward flow of pair (a, b) maps pixel p of a to p + flow[p] in b; masks bool (H
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Any, Sequence
 
@@ -25,6 +26,7 @@ __all__ = [
     "fb_consistency",
     "warp_sample",
     "chain_flows",
+    "pixel_grid",
     "DIS_PRESETS",
 ]
 
@@ -67,26 +69,37 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
     if squeeze:
         f = f[..., None]
     h, w = f.shape[:2]
+    # channels first (from the flattened field), so that every product runs over contiguous
+    # pixels rather than a trailing axis of 1-3
+    out = _sample_cf(np.ascontiguousarray(f.reshape(h * w, -1).T, dtype=np.float64), h, w, coords)
+    dtype = np.float32 if f.dtype != np.float64 else np.float64
+    if squeeze:
+        return out[0].reshape(coords.shape[:-1]).astype(dtype)
+    return np.ascontiguousarray(np.moveaxis(out.reshape(-1, *coords.shape[:-1]), 0, -1), dtype=dtype)
+
+
+def _sample_cf(ff: np.ndarray, h: int, w: int, coords: np.ndarray) -> np.ndarray:
+    """warp_sample's arithmetic on a channels-first field ff float64 (C, h * w): the samples
+    (C, N) at coords (..., 2) flattened to N points."""
     # clamped like np.clip, but NaN -> 0 (fmax ignores NaN): a non-finite coordinate samples a
     # border pixel instead of indexing with a garbage integer
-    x = np.minimum(np.fmax(coords[..., 0].astype(np.float64), 0.0), w - 1.0)
-    y = np.minimum(np.fmax(coords[..., 1].astype(np.float64), 0.0), h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros_like(x, np.int64)
-    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros_like(y, np.int64)
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
+    x = np.minimum(np.fmax(coords[..., 0].astype(np.float64), 0.0), w - 1.0).ravel()
+    y = np.minimum(np.fmax(coords[..., 1].astype(np.float64), 0.0), h - 1.0).ravel()
+    # x, y are finite and >= 0 here: truncation is floor
+    x0 = np.minimum(x.astype(np.int64), w - 2) if w > 1 else np.zeros_like(x, np.int64)
+    y0 = np.minimum(y.astype(np.int64), h - 2) if h > 1 else np.zeros_like(y, np.int64)
     ax = x - x0
     ay = y - y0
     bx, by = 1 - ax, 1 - ay
-    # channels first, gathered (take: ~4x faster than a fancy index) from the flattened field,
-    # so that every product runs over contiguous pixels rather than a trailing axis of 1-3;
-    # the arithmetic is the same, term by term and in the same order (in place), as
+    # the four neighbours of x0 + w y0 (x1 = x0 + 1, y1 = y0 + 1 unless the image is one pixel
+    # wide / high): gathered (take: ~4x faster than a fancy index) as shifted views of ff; the
+    # arithmetic is the same, term by term and in the same order (in place), as
     # f[y0, x0] * (1 - ax) * (1 - ay) + f[y0, x1] * ax * (1 - ay) + ...
-    ff = np.ascontiguousarray(f.reshape(h * w, -1).T, dtype=np.float64)
-    r0, r1 = y0 * w, y1 * w
+    i00 = y0 * w + x0
+    dx, dy = (1 if w > 1 else 0), (w if h > 1 else 0)
     out: np.ndarray | None = None
-    for rows, cols, wx, wy in ((r0, x0, bx, by), (r0, x1, ax, by), (r1, x0, bx, ay), (r1, x1, ax, ay)):
-        term = ff.take(rows + cols, axis=1)
+    for shift, wx, wy in ((0, bx, by), (dx, ax, by), (dy, bx, ay), (dx + dy, ax, ay)):
+        term = ff[:, shift:].take(i00, axis=1)
         term *= wx
         term *= wy
         if out is None:
@@ -94,15 +107,20 @@ def warp_sample(field: np.ndarray, coords: np.ndarray) -> np.ndarray:
         else:
             out += term
     assert out is not None  # four terms
-    dtype = np.float32 if f.dtype != np.float64 else np.float64
-    if squeeze:
-        return out[0].astype(dtype)
-    return np.ascontiguousarray(np.moveaxis(out, 0, -1), dtype=dtype)
+    return out
 
 
 def _inside(tgt: np.ndarray, h: int, w: int) -> np.ndarray:
     """Finite target coordinates (H, W, 2) inside an h x w image: bool (H, W)."""
     return inside_image(tgt[..., 0], tgt[..., 1], w, h)
+
+
+@functools.lru_cache(maxsize=8)
+def pixel_grid(h: int, w: int) -> np.ndarray:
+    """_grid(h, w), computed once per size and read-only (callers add to it, never write it)."""
+    g = _grid(h, w)
+    g.setflags(write=False)
+    return g
 
 
 def _grid(h: int, w: int) -> np.ndarray:
@@ -114,7 +132,7 @@ def _grid(h: int, w: int) -> np.ndarray:
 def _targets(flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Target coordinates p + flow(p) (H, W, 2) float64 and their in-image mask (H, W)."""
     h, w = flow.shape[:2]
-    tgt = _grid(h, w) + flow.astype(np.float64)
+    tgt = pixel_grid(h, w) + flow.astype(np.float64)
     return tgt, _inside(tgt, h, w)
 
 
@@ -145,18 +163,21 @@ def chain_flows(
         raise ValueError("chain_flows needs at least one flow")
     f0, v0 = flows[0]
     h, w = f0.shape[:2]
-    base = _grid(h, w)
+    base = pixel_grid(h, w)
     total = f0.astype(np.float64).copy()
     valid = np.asarray(v0, bool).copy()
-    valid &= _inside(base + total, h, w)
+    pos = base + total
+    valid &= _inside(pos, h, w)
+    both = np.empty((3, h * w), np.float64)
     for f, vm in flows[1:]:
-        pos = base + total
         # the link's flow and validity sampled together (one set of bilinear weights)
-        both = np.concatenate([f.astype(np.float64), np.asarray(vm, np.float64)[..., None]], -1)
-        sampled = warp_sample(both, pos)
-        total = total + sampled[..., :2]
-        valid &= sampled[..., 2] > 0.999
-        valid &= _inside(base + total, h, w)
+        both[:2] = f.reshape(h * w, 2).T
+        both[2] = np.asarray(vm).reshape(-1)
+        sampled = _sample_cf(both, h, w, pos)
+        total = total + sampled[:2].T.reshape(h, w, 2)
+        valid &= sampled[2].reshape(h, w) > 0.999
+        pos = base + total
+        valid &= _inside(pos, h, w)
     return total.astype(np.float32), valid
 
 

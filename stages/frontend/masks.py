@@ -22,6 +22,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from gcvd_flow.stages.frontend.flow import pixel_grid
 from gcvd_flow.stages.frontend.params import MasksSettings
 
 log = logging.getLogger(__name__)
@@ -66,8 +67,7 @@ def motion_residual(K: np.ndarray, flow: np.ndarray, valid: np.ndarray, seed: in
     n_e = int(inl_e.sum()) if inl_e is not None and E is not None and E.shape == (3, 3) else -1
     n_h = int(inl_h.sum()) if inl_h is not None and Hm is not None else -1
     h, w = flow.shape[:2]
-    v, u = np.mgrid[0:h, 0:w]
-    p = np.stack([u, v], -1).reshape(-1, 2).astype(np.float64)
+    p = pixel_grid(h, w).reshape(-1, 2)  # (u, v) float64, read-only
     q = p + flow.reshape(-1, 2).astype(np.float64)
     if n_h >= 0.9 * max(n_e, 0) and n_h > 0:
         # pure rotation / planar scene / tiny baseline: the homography explains the static scene
@@ -97,34 +97,36 @@ def texture_weight(image: np.ndarray, frac: float, block: int = 7) -> np.ndarray
 
 
 def _residuals(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]],
-               seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(residual (H, W) px, valid bool (H, W)) of each neighbour flow whose static-scene model
-    could be fitted (:func:`motion_residual`): computed once per frame, whatever the thresholds
+               seed: int) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+    """(residual (H, W) px, valid bool (H, W), median, robust sigma of the valid residuals) of
+    each neighbour flow whose static-scene model could be fitted (:func:`motion_residual`; the
+    statistics NaN without a valid pixel): computed once per frame, whatever the thresholds
     applied to them afterwards."""
-    out = []
+    out: list[tuple[np.ndarray, np.ndarray, float, float]] = []
     for flow, valid in flows:
         valid = np.asarray(valid, bool)
         res = motion_residual(K, flow, valid, seed)
         if res is not None:
-            out.append((res, valid))
+            r = res[valid]
+            med = np.median(r) if r.size else np.nan
+            sigma = 1.4826 * np.median(np.abs(r - med)) if r.size else np.nan
+            out.append((res, valid, med, sigma))
     return out
 
 
 def _residual_ratio(K: np.ndarray, flows: Sequence[tuple[np.ndarray, np.ndarray]], sigma_mult: float,
                     min_threshold: float, seed: int,
-                    residuals: list[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
+                    residuals: list[tuple[np.ndarray, np.ndarray, float, float]] | None = None) -> np.ndarray:
     """max over the neighbour flows of (epipolar residual / that flow's threshold), float32
     (H, W); 0 where no flow is valid. Threshold = max(min_threshold, median + sigma_mult x
     robust sigma of the valid pixels' residuals). ``residuals``: :func:`_residuals` of the same
     flows, when already computed (the fits are most of the cost)."""
     h, w = flows[0][0].shape[:2]
     ratio = np.zeros((h, w), np.float32)
-    for res, valid in _residuals(K, flows, seed) if residuals is None else residuals:
-        r = res[valid]
-        if r.size == 0:
+    for res, valid, med, sigma in _residuals(K, flows, seed) if residuals is None else residuals:
+        if not valid.any():
             continue
-        sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
-        thr = max(min_threshold, float(np.median(r) + sigma_mult * sigma))
+        thr = max(min_threshold, float(med + sigma_mult * sigma))
         # invalid (occluded / inconsistent) pixels carry no evidence either way
         ratio = np.maximum(ratio, np.where(valid, res / thr, 0.0).astype(np.float32))
     return ratio

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from gcvd_flow.stages.frontend.flow import chain_flows
-from gcvd_flow.stages.geometry.two_view import relative_pose, rotation_from_homography, triangulate_depths
+from gcvd_flow.stages.geometry.two_view import relative_pose, rotation_from_homography
 
 log = logging.getLogger(__name__)
 
@@ -39,10 +39,22 @@ def _box(x: np.ndarray, r: int) -> np.ndarray:
 def guided_filter(guide: np.ndarray, src: np.ndarray, r: int, eps: float) -> np.ndarray:
     """He et al.'s guided filter with a grey guide in [0, 1]: edge-aware smoothing of ``src``."""
     I = guide.astype(np.float64)
+    return _guided(I, _guide_stats(I, r), src, r, eps)
+
+
+def _guide_stats(I: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, variance) of the guide I (float64 (H, W)) over the box of radius r: what every
+    guided filter of that guide and radius shares (densify filters two maps per radius)."""
+    mean_I = _box(I, r)
+    return mean_I, _box(I * I, r) - mean_I * mean_I
+
+
+def _guided(I: np.ndarray, stats: tuple[np.ndarray, np.ndarray], src: np.ndarray, r: int, eps: float) -> np.ndarray:
+    """guided_filter with the guide's :func:`_guide_stats` given (the same arithmetic, in the same order)."""
+    mean_I, var_I = stats
     p = src.astype(np.float64)
-    mean_I, mean_p = _box(I, r), _box(p, r)
+    mean_p = _box(p, r)
     cov_Ip = _box(I * p, r) - mean_I * mean_p
-    var_I = _box(I * I, r) - mean_I * mean_I
     a = cov_Ip / (var_I + eps)
     b = mean_p - a * mean_I
     return _box(a, r) * I + _box(b, r)
@@ -58,9 +70,12 @@ def densify(guide: np.ndarray, values: np.ndarray, weights: np.ndarray, radii: S
     out = np.zeros_like(values, dtype=np.float64)
     have = np.zeros(values.shape, bool)
     support = np.zeros(values.shape, np.float64)
+    I = guide.astype(np.float64)
+    vw = values * weights
     for r in radii:
-        num = guided_filter(guide, values * weights, r, eps)
-        den = guided_filter(guide, weights, r, eps)
+        stats = _guide_stats(I, r)  # shared by the numerator's and the denominator's filter
+        num = _guided(I, stats, vw, r, eps)
+        den = _guided(I, stats, weights, r, eps)
         ok = (den > 1e-3) & ~have
         est = num / np.maximum(den, 1e-6)
         out[ok] = est[ok]
@@ -75,6 +90,29 @@ def densify(guide: np.ndarray, values: np.ndarray, weights: np.ndarray, radii: S
 
 def _constant(h: int, w: int) -> dict[str, np.ndarray]:
     return {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
+
+
+def triangulate_with_parallax(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R: np.ndarray,
+                              t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(depth in a (N,), triangulation angle in degrees (N,)) of correspondences pa -> pb (N, 2) px
+    with x_b = R x_a + t: stages.geometry.two_view.triangulate_depths' za and the angle between
+    the two rays, computed from the same rays and dot products (the same arithmetic, in the same
+    order, as triangulate_depths followed by arccos(ra.rb / (|ra| |rb|)): byte-identical)."""
+    Kinv = np.linalg.inv(K)
+    ra = np.concatenate([pa, np.ones((len(pa), 1))], 1) @ Kinv.T
+    rb = (np.concatenate([pb, np.ones((len(pb), 1))], 1) @ Kinv.T) @ R  # rays of b expressed in a
+    cb = -R.T @ np.asarray(t, np.float64).ravel()
+    a11 = np.sum(ra * ra, 1)
+    dot = np.sum(ra * rb, 1)
+    a12 = -dot
+    a22 = np.sum(rb * rb, 1)
+    b1 = ra @ cb
+    b2 = -(rb @ cb)
+    det = a11 * a22 - a12 * a12
+    det = np.where(np.abs(det) < 1e-15, np.nan, det)
+    za = (b1 * a22 - a12 * b2) / det
+    cosang = dot / (np.sqrt(a11) * np.sqrt(a22))
+    return za, np.degrees(np.arccos(np.clip(cosang, -1, 1)))
 
 
 def _triangulate_reference(flow: np.ndarray, valid: np.ndarray, K: np.ndarray,
@@ -97,21 +135,17 @@ def _triangulate_reference(flow: np.ndarray, valid: np.ndarray, K: np.ndarray,
         return None
     R, t, _ = rel
     # triangulate every consistent pixel (midpoint method in closed form, vectorised)
-    Kinv = np.linalg.inv(K)
-    p_all = np.stack([uu[valid], vv[valid]], -1).astype(np.float64)
-    q_all = p_all + flow[valid].astype(np.float64)
-    za, _ = triangulate_depths(p_all, q_all, K, R, t)
-    ra = np.concatenate([p_all, np.ones((len(p_all), 1))], 1) @ Kinv.T  # rays in camera a
-    rb = (np.concatenate([q_all, np.ones((len(q_all), 1))], 1) @ Kinv.T) @ R  # camera b rays in a
-    cosang = np.sum(ra * rb, 1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
-    parallax = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+    idx_v, idx_u = np.nonzero(valid)  # row-major, as a boolean index orders them
+    p_all = np.stack([idx_u, idx_v], -1).astype(np.float64)
+    q_all = p_all + flow[idx_v, idx_u].astype(np.float64)
+    za, parallax = triangulate_with_parallax(p_all, q_all, K, R, t)
     good = np.isfinite(za) & (za > 0) & (parallax > 0.05)
     if good.sum() < 30 or np.median(parallax[good]) < MIN_PARALLAX_DEG:
         log.info("prior: too little parallax (median %.3f deg)", float(np.median(parallax)) if parallax.size else 0)
         return None
     inv = np.zeros((h, w))
     wgt = np.zeros((h, w))
-    idx_v, idx_u = vv[valid][good], uu[valid][good]
+    idx_v, idx_u = idx_v[good], idx_u[good]
     inv_vals = 1.0 / za[good]
     # robust clip of outliers (flow errors at occlusion edges)
     lo, hi = np.percentile(inv_vals, [1, 99])
