@@ -80,6 +80,13 @@ def fuse_depth(
                             agree_log_dev=agree_log_dev, coverage_refs=coverage_refs)
 
 
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.sum(a.T * b.T, 1) of (N, 3) arrays given as their contiguous (3, N) transposes, the same
+    bits (numpy adds the three products in this order): ~9x faster than the reduction over the
+    short axis."""
+    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+
+
 def triangulate_with_angles(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.ndarray,
                             t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``triangulate_depths(p, q, K, R, t)[0]`` (midpoint depth in camera a) and ``_angles_deg(p, q,
@@ -90,10 +97,9 @@ def triangulate_with_angles(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.n
     ra = np.concatenate([p, np.ones((len(p), 1))], 1) @ Kinv.T
     rb = (np.concatenate([q, np.ones((len(q), 1))], 1) @ Kinv.T) @ R
     cb = -R.T @ np.asarray(t, np.float64).ravel()
-    a11 = np.sum(ra * ra, 1)
-    dot = np.sum(ra * rb, 1)
+    rat, rbt = np.ascontiguousarray(ra.T), np.ascontiguousarray(rb.T)
+    a11, dot, a22 = _row_dot(rat, rat), _row_dot(rat, rbt), _row_dot(rbt, rbt)
     a12 = -dot
-    a22 = np.sum(rb * rb, 1)
     b1 = ra @ cb
     b2 = -(rb @ cb)
     det = a11 * a22 - a12 * a12
