@@ -157,3 +157,23 @@ def test_fill_uncertain_follows_the_confident_surface_along_image_edges():
     half = fill_uncertain(gray, depth, np.where(blob, 0.2, conf).astype(np.float32), source=0.7, full=0.4)
     assert np.allclose(half[blob], np.sqrt(3.0 * 2.0), rtol=0.02)  # half its own log-depth
     assert np.array_equal(fill_uncertain(gray, depth, conf, full=0.0), depth)
+
+
+def test_tracks_leaving_through_nan_or_inf_are_outside() -> None:
+    """The walk's inside mask (no separate isfinite test) is False once a track's flow sample is
+    NaN or infinite, and each yielded mask is its own array (the earlier frames' stay as they were)."""
+    from gcvd_flow.stages.depth.filter import _walk
+
+    h, w = 6, 8
+    fwd = np.zeros((3, h, w, 2), np.float32)
+    fwd[1, 2, :, 0] = np.nan
+    fwd[1, 4, :, 1] = np.inf
+    fwd[1, 5, :, 0] = -np.inf
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    steps = list(_walk(fwd, fwd.copy(), 0, 3, xx, yy))
+    assert steps[0][3].all()
+    last = steps[-1][3]
+    assert not last[2].any() and not last[4].any() and not last[5].any() and last[0].all()
+    x, y = steps[-1][1], steps[-1][2]
+    assert not (last & ~(np.isfinite(x) & np.isfinite(y))).any()  # what the isfinite test said
+    assert steps[0][3].all()  # not changed by the later steps

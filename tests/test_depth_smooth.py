@@ -136,3 +136,17 @@ def test_the_stage_smooths_by_default_and_not_with_lambda_zero():
     np.testing.assert_allclose(off["depth"], depth, rtol=1e-6)  # the carry's exp(log) round trip only
     assert _log_err(on["depth"], truth, inner) < 0.25 * _log_err(depth, truth, inner)
     np.testing.assert_array_equal(on["confidence"], conf)
+
+
+def test_edge_weights_are_the_channel_reduction_bit_for_bit() -> None:
+    """edge_weights' channel sum == numpy's sum over the last axis (the previous code), bit for bit."""
+    from gcvd_flow.stages.depth.smooth import edge_weights
+
+    rng = np.random.default_rng(5)
+    for shape in ((37, 41, 3), (19, 23), (8, 9, 1), (11, 13, 2), (7, 6, 4)):
+        img = rng.uniform(0, 1, shape)
+        ax, ay = edge_weights(img, 0.03)
+        x = img if img.ndim == 3 else img[..., None]
+        ax0 = np.exp(-np.square(x[:, 1:] - x[:, :-1]).sum(-1) * (1.0 / 0.03 ** 2))
+        ay0 = np.exp(-np.square(x[1:] - x[:-1]).sum(-1) * (1.0 / 0.03 ** 2))
+        assert ax.tobytes() == ax0.tobytes() and ay.tobytes() == ay0.tobytes()

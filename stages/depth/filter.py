@@ -98,7 +98,7 @@ def _walk(fwd_flows: np.ndarray, bwd_flows: np.ndarray, start: int, end: int, x0
         f = _sample(flow, x, y)
         x = x + f[..., 0]
         y = y + f[..., 1]
-        inside = inside & inside_image(x, y, w, h, 0.0) & np.isfinite(x) & np.isfinite(y)
+        inside = inside & inside_image(x, y, w, h, 0.0)  # (NaN and +-inf are never inside: no isfinite)
         yield k + step, x, y, inside
 
 

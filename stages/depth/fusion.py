@@ -36,7 +36,6 @@ import numpy as np
 
 from gcvd_flow.stages.depth.params import DepthFusionSettings
 from gcvd_flow.stages.frontend import flow as flow_mod
-from gcvd_flow.stages.geometry.two_view import triangulate_depths
 
 MIN_MEASUREMENTS = 30  # per reference: fewer triangulated pixels say nothing about the scale
 ANGLE_SCALE_DEG = 1.0  # a 1 deg triangulation angle gives confidence 0.63 (x agreement, coverage)
@@ -81,6 +80,35 @@ def fuse_depth(
                             agree_log_dev=agree_log_dev, coverage_refs=coverage_refs)
 
 
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.sum(a.T * b.T, 1) of (N, 3) arrays given as their contiguous (3, N) transposes, the same
+    bits (numpy adds the three products in this order): ~9x faster than the reduction over the
+    short axis."""
+    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+
+
+def triangulate_with_angles(p: np.ndarray, q: np.ndarray, K: np.ndarray, R: np.ndarray,
+                            t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``triangulate_depths(p, q, K, R, t)[0]`` (midpoint depth in camera a) and ``_angles_deg(p, q,
+    K, R)`` in one pass: the two build the same rays (the same expressions, so the same bits) and
+    the angle's dot product and norms are the triangulation's a12, a11 and a22 (np.linalg.norm
+    is the square root of the same sum). p, q (N, 2) px; x_b = R x_a + t."""
+    Kinv = np.linalg.inv(K)
+    ra = np.concatenate([p, np.ones((len(p), 1))], 1) @ Kinv.T
+    rb = (np.concatenate([q, np.ones((len(q), 1))], 1) @ Kinv.T) @ R
+    cb = -R.T @ np.asarray(t, np.float64).ravel()
+    rat, rbt = np.ascontiguousarray(ra.T), np.ascontiguousarray(rb.T)
+    a11, dot, a22 = _row_dot(rat, rat), _row_dot(rat, rbt), _row_dot(rbt, rbt)
+    a12 = -dot
+    b1 = ra @ cb
+    b2 = -(rb @ cb)
+    det = a11 * a22 - a12 * a12
+    det = np.where(np.abs(det) < 1e-15, np.nan, det)
+    za = (b1 * a22 - a12 * b2) / det
+    c = dot / (np.sqrt(a11) * np.sqrt(a22))
+    return za, np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
 def _measure(fwd: np.ndarray, fwd_valid: np.ndarray, depth: np.ndarray, T: np.ndarray, K: np.ndarray,
              min_angle_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """One reference's triangulated pixels (v, u, z, weight = angle^2), or None when too few."""
@@ -92,8 +120,7 @@ def _measure(fwd: np.ndarray, fwd_valid: np.ndarray, depth: np.ndarray, T: np.nd
     vs, us = np.nonzero(valid)
     p = np.stack([us, vs], 1).astype(np.float64)
     q = p + fwd[valid].astype(np.float64)
-    z, _ = triangulate_depths(p, q, K, T[:3, :3], T[:3, 3])
-    ang = _angles_deg(p, q, K, T[:3, :3])
+    z, ang = triangulate_with_angles(p, q, K, T[:3, :3], T[:3, 3])
     ok = np.isfinite(z) & (z > 0) & (ang > min_angle_deg)
     if ok.sum() < MIN_MEASUREMENTS:
         return None
@@ -138,8 +165,8 @@ def fuse_depth_flows(
         # nothing triangulated (no baseline, too small an angle, no consistent flow): keep the
         # optimised depth rather than a scale estimated from nothing
         return depth.astype(np.float32), 0.0, np.zeros((h, w), np.float32)
-    log_ratio = np.concatenate([np.log(z / depth[v, u]) for v, u, z, _ in meas])
-    shift = float(np.median(log_ratio))  # the optimised depth's scale vs the poses' scale
+    ratios = [np.log(z / depth[v, u]) for v, u, z, _ in meas]  # per reference, used twice
+    shift = float(np.median(np.concatenate(ratios)))  # the optimised depth's scale vs the poses' scale
     num = np.zeros((h, w))
     den = np.zeros((h, w))
     made = np.zeros((h, w))
@@ -151,8 +178,8 @@ def fuse_depth_flows(
         # many times faster than np.add.at)
         acc += np.bincount(v * w + u, weights=wgt, minlength=h * w).reshape(h, w)
 
-    for v, u, z, wgt in meas:
-        dev = np.abs(np.log(z / depth[v, u]) - shift)
+    for (v, u, z, wgt), ratio in zip(meas, ratios):
+        dev = np.abs(ratio - shift)
         keep, agree = dev < max_log_dev, dev < agree_log_dev
         add(num, v[keep], u[keep], wgt[keep] / z[keep])
         add(den, v[keep], u[keep], wgt[keep])
