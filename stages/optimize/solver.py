@@ -376,10 +376,10 @@ class Solver:
         if blk.keep_pb is not None:  # every sample of the point in b (its patch, its depth) mixes kept cells only
             wgt = wgt * G.footprint_kept(blk.keep_pb, uv.detach()).reshape(npair, M, 9).all(-1).float()
         pair_loss = torch.zeros(npair)
-        if lw.w_photo > 0:
-            pa_ = img_a.reshape(npair, M, 9, 3)
-            pb_ = img_b.reshape(npair, M, 9, 3)
-            pair_loss = pair_loss + lw.w_photo * L.photometric_loss(pa_, pb_, wgt)
+        if lw.w_photo > 0:  # channel-major patches (npair, 3, M, 9): the views' own memory order
+            pa_ = img_a.transpose(1, 2).view(npair, -1, M, 9)
+            pb_ = img_b.transpose(1, 2).view(npair, -1, M, 9)
+            pair_loss = pair_loss + lw.w_photo * L.weighted_mean(L.photometric_terms(pa_, pb_), wgt)
         if lw.w_depth > 0:
             pair_loss = pair_loss + lw.w_depth * L.depth_consistency_loss(zc, d_b, wgt)
         if lw.w_flow > 0 and len(blk.flow_idx):
