@@ -119,6 +119,18 @@ def test_segment_windows_follow_their_own_coarse_setting(tiny: dict) -> None:  #
     assert out["poses"].tobytes() != ref["poses"].tobytes()
 
 
+def test_plateau_stop_waits_for_the_end_of_the_coarse_phase(tiny: dict) -> None:  # noqa: F811
+    """A converged window (every learning rate 0) stops at the first check of the fine phase, never
+    in the coarse phase (its losses are drawn on a quarter of the points); without the coarse phase
+    at the first check (test_optimize.py)."""
+    plateau = dict(window=8, steps=40, points=128, stop_every=5, stop_rel=0.02, lr=0.0, pose_lr=0.0,
+                   mesh_lr_mult=0.0)
+    coarse = _kf_run(tiny, coarse_points=32, coarse_frac=0.5, **plateau)
+    assert [w["steps"] for w in coarse["windows"]] == [25]  # steps 20-24 at 128 points against 15-19 at 32
+    plain = _kf_run(tiny, coarse_points=0, **plateau)
+    assert [w["steps"] for w in plain["windows"]] == [10]
+
+
 def _patches(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(P, C, M, 9) patches a, b (b a noisy a; one point identical, one flat) and weights (P, M)."""
     g = torch.Generator().manual_seed(0)

@@ -119,9 +119,8 @@ class KeyframeSettings:
     lr_final_frac: float = _f(0.1, "keyframe windows, lr_schedule cosine / linear: every rate at a window's last "
                               "step, as a fraction of its first-step rate", ge=0, le=1)
     coarse_points: int = _f(32, "keyframe windows, coarse-to-fine: points per ordered pair per step in the first "
-                            "coarse_frac of a window's steps (a random subset, re-drawn every step; 0: always points; "
-                            "32 of 128 for half the steps: the stage -25 % CPU, accuracy rows within 5 %, "
-                            "docs/log/2026-11-28-fastopt.md)", ge=0)
+                            "coarse_frac of a window's steps (a random subset, re-drawn every step; 0: always "
+                            "points); the plateau stop does not fire in that phase", ge=0)
     coarse_frac: float = _f(0.5, "keyframe windows, coarse-to-fine: the fraction of a window's steps that draw "
                             "coarse_points points per pair", ge=0, le=1)
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "

@@ -241,6 +241,8 @@ class Solver:
     the base rates, never touched).
     """
 
+    _coarse_now = False  # whether this step draws the coarse phase's (fewer) points (``set_step``)
+
     def __init__(
         self, win: Window, net: DepthNet, posenet: PoseNet | None, lr: float, depth: DepthModel,
         losses: LossWeights, kf: KeyframeSettings, pair_blocks: int = 1, points_by_weight: bool = False,
@@ -265,7 +267,6 @@ class Solver:
         self.opt = torch.optim.Adam(groups)
         self.schedule = schedule or LrSchedule()
         self.coarse = coarse or Coarse()
-        self._coarse_now = False  # whether this step draws the coarse phase's points (``set_step``)
         if self.schedule.kind not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule {self.schedule.kind!r}: one of {', '.join(LR_SCHEDULES)}")
         self.base_lrs = [float(g["lr"]) for g in self.opt.param_groups]  # head, poses, mesh shape, per-frame scale
@@ -453,7 +454,7 @@ class Solver:
         """Set every group's learning rate for step ``step`` (0-based) of ``steps``: a function of
         the step index alone, so a window resumed at a checkpointed step gets the same rates (and
         the same points per pair: the coarse phase, ``Coarse``)."""
-        self._coarse_now = self.coarse.active(step, steps)
+        self._coarse_now = self.coarse.active(step, steps) and self.coarse.points < self.kf.points
         if self.schedule.kind == "constant":
             return
         f = lr_factor(self.schedule.kind, step, steps, self.schedule.final_frac)
@@ -476,9 +477,10 @@ class Solver:
         window's first step), true when the mean loss of the last ``stop_every`` steps is less than
         ``stop_rel`` (relative) below the mean of the ``stop_every`` before. Means over blocks of
         steps, as every step's loss is drawn on fresh random points. A function of the losses
-        only: deterministic, and the same on a resumed window (they are checkpointed)."""
+        only: deterministic, and the same on a resumed window (they are checkpointed). Never in the
+        coarse phase (``Coarse``): its losses are drawn on a fraction of the points, noisier."""
         n, e = len(self.losses_run), self.stop_every
-        if self.stop_rel <= 0 or n < 2 * e or n % e:
+        if self.stop_rel <= 0 or self._coarse_now or n < 2 * e or n % e:
             return False
         prev = math.fsum(self.losses_run[n - 2 * e : n - e]) / e
         cur = math.fsum(self.losses_run[n - e :]) / e
