@@ -71,7 +71,7 @@ class _PhotoTerms(torch.autograd.Function):
     photometric term was the largest part of a solver step)."""
 
     @staticmethod
-    def forward(ctx: Any, pa: torch.Tensor, pb: torch.Tensor, alpha: float) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx: Any, pa: torch.Tensor, pb: torch.Tensor, alpha: float) -> torch.Tensor:
         C = pa.shape[1]
         mu_a, mu_b = pa.mean(-1), pb.mean(-1)  # (P, C, M)
         va = (pa * pa).mean(-1) - mu_a * mu_a
@@ -89,7 +89,7 @@ class _PhotoTerms(torch.autograd.Function):
         return out
 
     @staticmethod
-    def backward(ctx: Any, g: torch.Tensor) -> tuple[None, torch.Tensor, None]:  # type: ignore[override]
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[None, torch.Tensor, None]:
         pa, pb, mu_a, mu_b, a1, a2, b1, b2, den, ssim, raw, d4 = ctx.saved_tensors
         alpha, C = ctx.alpha, ctx.C
         g = g[:, None]  # (P, 1, M)
