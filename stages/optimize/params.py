@@ -175,7 +175,7 @@ class SegmentSettings:
                                    "multiple of optimize_keyframes.pose_lr", gt=0)
     lr_final_frac: float = _f(0.1, "lr_schedule cosine / linear: every rate at a window's last step, as a fraction "
                               "of its first-step rate", ge=0, le=1)
-    coarse_points: int = _f(32, "coarse-to-fine: points per ordered pair per step in the first coarse_frac of a "
+    coarse_points: int = _f(0, "coarse-to-fine: points per ordered pair per step in the first coarse_frac of a "
                             "window's steps (a random subset of optimize_keyframes.points, re-drawn every step; 0: "
                             "always optimize_keyframes.points)", ge=0)
     coarse_frac: float = _f(0.5, "coarse-to-fine: the fraction of a window's steps that draw coarse_points points per "
