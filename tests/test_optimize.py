@@ -194,7 +194,8 @@ def test_rigid_fit_recovers_a_rigid_motion_of_the_overlap() -> None:
 # plateau stop on the tiny clip's one 8-keyframe window, 128 points per pair: with every learning
 # rate 0 the loss changes only by the points drawn (its 5-step means by < 2 %); with the default
 # rates it falls by 2.2-7 % per 5 steps over the first 40 steps
-PLATEAU = dict(window=8, steps=40, points=128, stop_every=5, stop_rel=0.02, points_by_weight=True)
+# coarse_points 0: the plateau test on a fixed number of points (the coarse phase: test_optimize_coarse.py)
+PLATEAU = dict(window=8, steps=40, points=128, stop_every=5, stop_rel=0.02, points_by_weight=True, coarse_points=0)
 FROZEN = dict(lr=0.0, pose_lr=0.0, mesh_lr_mult=0.0)
 
 

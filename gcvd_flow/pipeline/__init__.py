@@ -191,9 +191,9 @@ PROFILES: dict[str, dict[str, Any]] = {
         "ingest": {"long_side": 384, "min_short_frac": 0.0},
         "flow": {"preset": "medium"},
         "optimize_keyframes": {"window": 40, "overlap": 8, "steps": 300, "lr": 2e-4, "points": 1024,
-                               "points_by_weight": False, "stop_rel": 0.0, "photo_warp": "pixel"},
+                               "points_by_weight": False, "stop_rel": 0.0, "photo_warp": "pixel", "coarse_points": 0},
         "optimize_edges": {"steps": 300, "lr": 1e-4},
-        "optimize_segments": {"steps": 100, "lr": 1e-4, "loss_scale": 1.0},
+        "optimize_segments": {"steps": 100, "lr": 1e-4, "loss_scale": 1.0, "coarse_points": 0},
     },
     # Quick look / CI: small images, few steps.
     "fast": {

@@ -40,6 +40,7 @@ from gcvd_flow.stages.optimize.init import essential_chain
 from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
 from gcvd_flow.stages.optimize.solver import (
     Checkpointer,
+    Coarse,
     LrSchedule,
     Pair,
     Solver,
@@ -139,7 +140,7 @@ def _window_solver(win: Window, net: DepthNet, posenet: PoseNet | None, depth: D
     """A keyframe window's solver: the stage's lr and its schedule, pair blocks, point allocation and
     plateau stop."""
     return Solver(win, net, posenet, kf.lr, depth, losses, kf, kf.pair_blocks, kf.points_by_weight,
-                  kf.stop_every, kf.stop_rel, LrSchedule.of(kf))
+                  kf.stop_every, kf.stop_rel, LrSchedule.of(kf), Coarse.of(kf))
 
 
 def _window_stats(solver: Solver, kf: KeyframeSettings) -> torch.Tensor:

@@ -118,6 +118,11 @@ class KeyframeSettings:
                                    "first step, as a multiple of pose_lr", gt=0)
     lr_final_frac: float = _f(0.1, "keyframe windows, lr_schedule cosine / linear: every rate at a window's last "
                               "step, as a fraction of its first-step rate", ge=0, le=1)
+    coarse_points: int = _f(0, "keyframe windows, coarse-to-fine: points per ordered pair per step in the first "
+                            "coarse_frac of a window's steps (a random subset, re-drawn every step; 0: always "
+                            "points); the plateau stop does not fire in that phase", ge=0)
+    coarse_frac: float = _f(0.5, "keyframe windows, coarse-to-fine: the fraction of a window's steps that draw "
+                            "coarse_points points per pair", ge=0, le=1)
     stop_rel: float = _f(0.0, "keyframe windows stop early when the mean loss of the last stop_every steps is "
                          "less than this fraction below that of the stop_every steps before (0: never)", ge=0)
 
@@ -170,6 +175,11 @@ class SegmentSettings:
                                    "multiple of optimize_keyframes.pose_lr", gt=0)
     lr_final_frac: float = _f(0.1, "lr_schedule cosine / linear: every rate at a window's last step, as a fraction "
                               "of its first-step rate", ge=0, le=1)
+    coarse_points: int = _f(0, "coarse-to-fine: points per ordered pair per step in the first coarse_frac of a "
+                            "window's steps (a random subset of optimize_keyframes.points, re-drawn every step; 0: "
+                            "always optimize_keyframes.points)", ge=0)
+    coarse_frac: float = _f(0.5, "coarse-to-fine: the fraction of a window's steps that draw coarse_points points per "
+                            "pair", ge=0, le=1)
     stop_rel: float = _f(0.0, "stop a window early when the mean loss of the last stop_every steps is less than "
                          "this fraction below that of the stop_every steps before (0: never)", ge=0)
 

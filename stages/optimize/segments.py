@@ -41,6 +41,7 @@ from gcvd_flow.stages.optimize.init import interp_pose, pnp_init, transfer_depth
 from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights, SegmentSettings
 from gcvd_flow.stages.optimize.solver import (
     Checkpointer,
+    Coarse,
     LrSchedule,
     Pair,
     Solver,
@@ -409,7 +410,7 @@ def solve_window(job: WindowJob) -> WindowResult:
         solver = Solver(win, net, None, st.seg.lr, st.depth, st.losses, st.kf, 1, st.seg.points_by_weight,
                         st.seg.stop_every, st.seg.stop_rel,
                         LrSchedule(st.seg.lr_schedule, st.seg.lr_final_frac, st.seg.lr_start_mult,
-                                   st.seg.pose_lr_start_mult))
+                                   st.seg.pose_lr_start_mult), Coarse(st.seg.coarse_points, st.seg.coarse_frac))
         run_solver(solver, gen, st.seg.steps, 0, None)
         with torch.no_grad():
             poses, meshes = solver.poses().numpy(), solver.meshes().clone()

@@ -67,6 +67,7 @@ __all__ = [
     "lr_factor",
     "LrSchedule",
     "LR_SCHEDULES",
+    "Coarse",
 ]
 
 
@@ -240,10 +241,13 @@ class Solver:
     the base rates, never touched).
     """
 
+    _coarse_now = False  # whether this step draws the coarse phase's (fewer) points (``set_step``)
+
     def __init__(
         self, win: Window, net: DepthNet, posenet: PoseNet | None, lr: float, depth: DepthModel,
         losses: LossWeights, kf: KeyframeSettings, pair_blocks: int = 1, points_by_weight: bool = False,
         stop_every: int = 25, stop_rel: float = 0.0, schedule: LrSchedule | None = None,
+        coarse: Coarse | None = None,
     ) -> None:
         self.w, self.net, self.posenet = win, net, posenet
         self.depth, self.losses, self.kf = depth, losses, kf
@@ -262,6 +266,7 @@ class Solver:
         groups.append({"params": [self.lscale], "lr": lr * kf.mesh_lr_mult})
         self.opt = torch.optim.Adam(groups)
         self.schedule = schedule or LrSchedule()
+        self.coarse = coarse or Coarse()
         if self.schedule.kind not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule {self.schedule.kind!r}: one of {', '.join(LR_SCHEDULES)}")
         self.base_lrs = [float(g["lr"]) for g in self.opt.param_groups]  # head, poses, mesh shape, per-frame scale
@@ -310,8 +315,14 @@ class Solver:
 
     def _sample(self, gen: torch.Generator) -> list[torch.Tensor]:
         """Per point group, (P_g, M_g) flat pixel indices in frame a of this step's points
-        (consumes ``gen``; one group: (npair, points), the draw of the uniform allocation)."""
-        return [torch.randint(0, self.h * self.w_, (len(members), mg), generator=gen) for mg, members in self.groups]
+        (consumes ``gen``; one group: (npair, points), the draw of the uniform allocation). In the
+        coarse phase (``Coarse``) a group draws M_g * coarse.points / kf.points points (at least 1,
+        at most M_g): a fresh random subset every step, so the steps still cover the image."""
+        ms = [mg for mg, _ in self.groups]
+        if self._coarse_now:
+            ms = [self.coarse.points_of(mg, self.kf.points) for mg in ms]
+        return [torch.randint(0, self.h * self.w_, (len(members), m), generator=gen)
+                for m, (_, members) in zip(ms, self.groups)]
 
     def _thread_loss(self, blocks: list["_PairBlock"], depth: torch.Tensor, T_w_c: torch.Tensor,
                      idx: list[torch.Tensor]) -> torch.Tensor:
@@ -366,10 +377,10 @@ class Solver:
         if blk.keep_pb is not None:  # every sample of the point in b (its patch, its depth) mixes kept cells only
             wgt = wgt * G.footprint_kept(blk.keep_pb, uv.detach()).reshape(npair, M, 9).all(-1).float()
         pair_loss = torch.zeros(npair)
-        if lw.w_photo > 0:
-            pa_ = img_a.reshape(npair, M, 9, 3)
-            pb_ = img_b.reshape(npair, M, 9, 3)
-            pair_loss = pair_loss + lw.w_photo * L.photometric_loss(pa_, pb_, wgt)
+        if lw.w_photo > 0:  # channel-major patches (npair, 3, M, 9): the views' own memory order
+            pa_ = img_a.transpose(1, 2).view(npair, -1, M, 9)
+            pb_ = img_b.transpose(1, 2).view(npair, -1, M, 9)
+            pair_loss = pair_loss + lw.w_photo * L.weighted_mean(L.photometric_terms(pa_, pb_), wgt)
         if lw.w_depth > 0:
             pair_loss = pair_loss + lw.w_depth * L.depth_consistency_loss(zc, d_b, wgt)
         if lw.w_flow > 0 and len(blk.flow_idx):
@@ -441,7 +452,9 @@ class Solver:
 
     def set_step(self, step: int, steps: int) -> None:
         """Set every group's learning rate for step ``step`` (0-based) of ``steps``: a function of
-        the step index alone, so a window resumed at a checkpointed step gets the same rates."""
+        the step index alone, so a window resumed at a checkpointed step gets the same rates (and
+        the same points per pair: the coarse phase, ``Coarse``)."""
+        self._coarse_now = self.coarse.active(step, steps) and self.coarse.points < self.kf.points
         if self.schedule.kind == "constant":
             return
         f = lr_factor(self.schedule.kind, step, steps, self.schedule.final_frac)
@@ -464,9 +477,10 @@ class Solver:
         window's first step), true when the mean loss of the last ``stop_every`` steps is less than
         ``stop_rel`` (relative) below the mean of the ``stop_every`` before. Means over blocks of
         steps, as every step's loss is drawn on fresh random points. A function of the losses
-        only: deterministic, and the same on a resumed window (they are checkpointed)."""
+        only: deterministic, and the same on a resumed window (they are checkpointed). Never in the
+        coarse phase (``Coarse``): its losses are drawn on a fraction of the points, noisier."""
         n, e = len(self.losses_run), self.stop_every
-        if self.stop_rel <= 0 or n < 2 * e or n % e:
+        if self.stop_rel <= 0 or self._coarse_now or n < 2 * e or n % e:
             return False
         prev = math.fsum(self.losses_run[n - 2 * e : n - e]) / e
         cur = math.fsum(self.losses_run[n - e :]) / e
@@ -533,6 +547,32 @@ def run_solver(
 
 
 LR_SCHEDULES = ("constant", "cosine", "linear")
+
+
+@dataclass(frozen=True)
+class Coarse:
+    """Coarse-to-fine points: the first ``frac`` of a window's steps draw ``points`` points per
+    ordered pair (a random subset of the usual number, re-drawn every step from the window's
+    generator), the rest the full number. Adam takes steps of about its rate whatever the points,
+    so the early steps, where the parameters are far from their optimum, cost a fraction of a
+    full step; the late steps see every pair at full density. ``points`` 0: off."""
+
+    points: int = 0
+    frac: float = 0.0
+
+    @classmethod
+    def of(cls, s: Any) -> "Coarse":
+        """From a settings section's coarse_points, coarse_frac."""
+        return cls(int(s.coarse_points), float(s.coarse_frac))
+
+    def active(self, step: int, steps: int) -> bool:
+        """Whether step ``step`` (0-based) of ``steps`` is in the coarse phase."""
+        return 0 < self.points and step < int(round(self.frac * steps))
+
+    def points_of(self, full: int, points: int) -> int:
+        """A point group's points per pair in the coarse phase: ``full`` (its usual number, of a
+        stage drawing ``points`` per pair) scaled by self.points / points, in [1, full]."""
+        return max(1, min(full, int(round(full * self.points / max(points, 1)))))
 
 
 @dataclass(frozen=True)
