@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from gcvd_flow.evaluate.synth import render_clip
@@ -104,22 +103,3 @@ def test_confident_share_on_a_fast_pan_with_near_and_far_references():
     assert share >= 0.4 and share >= share_all + 0.2
     assert err[ok].mean() <= 0.05 and err[ok].mean() < err[~ok & (gt > 0)].mean()
 
-
-def test_triangulation_with_angles_is_the_two_functions_bit_for_bit() -> None:
-    """fusion's one-pass triangulation + angle == two_view.triangulate_depths and _angles_deg
-    (the previous per-function computation), bit for bit, on random rays and poses."""
-    from gcvd_flow.stages.depth.fusion import _angles_deg, triangulate_with_angles
-    from gcvd_flow.stages.geometry.two_view import triangulate_depths
-
-    rng = np.random.default_rng(3)
-    K = np.array([[210.0, 0, 127.5], [0, 211.0, 95.5], [0, 0, 1]])
-    for n in (1, 7, 1000, 49_153):
-        p = rng.uniform(0, 256, (n, 2))
-        q = p + rng.normal(0, 3, (n, 2))
-        w = rng.normal(0, 0.05, 3)
-        R = cv2.Rodrigues(w)[0]
-        t = rng.normal(0, 0.1, 3)
-        z, ang = triangulate_with_angles(p, q, K, R, t)
-        z0, _ = triangulate_depths(p, q, K, R, t)
-        ang0 = _angles_deg(p, q, K, R)
-        assert z.tobytes() == z0.tobytes() and ang.tobytes() == ang0.tobytes()

@@ -20,7 +20,6 @@ from conftest import by_stage, cli, cli_json
 from gcvd_flow import api, pipeline as gp
 from gcvd_flow.engine.store import Store
 from gcvd_flow.stages.frontend import priors as priors_mod
-from gcvd_flow.stages.geometry.two_view import triangulate_depths
 from gcvd_flow.stages.graph import references
 
 N = 24
@@ -96,31 +95,6 @@ def test_the_chain_is_read_only_where_no_direct_flow_held(clip, tmp_path):
     assert all(names == {"direct"} for names in _item_inputs(tmp_path))
     pri = api.recorded_output(tmp_path / "run", "priors", str(tmp_path / "cache"))
     assert np.all(pri[flagged[0]]["inv_depth"] == 1.0) and np.all(pri[flagged[0]]["confidence"] == 0.0)
-
-
-def _former_triangulation(p, q, K, R, t):
-    """_triangulate_reference's depth and angle before they shared their rays."""
-    za, _ = triangulate_depths(p, q, K, R, t)
-    Kinv = np.linalg.inv(K)
-    ra = np.concatenate([p, np.ones((len(p), 1))], 1) @ Kinv.T
-    rb = (np.concatenate([q, np.ones((len(q), 1))], 1) @ Kinv.T) @ R
-    cosang = np.sum(ra * rb, 1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
-    return za, np.degrees(np.arccos(np.clip(cosang, -1, 1)))
-
-
-def test_triangulation_with_parallax_equals_the_former_code():
-    rng = np.random.default_rng(3)
-    K = np.array([[200.0, 0, 127.5], [0, 201.0, 95.5], [0, 0, 1]])
-    ang = rng.normal(size=3) * 0.05
-    R = np.asarray(__import__("cv2").Rodrigues(ang)[0])
-    t = rng.normal(size=3)
-    p = rng.uniform(0, 256, size=(5000, 2))
-    q = p + rng.normal(size=(5000, 2)) * 3
-    q[:5] = p[:5]  # parallel rays: NaN depths, zero angles
-    za, par = priors_mod.triangulate_with_parallax(p, q, K, R, t)
-    za0, par0 = _former_triangulation(p, q, K, R, t)
-    assert np.array_equal(za, za0, equal_nan=True) and np.array_equal(par, par0, equal_nan=True)
-    assert np.isfinite(za).sum() > 4000
 
 
 def _former_densify(guide, values, weights, radii=(2, 4, 8, 16, 32), eps=1e-3):

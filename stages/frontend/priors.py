@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from gcvd_flow.stages.frontend.flow import chain_flows
-from gcvd_flow.stages.geometry.two_view import relative_pose, rotation_from_homography
+from gcvd_flow.stages.geometry.two_view import relative_pose, rotation_from_homography, triangulate_with_angles
 
 log = logging.getLogger(__name__)
 
@@ -92,29 +92,6 @@ def _constant(h: int, w: int) -> dict[str, np.ndarray]:
     return {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
 
 
-def triangulate_with_parallax(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R: np.ndarray,
-                              t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(depth in a (N,), triangulation angle in degrees (N,)) of correspondences pa -> pb (N, 2) px
-    with x_b = R x_a + t: stages.geometry.two_view.triangulate_depths' za and the angle between
-    the two rays, computed from the same rays and dot products (the same arithmetic, in the same
-    order, as triangulate_depths followed by arccos(ra.rb / (|ra| |rb|)): byte-identical)."""
-    Kinv = np.linalg.inv(K)
-    ra = np.concatenate([pa, np.ones((len(pa), 1))], 1) @ Kinv.T
-    rb = (np.concatenate([pb, np.ones((len(pb), 1))], 1) @ Kinv.T) @ R  # rays of b expressed in a
-    cb = -R.T @ np.asarray(t, np.float64).ravel()
-    a11 = np.sum(ra * ra, 1)
-    dot = np.sum(ra * rb, 1)
-    a12 = -dot
-    a22 = np.sum(rb * rb, 1)
-    b1 = ra @ cb
-    b2 = -(rb @ cb)
-    det = a11 * a22 - a12 * a12
-    det = np.where(np.abs(det) < 1e-15, np.nan, det)
-    za = (b1 * a22 - a12 * b2) / det
-    cosang = dot / (np.sqrt(a11) * np.sqrt(a22))
-    return za, np.degrees(np.arccos(np.clip(cosang, -1, 1)))
-
-
 def _triangulate_reference(flow: np.ndarray, valid: np.ndarray, K: np.ndarray,
                            seed: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Sparse inverse depth (H, W) (unit-baseline scale, 0 where unknown) and its weight (H, W)
@@ -138,7 +115,7 @@ def _triangulate_reference(flow: np.ndarray, valid: np.ndarray, K: np.ndarray,
     idx_v, idx_u = np.nonzero(valid)  # row-major, as a boolean index orders them
     p_all = np.stack([idx_u, idx_v], -1).astype(np.float64)
     q_all = p_all + flow[idx_v, idx_u].astype(np.float64)
-    za, parallax = triangulate_with_parallax(p_all, q_all, K, R, t)
+    za, parallax = triangulate_with_angles(p_all, q_all, K, R, t)
     good = np.isfinite(za) & (za > 0) & (parallax > 0.05)
     if good.sum() < 30 or np.median(parallax[good]) < MIN_PARALLAX_DEG:
         log.info("prior: too little parallax (median %.3f deg)", float(np.median(parallax)) if parallax.size else 0)

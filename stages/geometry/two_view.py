@@ -36,6 +36,35 @@ def triangulate_depths(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R: np.ndar
     return za, zb_a
 
 
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.sum(a.T * b.T, 1) of (N, 3) arrays given as their contiguous (3, N) transposes, the same
+    bits (numpy adds the three products in this order): ~9x faster than the reduction over the
+    short axis."""
+    return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+
+
+def triangulate_with_angles(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R: np.ndarray,
+                            t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(depth in a (N,), triangulation angle in degrees (N,)) of correspondences pa -> pb (N, 2) px
+    with x_b = R x_a + t, in one pass: the same bits as ``triangulate_depths(...)[0]`` and
+    arccos(ra.rb / (|ra| |rb|)) of the same rays (the angle's dot product and norms are the
+    triangulation's a12, a11, a22). Parallel rays: NaN depth, angle 0."""
+    Kinv = np.linalg.inv(K)
+    ra = np.concatenate([pa, np.ones((len(pa), 1))], 1) @ Kinv.T
+    rb = (np.concatenate([pb, np.ones((len(pb), 1))], 1) @ Kinv.T) @ R  # rays of b expressed in a
+    cb = -R.T @ np.asarray(t, np.float64).ravel()
+    rat, rbt = np.ascontiguousarray(ra.T), np.ascontiguousarray(rb.T)
+    a11, dot, a22 = _row_dot(rat, rat), _row_dot(rat, rbt), _row_dot(rbt, rbt)
+    a12 = -dot
+    b1 = ra @ cb
+    b2 = -(rb @ cb)
+    det = a11 * a22 - a12 * a12
+    det = np.where(np.abs(det) < 1e-15, np.nan, det)
+    za = (b1 * a22 - a12 * b2) / det
+    c = dot / (np.sqrt(a11) * np.sqrt(a22))
+    return za, np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
 def pose_from_essential(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """(R, t unit, number of points in front) with x_b = R x_a + t; pa, pb (N, 2) inliers."""
     R1, R2, t = cv2.decomposeEssentialMat(E)
