@@ -20,6 +20,7 @@ from gcvd_flow.stages.depth import (
     fusion as depth_fusion,
     params as depth_params,
     smooth as depth_smooth,
+    tilt as depth_tilt,
 )
 from gcvd_flow.stages.frontend import (
     user_masks,
@@ -224,12 +225,14 @@ def _consensus_items(view, p: depth_params.DepthConsensusSettings):
         refs = references.symmetric_references(i, n, p.offsets) if p.enabled else []
         splat = references.symmetric_references(i, n, p.splat_offsets) if p.enabled and p.splat_offsets else []
         both = refs + [j for j in splat if j not in refs]  # the carry's first, in its order
+        tilt = references.symmetric_references(i, n, p.tilt_offsets) if p.enabled and p.tilt_offsets else []
         out.append({"index": Const(i), "K": PartRef(CALIBRATE, ("K",)),
                     "poses": PartRef(OPTIMIZE_SEGMENTS, ("poses",)), "depth": ItemRef(DEPTH_FILTER, i),
                     "refs": [ItemRef(DEPTH_FILTER, j) for j in both], "ref_indices": Const(both),
                     "static": [ItemRef(MASKS, j) for j in [i, *both]] if both else [],
                     **({"splat_indices": Const(splat)} if splat else {}),
-                    **({"image": ItemRef(INGEST, i)} if splat or (p.enabled and p.smooth_lambda > 0) else {})})
+                    **({"image": ItemRef(INGEST, i)} if splat or tilt or (p.enabled and p.smooth_lambda > 0) else {}),
+                    **({"tilt_images": [ItemRef(INGEST, j) for j in tilt], "tilt_indices": Const(tilt)} if tilt else {})})
     return out
 
 
@@ -293,6 +296,11 @@ def run_depth_consensus(inputs: dict[str, Any], p: depth_params.DepthConsensusSe
         user = inputs["static"][0].get("user_keep")
         out = depth_smooth.smooth_depth(out, conf, np.asarray(inputs["image"]["image"]), p.smooth_lambda,
                                         p.smooth_sigma, p.smooth_keep, static=user)
+    if "tilt_indices" in inputs:  # the unconfident pixels' range chosen photometrically (opt-in)
+        out, _ = depth_tilt.photometric_tilt(out, conf, np.asarray(inputs["image"]["image"]), pose,
+                                             [(np.asarray(im["image"]), poses[int(j)]) for im, j
+                                              in zip(inputs["tilt_images"], inputs["tilt_indices"])],
+                                             K, depth_tilt.SLOPES, shrink=p.tilt_shrink)
     return {"depth": out, "confidence": conf}
 
 

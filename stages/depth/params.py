@@ -127,3 +127,7 @@ class DepthConsensusSettings:
                                 "falls to 1/e", gt=0)
     smooth_keep: float = param(0.7, "pixels at least this confident keep their depth through the smoothing; less "
                                "confident ones take it in proportion, (1 - (c / smooth_keep)^2)", ge=0, le=1)
+    tilt_offsets: tuple[int, ...] = param((), "references (frames i - k and i + k) whose images choose, per frame, the "
+                                          "slope of the unconfident pixels' log depth about their median "
+                                          "(stages.depth.tilt, photometric; () = off)", validator=_positive_offsets)
+    tilt_shrink: float = param(0.5, "the chosen slope is moved this far back toward 1 (0: taken as chosen)", ge=0, le=1)
