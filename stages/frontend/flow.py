@@ -38,8 +38,12 @@ DIS_PRESETS: dict[str, int] = {
     # ~3.5x the time, 2.4x lower median end-point error on 8-frame pairs of the synthetic loop
     # (0.11 -> 0.046 px), which is what triangulating a depth prior needs
     "fine": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+    # "fine" with 12 instead of medium's 25 gradient-descent iterations per patch: 0.61x the time,
+    # 0.018 px median (0.37 px p90) from "fine" on 8-frame ICL pairs at 256x192
+    "fine-fast": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
-FINEST_SCALE = {"fine": 0}
+FINEST_SCALE = {"fine": 0, "fine-fast": 0}
+GRADIENT_DESCENT_ITERATIONS = {"fine-fast": 12}
 
 
 def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np.ndarray:
@@ -53,6 +57,8 @@ def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np
     dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])  # type: ignore[attr-defined]  # in cv2, not in its stubs
     if preset in FINEST_SCALE:
         dis.setFinestScale(FINEST_SCALE[preset])
+    if preset in GRADIENT_DESCENT_ITERATIONS:
+        dis.setGradientDescentIterations(GRADIENT_DESCENT_ITERATIONS[preset])
     flow = dis.calc(to_gray(img_a), to_gray(img_b), None)
     return np.ascontiguousarray(flow, dtype=np.float32)
 
