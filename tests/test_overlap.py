@@ -124,3 +124,22 @@ def test_the_overlap_is_opt_in_and_only_on_a_local_pool(tmp_path, monkeypatch):
         assert not runner._may_overlap(pool)
     finally:
         pool.close()
+
+
+def test_waiting_for_items_wakes_when_a_pool_shutdown_cancels_them():
+    """A future cancelled the way ProcessPoolExecutor.shutdown(cancel_futures=True) cancels its
+    queued items (Future.cancel, no set_running_or_notify_cancel) does not wake a plain
+    concurrent.futures.wait: the beside stage's wait must still return (it hung a test run)."""
+    from concurrent.futures import Future
+
+    from gcvd_flow.engine.executors import _wait_first
+
+    fut: Future = Future()
+    got: list = []
+    waiter = threading.Thread(target=lambda: got.append(_wait_first([fut])), daemon=True)
+    waiter.start()
+    waiter.join(0.2)
+    assert waiter.is_alive()  # nothing finished yet: it waits
+    assert fut.cancel()
+    waiter.join(30)
+    assert not waiter.is_alive() and got == [({fut}, set())]

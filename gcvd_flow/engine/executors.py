@@ -334,8 +334,21 @@ class InProcessExecutor:
         pass
 
 
+def _wait_first(futures: Iterable[Future]) -> tuple[set[Future], set[Future]]:
+    """``wait(futures, return_when=FIRST_COMPLETED)`` that also returns when a future was
+    cancelled by ``shutdown(cancel_futures=True)``: such a cancel does not wake ``wait`` (CPython
+    notifies waiters only from ``set_running_or_notify_cancel``), so a stage running beside a
+    failed one waited forever for its cancelled items (a hang seen in tests/test_overlap.py)."""
+    pending = set(futures)
+    while True:
+        done, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
+        cancelled = {f for f in pending if f.cancelled()}
+        if done or cancelled:
+            return done | cancelled, pending - cancelled
+
+
 def _wait_any(futures: list[Future]) -> None:
-    wait(futures, return_when=FIRST_COMPLETED)
+    _wait_first(futures)
 
 
 def _ordered(submit: Callable[[Any], Any], args: Iterator[Any], jobs: int,
@@ -540,7 +553,7 @@ class ProcessPoolItemExecutor:
                     exhausted = True
             if not pending:
                 return
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            done, pending = _wait_first(pending)
             for f in done:
                 yield f.result()
 
