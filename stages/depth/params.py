@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from gcvd_flow.stages.frontend.params import DisPreset
 from gcvd_flow.stages.params import param
 
 
@@ -34,7 +35,7 @@ class DepthFusionSettings:
                                                                    "final poses; +-1 are the flow stage's pairs and "
                                                                    "+-4 the priors' (no new flow); frames far apart "
                                                                    "rarely overlap on a wide-baseline walk")
-    preset: Literal["ultrafast", "fast", "medium", "fine", "fine-fast"] = "fine"
+    preset: DisPreset = "fine"
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
     min_angle_deg: float = param(0.2, "smallest usable triangulation angle", ge=0)
     max_log_dev: float = param(0.6, "measurements further from the optimised depth (|log ratio|) are dropped",

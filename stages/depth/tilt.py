@@ -23,6 +23,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from gcvd_flow.stages.frontend.flow import warp_sample
+
 MIN_PIXELS = 300  # fewer unconfident pixels: nothing to choose
 MIN_LANDED = 100  # per reference: fewer pixels landing inside it say nothing
 SLOPES = tuple(round(0.7 + 0.05 * k, 2) for k in range(13))  # 0.7 ... 1.3, the hypotheses
@@ -31,13 +33,6 @@ SLOPES = tuple(round(0.7 + 0.05 * k, 2) for k in range(13))  # 0.7 ... 1.3, the 
 def _high_pass(image: np.ndarray) -> np.ndarray:
     grey = cv2.cvtColor(np.asarray(image, np.uint8), cv2.COLOR_RGB2GRAY).astype(np.float32)
     return grey - cv2.blur(grey, (7, 7))
-
-
-def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    return (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
-            + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
 
 
 def _cost(rays: np.ndarray, z: np.ndarray, own: np.ndarray, pose: np.ndarray,
@@ -56,7 +51,7 @@ def _cost(rays: np.ndarray, z: np.ndarray, own: np.ndarray, pose: np.ndarray,
         ok = front & (u >= 0) & (u < w - 1) & (v >= 0) & (v < h - 1)
         if ok.sum() < MIN_LANDED:
             continue
-        total += float(np.abs(own[ok] - _bilinear(hp_j, u[ok], v[ok])).sum())
+        total += float(np.abs(own[ok] - warp_sample(hp_j, np.stack([u[ok], v[ok]], -1))).sum())
         count += int(ok.sum())
     return total / count if count else float("inf")
 
