@@ -9,6 +9,7 @@ import pytest
 from conftest import cli
 
 from gcvd_flow import pipeline
+from gcvd_flow.evaluate.run_eval import sample_source_map
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.io.formats import read_distortion_txt, read_intrinsics_txt
 from gcvd_flow.io.sources import open_source
@@ -27,7 +28,16 @@ def _interior(img: np.ndarray, border: int = 8) -> np.ndarray:
 def test_undistort_recovers_the_pinhole_frame():
     d = render_clip(2, "loop", size=(160, 120), distortion=DIST)
     p = render_clip(2, "loop", size=(160, 120))
-    assert d.distortion == DIST and np.array_equal(d.K, p.K) and np.array_equal(d.depth, p.depth)
+    assert d.distortion == DIST and np.array_equal(d.K, p.K)
+    # ground-truth depth is registered to the distorted frames (as a real RGB-D dataset's): seen
+    # back through the lens it is the pinhole clip's, and pixel by pixel it is not
+    K = d.K
+    pos = pipeline.source_positions(_lens_cameras(K, DIST, (160, 120)), (120, 160))
+    back = sample_source_map(d.depth[1], pos, (160, 120))
+    ok = back > 0
+    assert ok.mean() > 0.9
+    assert np.median(np.abs(back[ok] / p.depth[1][ok] - 1)) < 1e-6
+    assert np.mean(np.abs(d.depth[1] / p.depth[1] - 1)) > 0.02
     K = d.K
     u = undistort_frame(d.frames[1], (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), DIST)
     m = _interior(u)
@@ -35,6 +45,44 @@ def test_undistort_recovers_the_pinhole_frame():
     err_undistorted = np.abs(u.astype(float) - p.frames[1])[m].mean()
     err_distorted = np.abs(d.frames[1].astype(float) - p.frames[1])[m].mean()
     assert err_undistorted < 3.0 < 8.0 < err_distorted, (err_undistorted, err_distorted)
+
+
+def _lens_cameras(K: np.ndarray, dist: tuple, size: tuple[int, int], work: tuple[int, int] | None = None) -> dict:
+    """cameras.json of a run that undistorted frames of ``size`` (w, h) to ``work`` (w, h)."""
+    w, h = work or size
+    sx, sy = w / size[0], h / size[1]
+    Kw = np.array([[K[0, 0] * sx, 0, (K[0, 2] + 0.5) * sx - 0.5], [0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5],
+                   [0, 0, 1]])
+    return {"width": w, "height": h, "K": Kw.tolist(), "source_width": size[0], "source_height": size[1],
+            "distortion": list(dist), "distortion_model": "OPENCV",
+            "distortion_intrinsics": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
+
+
+def test_eval_reads_the_ground_truth_depth_through_the_lens(tmp_path):
+    """A run of a lens clip writes depth of the pinhole camera; the dataset's depth is registered
+    to the distorted frames. `eval` maps it through the run's lens (cameras.json): a run whose
+    depth is exactly right scores AbsRel 0.011 (nearest-pixel sampling at edges), 0.056 on this
+    lens if compared pixel by pixel."""
+    import json
+
+    from gcvd_flow.evaluate.run_eval import evaluate
+    from gcvd_flow.io.formats import write_generic_layout, write_tum_poses
+
+    size, work = (160, 120), (128, 96)
+    d = render_clip(4, "loop", size=size, distortion=DIST)
+    p = render_clip(4, "loop", size=(128, 96), focal=d.K[0, 0] * 0.8)  # the pinhole camera at working size
+    write_generic_layout(tmp_path / "clip", d)
+    run = tmp_path / "run"
+    (run / "depth").mkdir(parents=True)
+    write_tum_poses(run / "poses.txt", np.arange(4, dtype=np.float64), d.poses)
+    cams = {**_lens_cameras(d.K, DIST, size, work), "frame_indices": [0, 1, 2, 3]}
+    (run / "cameras.json").write_text(json.dumps(cams))
+    for i in range(4):
+        np.save(run / "depth" / f"{i:06d}.npy", p.depth[i].astype(np.float32))
+    right = evaluate(run, tmp_path / "clip")["abs_rel"]
+    assert right < 0.015  # nearest-pixel sampling (synth's and eval's) at depth edges: 0.011
+    (run / "cameras.json").write_text(json.dumps({k: v for k, v in cams.items() if not k.startswith("distortion")}))
+    assert evaluate(run, tmp_path / "clip")["abs_rel"] > 3 * right  # 0.056
 
 
 def test_parse_eight_numbers():

@@ -225,13 +225,22 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
     frames, masks = _cached_maps(run, m.run_frames)
     breakdown = RegionBreakdown(max_depth=max_depth, min_confidence=min_confidence)
     per_frame, confident, kept = [], [], []
+    from gcvd_flow.io.run_dir import read_cameras
+
+    cams, lens_positions = read_cameras(run), None
     for k, i, gpath in zip(m.run_pos, m.frame_indices, m.depth_files):
         pred_path = run / "depth" / f"{i:06d}.npy"
         if gpath is None or not pred_path.exists():
             continue
         pred = np.load(pred_path, allow_pickle=False)
         g = read_depth_png(gpath, m.depth_scale)  # DatasetError names the file
-        if g.shape != pred.shape:  # compare at the run's working resolution
+        if cams.get("distortion"):  # ground truth registered to the source frame, seen through the lens
+            if lens_positions is None:
+                from gcvd_flow.pipeline import source_positions
+
+                lens_positions = source_positions(cams, pred.shape)
+            g = sample_source_map(g, lens_positions, (int(cams["source_width"]), int(cams["source_height"])))
+        elif g.shape != pred.shape:  # compare at the run's working resolution
             g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
         per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))
         conf_path = run / "confidence" / f"{i:06d}.npy"
@@ -254,6 +263,22 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
     if regions:
         out["regions"] = regions
     return out
+
+
+def sample_source_map(g: np.ndarray, positions: np.ndarray, source_size: tuple[int, int]) -> np.ndarray:
+    """A map registered to the source frame (ground-truth depth (Hg, Wg), any resolution of the
+    source's (W, H) = ``source_size``) read at ``positions`` (h, w, 2) source px (x, y), nearest
+    pixel (depth is not interpolated across edges); 0 (invalid) where a position lies outside it.
+
+    A run that undistorted its frames at ingest writes maps of the pinhole camera: their pixel
+    (u, v) saw the source pixel the lens sends it to, pixels off at a strong lens' corners (TUM
+    fr1's Kinect), so comparing pixel by pixel after a resize would compare different surfaces."""
+    hg, wg = g.shape
+    x = np.rint((positions[..., 0] + 0.5) * (wg / source_size[0]) - 0.5)
+    y = np.rint((positions[..., 1] + 0.5) * (hg / source_size[1]) - 0.5)
+    inside = (x >= 0) & (x <= wg - 1) & (y >= 0) & (y <= hg - 1)
+    xi, yi = np.where(inside, x, 0).astype(np.intp), np.where(inside, y, 0).astype(np.intp)
+    return np.where(inside, g[yi, xi], 0).astype(g.dtype)
 
 
 def evaluate(run_dir: str | Path, gt_dir: str | Path, max_depth: float = 10.0) -> dict[str, Any]:

@@ -93,7 +93,8 @@ class SynthClip:
     trajectory: str = "orbit"
     seed: int = 0
     # lens distortion the frames were rendered through (OPENCV: k1, k2, p1, p2[, k3]; OPENCV_FISHEYE:
-    # k1..k4, cv2.fisheye); depth, dynamic and K stay those of the pinhole camera (the undistorted image)
+    # k1..k4, cv2.fisheye); K is the pinhole camera's (the undistorted image), depth and dynamic are registered to
+    # the distorted frames, as a real RGB-D dataset's are
     distortion: tuple[float, ...] | None = None
     distortion_model: str = "OPENCV"
 
@@ -503,7 +504,9 @@ def _distorted_clip(n_frames: int, trajectory: str, size: tuple[int, int], movin
     """A clip seen through a lens (OpenCV's radial-tangential model, or cv2.fisheye's): the pinhole
     clip is rendered on a canvas padded to hold where every distorted pixel's ray lands (same
     focal length, principal point moved by the pad), and each distorted pixel samples it there
-    (bilinear). Depth and dynamic masks are the pinhole image's (the canvas' centre)."""
+    (bilinear). Depth and dynamic masks are registered to the distorted frames, as a real RGB-D
+    dataset's are (each distorted pixel's ray's z-depth, nearest), so evaluation must map them
+    through the lens as it does a dataset's (``run_eval.sample_source_map``)."""
     import cv2
 
     w, h = size
@@ -520,9 +523,12 @@ def _distorted_clip(n_frames: int, trajectory: str, size: tuple[int, int], movin
     mx = (und[..., 0] + pad).astype(np.float32)
     my = (und[..., 1] + pad).astype(np.float32)
     frames = np.stack([cv2.remap(fr, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT) for fr in big.frames])
-    crop = (slice(None), slice(pad, pad + h), slice(pad, pad + w))
-    return SynthClip(frames=frames, depth=np.ascontiguousarray(big.depth[crop]), poses=big.poses, K=K,
-                     dynamic=None if big.dynamic is None else np.ascontiguousarray(big.dynamic[crop]),
+
+    def seen(maps: np.ndarray) -> np.ndarray:  # nearest: a depth or a mask is not blended across an edge
+        return np.stack([cv2.remap(m, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) for m in maps])
+
+    dynamic = None if big.dynamic is None else seen(big.dynamic.astype(np.uint8)).astype(big.dynamic.dtype)
+    return SynthClip(frames=frames, depth=seen(big.depth), poses=big.poses, K=K, dynamic=dynamic,
                      trajectory=trajectory, seed=int(seed), distortion=distortion, distortion_model=model)
 
 

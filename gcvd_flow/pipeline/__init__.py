@@ -92,6 +92,7 @@ from gcvd_flow.pipeline.frontend import (
     run_ingest as run_ingest,
     run_user_masks as run_user_masks,
     undistort_source_frame as undistort_source_frame,
+    source_positions as source_positions,
 )
 from gcvd_flow.pipeline.graph import (
     ASSOCIATION as ASSOCIATION,

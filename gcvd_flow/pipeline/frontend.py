@@ -102,6 +102,20 @@ def undistort_source_frame(rgb: np.ndarray, cameras: dict[str, Any]) -> np.ndarr
                                       cameras.get("distortion_model", "OPENCV"))
 
 
+def source_positions(cameras: dict[str, Any], shape: tuple[int, int]) -> np.ndarray | None:
+    """For a run whose frames ingest undistorted (cameras.json: distortion, distortion_model,
+    distortion_intrinsics, source_width, source_height): where each pixel of its (h, w) =
+    ``shape`` maps was seen in the source frame, float64 (h, w, 2) source px (x, y); None when the
+    frames were not undistorted (the maps and the source frame share their geometry)."""
+    if not cameras.get("distortion"):
+        return None
+    fx, fy, cx, cy = (float(v) for v in cameras["distortion_intrinsics"])
+    cam = lens.Camera(fx, fy, cx, cy, cameras.get("distortion_model", "OPENCV"),
+                      tuple(float(v) for v in cameras["distortion"]))
+    return lens.source_positions(cam, (shape[1], shape[0]),
+                                 (int(cameras["source_width"]), int(cameras["source_height"])))
+
+
 INGEST = declare(MapStage("ingest", run_ingest, params="ingest", kind="frames", items=_ingest_items,
                   summary=_ingest_summary, summary_kind="camera",
                   selection_params=("start", "end", "stride", "intrinsics"),

@@ -202,6 +202,17 @@ def distort_pixels(cam: Camera, uv: np.ndarray) -> np.ndarray:
     return np.stack([xd * cam.fx + cam.cx, yd * cam.fy + cam.cy], -1)
 
 
+def source_positions(cam: Camera, work_size: tuple[int, int], source_size: tuple[int, int]) -> np.ndarray:
+    """Where each pixel of the undistorted frame at working resolution ``work_size`` = (w, h) was
+    seen in the source frame of ``source_size`` = (W, H): float64 (h, w, 2) source pixels (x, y),
+    pixel-centre convention (ingest undistorts at the source size, then resizes). Data registered
+    to the source frame (a dataset's depth maps) is read at these positions to compare it with
+    the run's maps."""
+    (w, h), (sw, sh) = work_size, source_size
+    u, v = np.meshgrid((np.arange(w) + 0.5) * (sw / w) - 0.5, (np.arange(h) + 0.5) * (sh / h) - 0.5)
+    return distort_pixels(cam, np.stack([u.ravel(), v.ravel()], -1)).reshape(h, w, 2)
+
+
 def undistort_maps(cam: Camera, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV remap maps float32 (h, w) x, y: output pixel of the pinhole camera of the same
     intrinsics -> its source position (size = (w, h) of the source)."""
