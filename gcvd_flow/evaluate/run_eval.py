@@ -239,7 +239,8 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
                 from gcvd_flow.pipeline import source_positions
 
                 lens_positions = source_positions(cams, pred.shape)
-            g = sample_source_map(g, lens_positions, (int(cams["source_width"]), int(cams["source_height"])))
+            if lens_positions is not None:
+                g = sample_source_map(g, lens_positions, (int(cams["source_width"]), int(cams["source_height"])))
         elif g.shape != pred.shape:  # compare at the run's working resolution
             g = cv2.resize(g, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_NEAREST)
         per_frame.append(metrics.depth_metrics(pred, g, max_depth=max_depth))

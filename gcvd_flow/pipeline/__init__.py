@@ -91,8 +91,8 @@ from gcvd_flow.pipeline.frontend import (
     run_flow_far as run_flow_far,
     run_ingest as run_ingest,
     run_user_masks as run_user_masks,
-    undistort_source_frame as undistort_source_frame,
     source_positions as source_positions,
+    undistort_source_frame as undistort_source_frame,
 )
 from gcvd_flow.pipeline.graph import (
     ASSOCIATION as ASSOCIATION,
