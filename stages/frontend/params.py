@@ -10,7 +10,7 @@ from typing import Any, Literal, TypeVar
 from gcvd_flow.stages.frontend.lens import parse_camera
 from gcvd_flow.stages.params import USER_DIR, WEIGHTS_FILE, param
 
-DisPreset = Literal["ultrafast", "fast", "medium", "fine", "fine-fast"]
+DisPreset = Literal["ultrafast", "fast", "medium", "fine", "fine-fast", "fine-wide"]
 
 
 def _valid_intrinsics(v: str | None) -> str | None:
