@@ -51,7 +51,7 @@ FINEST_SCALE = {"fine": 0, "fine-fast": 0, "fine-wide": 0}
 GRADIENT_DESCENT_ITERATIONS = {"fine-fast": 12}
 # fine-wide: a pair whose forward and backward flows keep less than this share of consistent pixels
 # is tried again from a homography; the homography needs this many RANSAC (3 px) inliers
-WIDE_BELOW = 0.7
+WIDE_BELOW = 0.45
 WIDE_MIN_INLIERS = 20
 WIDE_FEATURES = 1000
 

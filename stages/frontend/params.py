@@ -69,8 +69,9 @@ class FlowSettings:
     """Flow of adjacent pairs (stages.frontend.flow.compute_pair_flow)."""
 
     backend: Literal["dis", "raft"] = "dis"
-    preset: DisPreset = param("fine", "DIS preset; 'fine' = medium at full resolution (slower than 'medium', more "
-                                      "accurate)")
+    preset: DisPreset = param("fine-wide", "DIS preset; 'fine' = medium at full resolution (slower than 'medium', "
+                                           "more accurate); 'fine-wide' = fine, and a pair DIS mostly loses (frames "
+                                           "far apart) again from the homography of its SIFT matches")
     fb_thresh: float = param(1.0, "forward-backward consistency, px", gt=0)
     weights: str | None = param(None, "RAFT weights file", json_schema_extra=WEIGHTS_FILE)
 
