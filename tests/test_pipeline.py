@@ -65,7 +65,7 @@ def test_plan_reports_reasons(clip, tmp_path):
                              "--set", "ingest.end=16", "--set", "flow.preset=fast"))
     assert plan["ingest"]["action"] == "cached"
     assert plan["flow"]["action"] == "run"
-    assert any("flow.preset changed: 'fine' -> 'fast'" in r for r in plan["flow"]["reasons"])
+    assert any("flow.preset changed: 'fine-wide' -> 'fast'" in r for r in plan["flow"]["reasons"])
     assert plan["masks"]["action"] == "run"
 
 
