@@ -174,3 +174,22 @@ def test_fine_fast_preset_runs_fewer_iterations_at_the_accuracy_of_fine(orbit):
     again = compute_pair_flow(orbit.frames[2], orbit.frames[6], preset="fine-fast")
     first = compute_pair_flow(orbit.frames[2], orbit.frames[6], preset="fine-fast")
     assert again["fwd"].tobytes() == first["fwd"].tobytes()
+
+
+def test_chain_flows_channels_first_keeps_the_bits_of_the_pixel_layout():
+    """chain_flows composes in a channels-first layout: the result is f0(p) + f1(p + f0(p)) with
+    warp_sample's bilinear arithmetic, bit for bit, as composing in the (H, W, 2) layout does."""
+    from gcvd_flow.stages.frontend.flow import _inside, chain_flows, pixel_grid, warp_sample
+
+    rng = np.random.default_rng(5)
+    h, w = 24, 32
+    f0 = (rng.normal(size=(h, w, 2)) * 2).astype(np.float32)
+    f1 = (rng.normal(size=(h, w, 2)) * 2).astype(np.float32)
+    v0, v1 = rng.random((h, w)) > 0.1, rng.random((h, w)) > 0.1
+    pos = pixel_grid(h, w) + f0.astype(np.float64)
+    total = f0.astype(np.float64) + warp_sample(f1.astype(np.float64), pos)
+    valid = v0 & _inside(pos, h, w) & (warp_sample(v1.astype(np.float64), pos) > 0.999)
+    valid &= _inside(pixel_grid(h, w) + total, h, w)
+    got, ok = chain_flows([(f0, v0), (f1, v1)])
+    assert got.tobytes() == total.astype(np.float32).tobytes()
+    assert np.array_equal(ok, valid)
