@@ -131,19 +131,3 @@ def test_moving_pixels_are_neither_averaged_nor_carried():
                           ref_static=[np.ones((H, W), np.uint8)] * 2)
     assert _log_err(out, region) < 0.01
 
-
-def test_one_remap_of_the_stacked_fields_is_three_single_remaps():
-    """_carry samples a reference's depth, confidence and valid with one 3-channel remap
-    (remap_fields): the same bits as a remap of each, inside, across the border and outside."""
-    import cv2
-
-    rng = np.random.default_rng(3)
-    h, w = 48, 64
-    fields = [rng.random((h, w), dtype=np.float32) * 4, rng.random((h, w), dtype=np.float32),
-              (rng.random((h, w)) > 0.3).astype(np.float32)]
-    qu = (rng.random((16, w)) * (w + 6) - 3).astype(np.float32)
-    qv = (rng.random((16, w)) * (h + 6) - 3).astype(np.float32)
-    got = consensus.remap_fields(np.ascontiguousarray(np.stack(fields, -1)), qu, qv)
-    for f, g in zip(fields, got):
-        want = cv2.remap(f, qu, qv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        assert want.tobytes() == np.ascontiguousarray(g).tobytes()

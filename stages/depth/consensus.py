@@ -100,32 +100,23 @@ def carry_depth(cam: _Camera, rows: slice, depth_i: np.ndarray, depth_j: np.ndar
 
 class _CarryRef:
     """A reference j of frame i as ``_carry`` reads it: the float32 motions i -> j and j -> i
-    (``_Camera.motion``, once per pair rather than once per block of rows), and j's depth,
-    confidence and valid (float32, 1 = valid and static) as the channels of one (H, W, 3) image,
-    so that one remap samples all three (``remap_fields``)."""
+    (``_Camera.motion``, once per pair rather than once per block of rows), j's depth,
+    confidence and valid (float32, 1 = valid and static)."""
 
-    __slots__ = ("to_j", "to_i", "fields")
+    __slots__ = ("to_j", "to_i", "depth", "conf", "valid")
 
     def __init__(self, cam: _Camera, T_j_i: np.ndarray, depth_j: np.ndarray, conf_j: np.ndarray, valid_j: np.ndarray):
         self.to_j = cam.motion(T_j_i).astype(np.float32)
         self.to_i = cam.motion(np.linalg.inv(T_j_i)).astype(np.float32)
-        self.fields = np.ascontiguousarray(np.stack([depth_j, conf_j, valid_j], -1), dtype=np.float32)
-
-
-def remap_fields(fields: np.ndarray, qu: np.ndarray, qv: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The channels of ``fields`` float32 (H, W, C) sampled bilinearly at (qu, qv) (zeros outside):
-    one cv2.remap of the C-channel image, the same bits as one single-channel remap per channel
-    (OpenCV's bilinear weights depend on the position only; tests/test_depth_consensus.py) at
-    about half the cost for three channels."""
-    s = cv2.remap(fields, qu, qv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    return tuple(s[..., k] for k in range(fields.shape[-1]))
+        self.depth, self.conf, self.valid = depth_j, conf_j, valid_j
 
 
 def _carry(cam: _Camera, rows: slice, depth_i: np.ndarray, view: _CarryRef) -> tuple[np.ndarray, ...]:
     """``carry_depth`` of one reference (the same arithmetic)."""
     u, v = cam.u[rows], cam.v[rows]
     qu, qv, _ = cam.moved_by(view.to_j, u, v, depth_i)
-    dj, cj, vj = remap_fields(view.fields, qu, qv)
+    dj, cj, vj = (cv2.remap(a, qu, qv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                  for a in (view.depth, view.conf, view.valid))
     # j's point at the landing position, moved back into frame i
     pu, pv, pz = cam.moved_by(view.to_i, qu, qv, dj)
     ok = (vj > 0.999) & (pz > 1e-6)
