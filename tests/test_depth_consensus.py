@@ -130,4 +130,3 @@ def test_moving_pixels_are_neither_averaged_nor_carried():
     out = consensus_depth(depth, conf, _pose(0.0), refs, K, static=np.ones((H, W), np.uint8),
                           ref_static=[np.ones((H, W), np.uint8)] * 2)
     assert _log_err(out, region) < 0.01
-
