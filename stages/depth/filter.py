@@ -112,6 +112,24 @@ def _walk(fwd_flows: np.ndarray | Sequence[np.ndarray], bwd_flows: np.ndarray | 
         yield k + step, x, y, inside
 
 
+def _window(depths: np.ndarray | Sequence[np.ndarray], fwd_flows: np.ndarray | Sequence[np.ndarray],
+            bwd_flows: np.ndarray | Sequence[np.ndarray]) -> tuple[list[np.ndarray], ...]:
+    """filter_depth's window as per-frame float32 arrays, its shapes checked (ValueError). Per frame,
+    not stacked: the filter reads one frame's depth or flow at a time, and a stacked copy of the
+    window (~8 MB of fresh pages per frame at 256x192) cost a sixth of the stage."""
+    if len(depths) == 0:
+        raise ValueError("filter_depth needs at least one frame")
+    ds = [np.asarray(d, dtype=np.float32) for d in depths]
+    fw = [np.asarray(f, dtype=np.float32) for f in fwd_flows]
+    bw = [np.asarray(f, dtype=np.float32) for f in bwd_flows]
+    m, (h, w) = len(ds), ds[0].shape
+    if (len(fw) != m - 1 or len(bw) != m - 1
+            or any(f.shape != (h, w, 2) for f in (*fw, *bw)) or any(d.shape != (h, w) for d in ds)):
+        shapes = [d.shape for d in ds], [f.shape for f in fw], [f.shape for f in bw]
+        raise ValueError(f"depths must be {m} x ({h}, {w}) and flows {m - 1} x ({h}, {w}, 2); got {shapes}")
+    return ds, fw, bw
+
+
 def filter_depth(
     depths: np.ndarray | Sequence[np.ndarray],
     fwd_flows: np.ndarray | Sequence[np.ndarray],
@@ -133,18 +151,8 @@ def filter_depth(
     Returns:
         float32 (H, W) filtered depth; pixels where the centre depth is invalid stay 0.
     """
-    # per frame, not stacked: the filter reads one frame's depth or flow at a time, and a stacked
-    # copy of the window (~8 MB of fresh pages per frame at 256x192) cost a sixth of the stage
-    if len(depths) == 0:
-        raise ValueError("filter_depth needs at least one frame")
-    depths = [np.asarray(d, dtype=np.float32) for d in depths]
-    fwd_flows = [np.asarray(f, dtype=np.float32) for f in fwd_flows]
-    bwd_flows = [np.asarray(f, dtype=np.float32) for f in bwd_flows]
+    depths, fwd_flows, bwd_flows = _window(depths, fwd_flows, bwd_flows)
     m, (h, w) = len(depths), depths[0].shape
-    if (len(fwd_flows) != m - 1 or len(bwd_flows) != m - 1
-            or any(f.shape != (h, w, 2) for f in (*fwd_flows, *bwd_flows)) or any(d.shape != (h, w) for d in depths)):
-        shapes = [d.shape for d in depths], [f.shape for f in fwd_flows], [f.shape for f in bwd_flows]
-        raise ValueError(f"depths must be {m} x ({h}, {w}) and flows {m - 1} x ({h}, {w}, 2); got {shapes}")
     if not 0 <= center < m:
         raise ValueError(f"center {center} outside window of {m} frames")
 
