@@ -177,3 +177,21 @@ def test_tracks_leaving_through_nan_or_inf_are_outside() -> None:
     x, y = steps[-1][1], steps[-1][2]
     assert not (last & ~(np.isfinite(x) & np.isfinite(y))).any()  # what the isfinite test said
     assert steps[0][3].all()  # not changed by the later steps
+
+
+def test_window_given_frame_by_frame_is_the_stacked_window():
+    """The stage hands filter_depth its window as per-frame arrays (no stacked copy): the same bits
+    as the stacked (M, H, W) / (M-1, H, W, 2) arrays, and a bad frame shape is refused."""
+    import pytest
+
+    rng = np.random.default_rng(2)
+    m, h, w = 5, 20, 24
+    depths = (rng.random((m, h, w)) + 0.5).astype(np.float32) * (rng.random((m, h, w)) > 0.05)
+    fwd = (rng.normal(size=(m - 1, h, w, 2)) * 0.7).astype(np.float32)
+    bwd = (rng.normal(size=(m - 1, h, w, 2)) * 0.7).astype(np.float32)
+    for c in (0, 2, 4):
+        want = filter_depth(depths, fwd, bwd, center=c)
+        got = filter_depth(list(depths), list(fwd), list(bwd), center=c)
+        assert want.tobytes() == got.tobytes()
+    with pytest.raises(ValueError):
+        filter_depth(list(depths), list(fwd[:, :-1]), list(bwd), center=2)

@@ -215,3 +215,22 @@ def test_fine_wide_recovers_a_motion_beyond_dis_reach_and_keeps_fine_where_it_ho
     a2, b2, _ = _homography_pair(2.0)
     small_fine, small_wide = compute_pair_flow(a2, b2, preset="fine"), compute_pair_flow(a2, b2, preset="fine-wide")
     assert all(np.array_equal(small_fine[k], small_wide[k]) for k in small_fine)
+
+
+def test_chain_flows_channels_first_keeps_the_bits_of_the_pixel_layout():
+    """chain_flows composes in a channels-first layout: the result is f0(p) + f1(p + f0(p)) with
+    warp_sample's bilinear arithmetic, bit for bit, as composing in the (H, W, 2) layout does."""
+    from gcvd_flow.stages.frontend.flow import _inside, chain_flows, pixel_grid, warp_sample
+
+    rng = np.random.default_rng(5)
+    h, w = 24, 32
+    f0 = (rng.normal(size=(h, w, 2)) * 2).astype(np.float32)
+    f1 = (rng.normal(size=(h, w, 2)) * 2).astype(np.float32)
+    v0, v1 = rng.random((h, w)) > 0.1, rng.random((h, w)) > 0.1
+    pos = pixel_grid(h, w) + f0.astype(np.float64)
+    total = f0.astype(np.float64) + warp_sample(f1.astype(np.float64), pos)
+    valid = v0 & _inside(pos, h, w) & (warp_sample(v1.astype(np.float64), pos) > 0.999)
+    valid &= _inside(pixel_grid(h, w) + total, h, w)
+    got, ok = chain_flows([(f0, v0), (f1, v1)])
+    assert got.tobytes() == total.astype(np.float32).tobytes()
+    assert np.array_equal(ok, valid)

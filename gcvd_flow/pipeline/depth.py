@@ -187,13 +187,13 @@ def _filter_items(view, p: depth_params.DepthFilterSettings):
 def run_depth_filter(inputs: dict[str, Any], p: depth_params.DepthFilterSettings, ctx: ItemContext) -> dict[str, Any]:
     """Frame i's depth filtered with its +-radius neighbours -> {depth float32 (H, W),
     confidence float32 (H, W): depth_fusion's, zero where the filter invalidated the depth}."""
-    depths = np.stack([np.asarray(d["depth"]) for d in inputs["depths"]])
+    depths: Any = [np.asarray(d["depth"]) for d in inputs["depths"]]  # filter_depth takes them unstacked
     center = int(inputs["center"])
     conf = np.asarray(inputs["depths"][center].get("confidence", np.zeros_like(depths[center])), np.float32)
     if not p.enabled or len(depths) == 1:
         return {"depth": depths[center].astype(np.float32), "confidence": conf}
-    fwd = np.stack([fl["fwd"] for fl in inputs["flows"]])
-    bwd = np.stack([fl["bwd"] for fl in inputs["flows"]])
+    fwd: Any = [np.asarray(fl["fwd"]) for fl in inputs["flows"]]
+    bwd: Any = [np.asarray(fl["bwd"]) for fl in inputs["flows"]]
     if "user_masks" in inputs:  # --masks: nothing at or next to a user-masked pixel is read: the
         # neighbours' depths there are invalid (0), and a track whose flow sample meets one (on
         # its way through any frame, there or back) becomes NaN, which the filter drops

@@ -130,4 +130,5 @@ def _user_mask_refs(user: bool, frames: list[int]) -> dict[str, Any]:
 
 MASKS = declare(MapStage("masks", run_masks, deps=(INGEST, CALIBRATE, FLOW), params="masks", kind="mask",
                  items=_mask_items, summary=_mask_summary, resources={"model": _open_maskrcnn},
+                 share_inputs=True,  # frame i reads the flows i .. i + span - 1: each read once per worker
                  description="1 = static"))

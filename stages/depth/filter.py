@@ -22,7 +22,7 @@ invalid); flows (M-1, H, W, 2) float32 px.
 from __future__ import annotations
 
 import logging
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -52,8 +52,8 @@ def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def chain_flow(
-    fwd_flows: np.ndarray,
-    bwd_flows: np.ndarray,
+    fwd_flows: np.ndarray | Sequence[np.ndarray],
+    bwd_flows: np.ndarray | Sequence[np.ndarray],
     start: int,
     end: int,
     x0: np.ndarray,
@@ -78,17 +78,27 @@ def chain_flow(
     for _, x, y, inside in _walk(fwd_flows, bwd_flows, start, end, x0, y0):  # noqa: B007 - the walk's last position is the result
         pass
     if inside is None:  # start == end
-        h, w = fwd_flows.shape[1:3]
+        h, w = _frame_size(fwd_flows, x0)
         x, y = x0.astype(np.float32).copy(), y0.astype(np.float32).copy()
         inside = inside_image(x, y, w, h, 0.0)
     return x, y, inside
 
 
-def _walk(fwd_flows: np.ndarray, bwd_flows: np.ndarray, start: int, end: int, x0: np.ndarray,
+def _frame_size(flows: Sequence[np.ndarray] | np.ndarray, x0: np.ndarray) -> tuple[int, int]:
+    """(H, W) of the frames of a window's flows ((M-1, H, W, 2) or M-1 (H, W, 2) arrays); a window
+    of one frame has none: then the positions' grid x0 (H, W) says it."""
+    if isinstance(flows, np.ndarray):
+        return int(flows.shape[1]), int(flows.shape[2])
+    h, w = np.shape(flows[0])[:2] if len(flows) else np.shape(x0)[:2]
+    return int(h), int(w)
+
+
+def _walk(fwd_flows: np.ndarray | Sequence[np.ndarray], bwd_flows: np.ndarray | Sequence[np.ndarray], start: int, end: int, x0: np.ndarray,
           y0: np.ndarray) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
     """``chain_flow`` one frame at a time: yields (frame, x, y, inside) for every frame after
-    ``start`` up to ``end``, so that the tracks to all neighbours on one side cost one pass."""
-    h, w = fwd_flows.shape[1:3]
+    ``start`` up to ``end``, so that the tracks to all neighbours on one side cost one pass.
+    fwd_flows, bwd_flows: (M-1, H, W, 2) arrays or sequences of M-1 (H, W, 2) arrays."""
+    h, w = _frame_size(fwd_flows, x0)
     x = x0.astype(np.float32).copy()
     y = y0.astype(np.float32).copy()
     inside = inside_image(x, y, w, h, 0.0)
@@ -102,10 +112,28 @@ def _walk(fwd_flows: np.ndarray, bwd_flows: np.ndarray, start: int, end: int, x0
         yield k + step, x, y, inside
 
 
+def _window(depths: np.ndarray | Sequence[np.ndarray], fwd_flows: np.ndarray | Sequence[np.ndarray],
+            bwd_flows: np.ndarray | Sequence[np.ndarray]) -> tuple[list[np.ndarray], ...]:
+    """filter_depth's window as per-frame float32 arrays, its shapes checked (ValueError). Per frame,
+    not stacked: the filter reads one frame's depth or flow at a time, and a stacked copy of the
+    window (~8 MB of fresh pages per frame at 256x192) cost a sixth of the stage."""
+    if len(depths) == 0:
+        raise ValueError("filter_depth needs at least one frame")
+    ds = [np.asarray(d, dtype=np.float32) for d in depths]
+    fw = [np.asarray(f, dtype=np.float32) for f in fwd_flows]
+    bw = [np.asarray(f, dtype=np.float32) for f in bwd_flows]
+    m, (h, w) = len(ds), ds[0].shape
+    if (len(fw) != m - 1 or len(bw) != m - 1
+            or any(f.shape != (h, w, 2) for f in (*fw, *bw)) or any(d.shape != (h, w) for d in ds)):
+        shapes = [d.shape for d in ds], [f.shape for f in fw], [f.shape for f in bw]
+        raise ValueError(f"depths must be {m} x ({h}, {w}) and flows {m - 1} x ({h}, {w}, 2); got {shapes}")
+    return ds, fw, bw
+
+
 def filter_depth(
-    depths: np.ndarray,
-    fwd_flows: np.ndarray,
-    bwd_flows: np.ndarray,
+    depths: np.ndarray | Sequence[np.ndarray],
+    fwd_flows: np.ndarray | Sequence[np.ndarray],
+    bwd_flows: np.ndarray | Sequence[np.ndarray],
     center: int,
     radius: int = _DEFAULTS.radius,
     border: int = _DEFAULTS.border,
@@ -113,9 +141,9 @@ def filter_depth(
     """Filter the depth of frame ``center`` with its ±radius neighbours.
 
     Args:
-        depths: float (M, H, W) depth of the window's frames (0 = invalid).
-        fwd_flows: float (M-1, H, W, 2), flow of pair (k, k+1) on frame k's grid, px.
-        bwd_flows: float (M-1, H, W, 2), flow of pair (k+1 -> k) on frame k+1's grid, px.
+        depths: float (M, H, W) depth of the window's frames (0 = invalid), or M (H, W) arrays.
+        fwd_flows: float (M-1, H, W, 2), flow of pair (k, k+1) on frame k's grid, px (or M-1 arrays).
+        bwd_flows: float (M-1, H, W, 2), flow of pair (k+1 -> k) on frame k+1's grid, px (or M-1 arrays).
         center: window-local index of the frame to filter.
         radius: neighbours c-radius .. c+radius (clipped to the window) are used.
         border: samples tracked to within this many px of the image edge are ignored.
@@ -123,14 +151,8 @@ def filter_depth(
     Returns:
         float32 (H, W) filtered depth; pixels where the centre depth is invalid stay 0.
     """
-    depths = np.asarray(depths, dtype=np.float32)
-    fwd_flows = np.asarray(fwd_flows, dtype=np.float32)
-    bwd_flows = np.asarray(bwd_flows, dtype=np.float32)
-    m, h, w = depths.shape
-    if fwd_flows.shape != (m - 1, h, w, 2) or bwd_flows.shape != (m - 1, h, w, 2):
-        raise ValueError(
-            f"flows must be ({m - 1}, {h}, {w}, 2); got {fwd_flows.shape}, {bwd_flows.shape}"
-        )
+    depths, fwd_flows, bwd_flows = _window(depths, fwd_flows, bwd_flows)
+    m, (h, w) = len(depths), depths[0].shape
     if not 0 <= center < m:
         raise ValueError(f"center {center} outside window of {m} frames")
 

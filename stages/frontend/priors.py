@@ -15,6 +15,7 @@ constant 1 with confidence 0 (documented, not an error).
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Sequence
 
@@ -92,14 +93,25 @@ def _constant(h: int, w: int) -> dict[str, np.ndarray]:
     return {"inv_depth": np.ones((h, w), np.float32), "confidence": np.zeros((h, w), np.float32)}
 
 
+@functools.lru_cache(maxsize=8)
+def _sample_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v) int64 (H, W) pixel coordinates and the bool (H, W) grid of every GRID_STEP-th row and
+    column, once per image size (read-only: every frame's fit samples the same grid)."""
+    vv, uu = np.mgrid[0:h, 0:w]
+    on_grid = (vv % GRID_STEP == 0) & (uu % GRID_STEP == 0)
+    for a in (uu, vv, on_grid):
+        a.setflags(write=False)
+    return uu, vv, on_grid
+
+
 def _triangulate_reference(flow: np.ndarray, valid: np.ndarray, K: np.ndarray,
                            seed: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Sparse inverse depth (H, W) (unit-baseline scale, 0 where unknown) and its weight (H, W)
     in [0, 1] from one flow (H, W, 2) px to a reference and its usable mask (H, W); None when
     the pair cannot be triangulated (rotation only, too little parallax, RANSAC failure)."""
     h, w = valid.shape
-    vv, uu = np.mgrid[0:h, 0:w]
-    sel = valid & (vv % GRID_STEP == 0) & (uu % GRID_STEP == 0)
+    uu, vv, on_grid = _sample_grid(h, w)
+    sel = valid & on_grid
     if sel.sum() < 30:
         return None
     pa = np.stack([uu[sel], vv[sel]], -1).astype(np.float64)

@@ -19,12 +19,27 @@ import numpy as np
 def triangulate_depths(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R: np.ndarray,
                        t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Midpoint triangulation. pa, pb (N, 2) px; x_b = R x_a + t. Returns depths (za, zb) (N,)."""
-    Kinv = np.linalg.inv(K)
-    ra = np.concatenate([pa, np.ones((len(pa), 1))], 1) @ Kinv.T
-    rb_b = np.concatenate([pb, np.ones((len(pb), 1))], 1) @ Kinv.T
-    rb = rb_b @ R  # rays of b expressed in a: R^T r
+    return _triangulate_rays(_Rays(pa, pb, K), R, t)
+
+
+class _Rays:
+    """What ``triangulate_depths`` computes from the correspondences alone (the rays of a and of b
+    in their own cameras, |ra|^2): shared by the four (R, t) of an essential matrix."""
+
+    __slots__ = ("ra", "rb_b", "a11")
+
+    def __init__(self, pa: np.ndarray, pb: np.ndarray, K: np.ndarray):
+        Kinv = np.linalg.inv(K)
+        self.ra = np.concatenate([pa, np.ones((len(pa), 1))], 1) @ Kinv.T
+        self.rb_b = np.concatenate([pb, np.ones((len(pb), 1))], 1) @ Kinv.T
+        self.a11 = np.sum(self.ra * self.ra, 1)
+
+
+def _triangulate_rays(rays: _Rays, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``triangulate_depths`` of precomputed rays (the same arithmetic)."""
+    ra, a11 = rays.ra, rays.a11
+    rb = rays.rb_b @ R  # rays of b expressed in a: R^T r
     cb = -R.T @ np.asarray(t, np.float64).ravel()
-    a11 = np.sum(ra * ra, 1)
     a12 = -np.sum(ra * rb, 1)
     a22 = np.sum(rb * rb, 1)
     b1 = ra @ cb
@@ -69,10 +84,11 @@ def pose_from_essential(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.nda
     """(R, t unit, number of points in front) with x_b = R x_a + t; pa, pb (N, 2) inliers."""
     R1, R2, t = cv2.decomposeEssentialMat(E)
     best: tuple[np.ndarray, np.ndarray, int] = (np.eye(3), np.zeros(3), -1)
+    rays = _Rays(pa, pb, K)  # the same for the four decompositions
     for R in (R1, R2):
         for s in (1.0, -1.0):
             tt = s * t.ravel()
-            za, zb = triangulate_depths(pa, pb, K, R, tt)
+            za, zb = _triangulate_rays(rays, R, tt)
             n = int(np.sum((za > 0) & (zb > 0)))
             if n > best[2]:
                 best = (R, tt, n)
