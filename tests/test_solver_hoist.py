@@ -50,6 +50,8 @@ def test_sample_points_and_prior_std_equal_the_per_step_forms() -> None:
     assert inside.any() and not inside.all()
     net = DepthNet(seed=0)
     enc = net.encode(img, torch.rand(2, 9, 12, generator=g) + 0.5)
+    last = net.head[2]
+    assert isinstance(last, torch.nn.Conv2d)
     with torch.no_grad():
-        net.head[2].weight.normal_(generator=g)
+        last.weight.normal_(generator=g)
     assert torch.equal(net.decode(enc, ref_std=net.prior_std(enc)), net.decode(enc))
