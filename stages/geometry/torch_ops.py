@@ -31,6 +31,8 @@ __all__ = [
     "project",
     "rigid_flow",
     "sample_bilinear",
+    "sample_points",
+    "inside_image",
     "sample_frames",
     "footprint_kept",
     "gather_pixels",
@@ -187,13 +189,24 @@ def sample_bilinear(img: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, 
     (docs/design.md, "Lessons from the prototype").
     ``inside`` is True where the point lies within the pixel-centre box [0, W-1] x [0, H-1].
     """
-    b, c, h, w = img.shape
-    gx = uv[..., 0] * (2.0 / max(w - 1, 1)) - 1
-    gy = uv[..., 1] * (2.0 / max(h - 1, 1)) - 1
-    grid = torch.stack([gx, gy], -1)[:, None]
+    h, w = img.shape[-2:]
+    return sample_points(img, uv), inside_image(uv, h, w)
+
+
+def sample_points(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """``sample_bilinear``'s samples (B, M, C) without ``inside``. The grid is uv scaled by one
+    (2,) tensor: the same bits as scaling its two columns apart, without their selects' and the
+    stack's backward (each select's backward fills a zero tensor of uv's size)."""
+    h, w = img.shape[-2:]
+    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=uv.dtype)
+    grid = (uv * scale - 1)[:, None]
     out = F.grid_sample(img, grid.to(img.dtype), mode="bilinear", padding_mode="border", align_corners=True)
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    return out[:, :, 0].transpose(1, 2), inside
+    return out[:, :, 0].transpose(1, 2)
+
+
+def inside_image(uv: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Whether pixel points uv (..., 2) lie within the pixel-centre box [0, w-1] x [0, h-1] -> (...) bool."""
+    return (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
 
 
 def sample_frames(field: torch.Tensor, frame: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:

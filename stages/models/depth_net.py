@@ -173,13 +173,20 @@ class DepthNet(nn.Module):
         (their backward dominated a solver step)."""
         l0, l2 = cast(nn.Conv2d, self.head[0]), cast(nn.Conv2d, self.head[2])
         assert l0.bias is not None and l2.bias is not None  # both built with bias=True
-        hidden = torch.addmm(l0.bias, x, l0.weight.flatten(1).t()).relu()
+        hidden = torch.addmm(l0.bias, x, l0.weight.flatten(1).t()).relu_()  # in place: one (P, hidden) buffer less
         return torch.addmm(l2.bias, hidden, l2.weight.flatten(1).t())[:, 0]
 
+    @staticmethod
+    def prior_std(enc: Encoded) -> torch.Tensor:
+        """(B, 1, 1, 1) the per-frame std of the log prior that ``decode``'s LayerNorm re-multiplies
+        by. Constant while the head trains, so a solver computes it once per window."""
+        return enc.log_prior.flatten(1).std(1, correction=0).detach()[:, None, None, None]
+
     def decode(self, enc: Encoded, mesh: torch.Tensor | None = None, head_in: torch.Tensor | None = None,
-               ) -> torch.Tensor:
+               ref_std: torch.Tensor | None = None) -> torch.Tensor:
         """Trainable part: Encoded (B, ., h, w) + log-scale mesh (B, gh, gw) -> depth (B, h, w).
-        ``head_in``: ``head_input(enc)`` when the caller keeps it (it is rebuilt otherwise)."""
+        ``head_in``: ``head_input(enc)``, ``ref_std``: ``prior_std(enc)`` when the caller keeps
+        them (they are rebuilt otherwise)."""
         lp = enc.log_prior
         b, _, h, w = lp.shape
         x = self.head_input(enc) if head_in is None else head_in
@@ -187,7 +194,7 @@ class DepthNet(nn.Module):
         if self.layer_norm:
             # non-affine LayerNorm over each frame, times the frozen std of the prior: the network
             # can reshape a frame's depth but not rescale it (scale lives in the mesh)
-            ref_std = lp.flatten(1).std(1, correction=0).detach()[:, None, None, None]
+            ref_std = self.prior_std(enc) if ref_std is None else ref_std
             log_disp = F.layer_norm(log_disp, log_disp.shape[1:]) * ref_std
         depth = torch.exp(-log_disp[:, 0]).clamp(DEPTH_MIN, DEPTH_MAX)
         if self.use_mesh and mesh is not None:

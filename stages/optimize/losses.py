@@ -25,6 +25,7 @@ __all__ = [
     "weighted_mean",
     "photometric_loss",
     "photometric_terms",
+    "patch_stats",
     "flow_loss",
     "depth_consistency_loss",
     "prior_gradients",
@@ -71,10 +72,12 @@ class _PhotoTerms(torch.autograd.Function):
     photometric term was the largest part of a solver step)."""
 
     @staticmethod
-    def forward(ctx: Any, pa: torch.Tensor, pb: torch.Tensor, alpha: float) -> torch.Tensor:
+    def forward(ctx: Any, pa: torch.Tensor, pb: torch.Tensor, alpha: float,
+                a_stats: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
         C = pa.shape[1]
-        mu_a, mu_b = pa.mean(-1), pb.mean(-1)  # (P, C, M)
-        va = (pa * pa).mean(-1) - mu_a * mu_a
+        mu_a, sq_a = patch_stats(pa) if a_stats is None else a_stats
+        mu_b = pb.mean(-1)  # (P, C, M)
+        va = sq_a - mu_a * mu_a
         vb = (pb * pb).mean(-1) - mu_b * mu_b
         cov = (pa * pb).mean(-1) - mu_a * mu_b
         a1, a2 = 2 * mu_a * mu_b + _C1, 2 * cov + _C2
@@ -89,7 +92,7 @@ class _PhotoTerms(torch.autograd.Function):
         return out
 
     @staticmethod
-    def backward(ctx: Any, g: torch.Tensor) -> tuple[None, torch.Tensor, None]:
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[None, torch.Tensor, None, None]:
         pa, pb, mu_a, mu_b, a1, a2, b1, b2, den, ssim, raw, d4 = ctx.saved_tensors
         alpha, C = ctx.alpha, ctx.C
         g = g[:, None]  # (P, 1, M)
@@ -104,14 +107,25 @@ class _PhotoTerms(torch.autograd.Function):
         grad = torch.addcmul((k * s0)[..., None], pa, (k * a1)[..., None])
         grad = grad.addcmul_(pb, (-k * sb)[..., None])
         grad[..., 4] -= g * ((1 - alpha) / C) * torch.sign(d4)
-        return None, grad, None
+        return None, grad, None, None
 
 
-def photometric_terms(patch_a: torch.Tensor, patch_b: torch.Tensor, alpha: float = 0.85) -> torch.Tensor:
+def patch_stats(patch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and mean square over the last dim (the 3x3 pixels) of channel-major patches (..., 9)
+    -> two (...) tensors: the patch-a side of the SSIM, a function of the pixel alone (the same
+    bits whether computed for a step's points or for every pixel beforehand: one row's mean is
+    reduced the same way whatever the other rows)."""
+    return patch.mean(-1), (patch * patch).mean(-1)
+
+
+def photometric_terms(patch_a: torch.Tensor, patch_b: torch.Tensor, alpha: float = 0.85,
+                      a_stats: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Per point (1 - alpha) * L1 + alpha * DSSIM (``photometric_loss``'s terms before the weighted
     mean) of channel-major patches patch_a, patch_b (P, C, M, 9) (contiguous: the 3x3 pixels of
-    a point last; pixel 4 the centre) -> (P, M). Differentiable in patch_b only."""
-    return cast(torch.Tensor, _PhotoTerms.apply(patch_a.detach(), patch_b, alpha))
+    a point last; pixel 4 the centre) -> (P, M). Differentiable in patch_b only. ``a_stats``:
+    ``patch_stats(patch_a)`` (P, C, M) each when the caller has them (e.g. gathered from a
+    per-pixel table built once per window)."""
+    return cast(torch.Tensor, _PhotoTerms.apply(patch_a.detach(), patch_b, alpha, a_stats))
 
 
 def flow_loss(uv_b: torch.Tensor, target_uv_b: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

@@ -175,12 +175,14 @@ class _PairBlock:
     flows: torch.Tensor | None  # (Pf, h * w, 2) their flows, px
     fvalid: torch.Tensor | None  # (Pf, h * w) their consistency masks
     keep_pb: torch.Tensor | None = None  # (P, h, w) bool the user's kept cells of frame b (None: no --masks)
+    stats_pa: torch.Tensor | None = None  # (P, 2 * 3, h * w) frame a's 3x3 patch means, then mean squares
 
     @classmethod
     def gather(cls, win: "Window", pw: torch.Tensor, group: int, members: torch.Tensor, first: int, stride: int,
-               hw: int) -> "_PairBlock":
+               hw: int, a_stats: torch.Tensor | None = None) -> "_PairBlock":
         """The block of the group's pairs ``members`` (indices into ``win``'s pair list) at rows
-        first, first + stride, ...; pw (npair,) all pairs' weights."""
+        first, first + stride, ...; pw (npair,) all pairs' weights; a_stats (n, 2 * 3, h * w)
+        the frames' patch statistics (``_patch_stats_table``)."""
         rows = torch.arange(first, len(members), stride)
         sel = members[rows]
         sub = [win.pairs[i] for i in sel.tolist()]
@@ -201,7 +203,7 @@ class _PairBlock:
             amask = amask * (1 - F.max_pool2d(1 - win.keep[pa][:, None], 3, 1, 1)[:, 0]).reshape(len(sub), hw)
             keep_pb = win.keep[pb] > 0
         return cls(sel, group, rows, pa, pb, pw[sel], amask, win.imgs[pa], win.imgs[pb], (pa * hw)[:, None],
-                   flow_idx, flows, fvalid, keep_pb)
+                   flow_idx, flows, fvalid, keep_pb, None if a_stats is None else a_stats[pa])
 
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
@@ -226,6 +228,25 @@ def _sum_grads(grads: list[torch.Tensor | None], like: torch.Tensor) -> torch.Te
 
 _OFFS = torch.tensor([(dv, du) for dv in (-1, 0, 1) for du in (-1, 0, 1)])  # 3x3 patch (row, column) offsets
 _OFFS_UV = _OFFS.flip(-1).to(torch.float32)  # the same offsets as (u, v) pixel shifts
+
+
+def _patch_index(idx: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Flat pixel indices (..., 9) of the 3x3 patches (clamped to the image, ``_OFFS`` order)
+    around flat pixel indices idx (...)."""
+    u0, v0 = idx % w, idx // w
+    nu = (u0[..., None] + _OFFS[:, 1]).clamp(0, w - 1)
+    nv = (v0[..., None] + _OFFS[:, 0]).clamp(0, h - 1)
+    return nv * w + nu
+
+
+def _patch_stats_table(imgs: torch.Tensor) -> torch.Tensor:
+    """Every pixel's 3x3 patch mean and mean square per channel, imgs (n, C, h, w) -> (n, 2C, h * w):
+    ``L.patch_stats`` of the patches a step gathers at its points, computed once per window (a
+    frame-a patch is fixed pixels; its statistics are the same bits at every step)."""
+    n, c, h, w = imgs.shape
+    nidx = _patch_index(torch.arange(h * w), h, w).reshape(-1)
+    patches = imgs.reshape(n, c, h * w)[:, :, nidx].view(n, c, h * w, 9)
+    return torch.cat(L.patch_stats(patches), 1)
 
 
 class Solver:
@@ -276,6 +297,7 @@ class Solver:
         h, w = win.imgs.shape[-2:]
         self.h, self.w_ = h, w
         self.rays = G.pixel_rays(h, w, win.K).to(torch.float32)  # (h*w, 3)
+        self.K32 = win.K.to(torch.float32)  # the intrinsics the warp projects with (constant over the window)
         self._prep_pairs(pair_blocks)
 
     def _prep_pairs(self, n_blocks: int) -> None:
@@ -287,13 +309,15 @@ class Solver:
         pw = pw / pw.sum().clamp(min=1e-9)
         hw = self.h * self.w_
         self.head_in = self.net.head_input(win.enc)  # (n * h * w, C + 1)
+        self.ref_std = self.net.prior_std(win.enc)  # (n, 1, 1, 1)
+        a_stats = _patch_stats_table(win.imgs) if self.losses.w_photo > 0 else None
         self.prior_grads = L.prior_gradients(torch.exp(win.enc.log_prior[:, 0]), 3, win.static, keep=win.keep)
         m = _points_per_pair([q.weight for q in pr], self.kf.points, self.points_by_weight)
         self.groups = [(mg, torch.tensor([i for i, mi in enumerate(m) if mi == mg], dtype=torch.long))
                        for mg in sorted(set(m), reverse=True)]  # [(points, (P_g,) pair indices)]
         self.points_per_step = int(sum(m))
         n_blocks = max(1, min(n_blocks, len(pr)))
-        blocks = [[_PairBlock.gather(win, pw, g, members, k, n_blocks, hw)
+        blocks = [[_PairBlock.gather(win, pw, g, members, k, n_blocks, hw, a_stats)
                    for g, (_, members) in enumerate(self.groups) if k < len(members)] for k in range(n_blocks)]
         self.blocks = [b for b in blocks if b]
 
@@ -344,7 +368,7 @@ class Solver:
 
     def _depth(self) -> torch.Tensor:
         """(n, h, w) depth of the window's frames at loss resolution."""
-        return self.net.decode(self.w.enc, self.meshes() if self.depth.mesh else None, self.head_in)
+        return self.net.decode(self.w.enc, self.meshes() if self.depth.mesh else None, self.head_in, self.ref_std)
 
     def loss(self, gen: torch.Generator) -> torch.Tensor:
         """The window's total loss (scalar) on freshly sampled points (consumes ``gen``)."""
@@ -365,22 +389,20 @@ class Solver:
         npair, M = idx.shape
         T_b_a = G.relative_pose(T_w_c[blk.pa], T_w_c[blk.pb]).to(torch.float32)  # (npair, 4, 4)
         u0, v0 = idx % w, idx // w
-        nu = (u0[..., None] + _OFFS[:, 1]).clamp(0, w - 1)
-        nv = (v0[..., None] + _OFFS[:, 0]).clamp(0, self.h - 1)
-        nidx = (nv * w + nu).reshape(npair, M * 9)
+        nidx = _patch_index(idx, self.h, w).reshape(npair, M * 9)
         uv, uvc, zc = self._warp(blk, depth, T_b_a, idx, nidx)
-        img_b, inside = G.sample_bilinear(blk.img_pb, uv)
-        img_a = G.gather_pixels(blk.img_pa, nidx)
+        if self.kf.photo_warp == "centre":  # the centre sample of a patch is uvc itself (offset 0)
+            img_b, ins_c = G.sample_points(blk.img_pb, uv), G.inside_image(uvc, self.h, w)
+        else:
+            img_b, inside = G.sample_bilinear(blk.img_pb, uv)
+            ins_c = inside.reshape(npair, M, 9)[:, :, 4]
         d_b = G.sample_frames(depth, blk.pb, uvc)  # (npair, M)
-        ins_c = inside.reshape(npair, M, 9)[:, :, 4]
         wgt = blk.amask.gather(1, idx) * ins_c.float() * (zc > 1e-3).float()
         if blk.keep_pb is not None:  # every sample of the point in b (its patch, its depth) mixes kept cells only
             wgt = wgt * G.footprint_kept(blk.keep_pb, uv.detach()).reshape(npair, M, 9).all(-1).float()
         pair_loss = torch.zeros(npair)
-        if lw.w_photo > 0:  # channel-major patches (npair, 3, M, 9): the views' own memory order
-            pa_ = img_a.transpose(1, 2).view(npair, -1, M, 9)
-            pb_ = img_b.transpose(1, 2).view(npair, -1, M, 9)
-            pair_loss = pair_loss + lw.w_photo * L.weighted_mean(L.photometric_terms(pa_, pb_), wgt)
+        if lw.w_photo > 0:
+            pair_loss = pair_loss + lw.w_photo * L.weighted_mean(self._photo_terms(blk, idx, nidx, img_b), wgt)
         if lw.w_depth > 0:
             pair_loss = pair_loss + lw.w_depth * L.depth_consistency_loss(zc, d_b, wgt)
         if lw.w_flow > 0 and len(blk.flow_idx):
@@ -396,6 +418,20 @@ class Solver:
             pair_loss = pair_loss.index_add(0, fi, lw.w_flow * fl)
         return (blk.pw * pair_loss).sum()
 
+    @staticmethod
+    def _photo_terms(blk: "_PairBlock", idx: torch.Tensor, nidx: torch.Tensor, img_b: torch.Tensor) -> torch.Tensor:
+        """Photometric terms (npair, M) of the points idx (npair, M), patches nidx (npair, M * 9),
+        img_b (npair, M * 9, 3) their warped patches in b: channel-major patches (npair, 3, M, 9)
+        (the views' own memory order), frame a's statistics gathered from the block's table."""
+        npair, M = idx.shape
+        pa_ = G.gather_pixels(blk.img_pa, nidx).transpose(1, 2).view(npair, -1, M, 9)
+        pb_ = img_b.transpose(1, 2).view(npair, -1, M, 9)
+        a_stats = None
+        if blk.stats_pa is not None:
+            st = blk.stats_pa.gather(2, idx[:, None, :].expand(-1, blk.stats_pa.shape[1], -1))
+            a_stats = (st[:, : pa_.shape[1]], st[:, pa_.shape[1] :])
+        return L.photometric_terms(pa_, pb_, a_stats=a_stats)
+
     def _warp(self, blk: "_PairBlock", depth: torch.Tensor, T_b_a: torch.Tensor, idx: torch.Tensor,
               nidx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Where the sampled points of frame a land in frame b: depth (n, h, w), T_b_a (npair, 4, 4),
@@ -409,7 +445,7 @@ class Solver:
         are far below a pixel): a ninth of the lifting, transform and projection, forward and
         backward."""
         npair, M = idx.shape
-        K = self.w.K.to(torch.float32)
+        K = self.K32
         if self.kf.photo_warp == "centre":
             d_a = depth.reshape(-1)[blk.pa_offset + idx]  # (npair, M)
             uvc, zc = G.project(G.transform(T_b_a, self.rays[idx] * d_a[..., None]), K)
