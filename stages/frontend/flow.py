@@ -16,7 +16,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from gcvd_flow.stages.geometry.image import inside_image, to_gray
+from gcvd_flow.stages.geometry.image import apply_homography, inside_image, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -95,13 +95,10 @@ def homography_flows(img_a: np.ndarray, img_b: np.ndarray) -> tuple[np.ndarray, 
     if H is None or inl is None or int(inl.sum()) < WIDE_MIN_INLIERS or abs(np.linalg.det(H)) < 1e-8:
         return None
     h, w = img_a.shape[:2]
-    grid = pixel_grid(h, w).astype(np.float64)
+    grid = pixel_grid(h, w)
 
     def flow_of(M: np.ndarray) -> np.ndarray:
-        q = grid.reshape(-1, 2) @ M[:2, :2].T + M[:2, 2]
-        z = grid.reshape(-1, 2) @ M[2, :2] + M[2, 2]
-        z = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        return (q / z[:, None]).reshape(h, w, 2) - grid
+        return np.stack(apply_homography(M, grid[..., 0], grid[..., 1]), -1) - grid
 
     fwd, bwd = flow_of(H), flow_of(np.linalg.inv(H))
     if not (np.all(np.isfinite(fwd)) and np.all(np.isfinite(bwd))):

@@ -27,3 +27,13 @@ def inside_image(u: np.ndarray, v: np.ndarray, w: int, h: int, border: float = 0
     out &= v >= border
     out &= v <= h - 1 - border
     return out
+
+
+def apply_homography(h: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (x, y) (any shape each) mapped by the 3x3 homography h: (x', y') float64 (a
+    vanishing denominator is held at 1e-12)."""
+    den = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    den = np.where(np.abs(den) < 1e-12, 1e-12, den)
+    xo = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / den
+    yo = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / den
+    return xo, yo

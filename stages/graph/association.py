@@ -41,6 +41,7 @@ from scipy.ndimage import maximum_filter
 
 from gcvd_flow.stages.frontend.flow import dis_flow, fb_consistency
 from gcvd_flow.stages.frontend.params import settings_with
+from gcvd_flow.stages.geometry.image import apply_homography
 from gcvd_flow.stages.geometry.two_view import pose_from_essential
 from gcvd_flow.stages.graph import retrieval as retrieval_mod
 from gcvd_flow.stages.graph.params import AssociationSettings
@@ -279,14 +280,6 @@ def flow_epipolar_agreement(
     return float(np.mean(num / np.maximum(den, 1e-12) <= max_px ** 2))
 
 
-def _apply_h(h: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    den = h[2, 0] * x + h[2, 1] * y + h[2, 2]
-    den = np.where(np.abs(den) < 1e-12, 1e-12, den)
-    xo = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / den
-    yo = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / den
-    return xo, yo
-
-
 def _flow_with_prewarp(
     img_a: np.ndarray, img_b: np.ndarray, h_ab: np.ndarray, fb_thresh: float
 ) -> dict[str, np.ndarray]:
@@ -303,11 +296,11 @@ def _flow_with_prewarp(
     h_inv = np.linalg.inv(h_ab)
 
     # Forward: p in a -> p + fwd_w(p) in b_w -> h_ab^-1 (.) in b.
-    tx, ty = _apply_h(h_inv, xx + fwd_w[..., 0], yy + fwd_w[..., 1])
+    tx, ty = apply_homography(h_inv, xx + fwd_w[..., 0], yy + fwd_w[..., 1])
     fwd = np.stack([tx - xx, ty - yy], -1)
 
     # Backward: q in b sits at h_ab q in b_w; sample bwd_w there (bilinear) -> point in a.
-    qx, qy = _apply_h(h_ab, xx, yy)
+    qx, qy = apply_homography(h_ab, xx, yy)
     samp = cv2.remap(
         bwd_w.astype(np.float32), qx.astype(np.float32), qy.astype(np.float32),
         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
