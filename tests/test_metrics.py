@@ -243,6 +243,27 @@ def test_run_eval_confident_pixels(tmp_path):
     assert res["abs_rel"] > 0.2 and res["abs_rel_confident"] < 1e-3 and res["delta1_confident"] == 1.0
     assert res["confident_fraction"] == pytest.approx(0.75, abs=0.02) and res["min_confidence"] == 0.5
     assert "AbsRel conf" in format_metrics(res)
+    top = res["abs_rel_most_confident"]  # the most confident half never holds the wrong quarter
+    assert top["top25"] < 1e-3 and top["top50"] < 1e-3 and top["top75"] < 1e-3
+
+
+def test_sparsification_ranks_by_confidence():
+    """sparsification_abs_rel keeps the most confident share of the pixels: a confidence that
+    ranks the error scores ~0 at the top, one that ranks it backwards scores the wrong pixels,
+    and a constant one keeps pixel order (deterministic)."""
+    from gcvd_flow.evaluate.metrics import depth_metrics, sparsification_abs_rel
+
+    gt = np.full((20, 40), 2.0)
+    pred = gt.copy()
+    pred[:, 30:] *= np.where(np.arange(20)[:, None] % 2 == 0, 1.5, 0.5)  # the last quarter of the columns wrong
+    good = np.where(np.arange(40)[None, :] >= 30, 0.1, 0.9) * np.ones((20, 1))
+    ranked = sparsification_abs_rel(pred, gt, good)
+    assert ranked["top25"] < 1e-9 and ranked["top75"] < 1e-9
+    backwards = sparsification_abs_rel(pred, gt, 1.0 - good)
+    assert backwards["top25"] > 0.3 and backwards["top75"] > ranked["top75"] + 0.1
+    flat = sparsification_abs_rel(pred, gt, np.ones_like(gt))
+    assert flat["top75"] == pytest.approx(depth_metrics(np.where(np.arange(800).reshape(20, 40) < 600, pred, 0), gt)
+                                          ["abs_rel"])
 
 
 def test_run_eval_bad_ground_truth_names_the_file(tmp_path):

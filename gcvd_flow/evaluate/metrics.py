@@ -153,6 +153,31 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, max_depth: float = 10.0) -> 
             "rmse": float(np.sqrt(np.mean((p - g) ** 2))), "delta1": float(np.mean(ratio < 1.25))}
 
 
+SPARSIFICATION_SHARES = (0.25, 0.5, 0.75)
+
+
+def sparsification_abs_rel(pred: np.ndarray, gt: np.ndarray, confidence: np.ndarray, max_depth: float = 10.0,
+                           shares: tuple[float, ...] = SPARSIFICATION_SHARES) -> dict[str, float]:
+    """AbsRel of the most confident ``share`` of a frame's valid pixels, for each share, with
+    the frame median-scaled on those pixels (as ``depth_metrics``): how well the confidence
+    ranks the error, whatever its calibration (a fixed threshold mixes both). Ties in the
+    confidence are broken by pixel order (deterministic).
+
+    pred, gt, confidence: (H, W); returns {"top25": AbsRel, ...} (NaN below 10 pixels)."""
+    pred = np.asarray(pred, np.float64)
+    gt = np.asarray(gt, np.float64)
+    valid = ((gt > 0) & (gt <= max_depth) & (pred > 0) & np.isfinite(pred)).ravel()
+    idx = np.flatnonzero(valid)
+    order = idx[np.argsort(-np.asarray(confidence, np.float64).ravel()[idx], kind="stable")]
+    out = {}
+    for q in shares:
+        keep = np.zeros(pred.size, bool)
+        keep[order[: int(round(q * len(order)))]] = True
+        out[f"top{round(q * 100)}"] = depth_metrics(np.where(keep.reshape(pred.shape), pred, 0.0), gt,
+                                                    max_depth)["abs_rel"]
+    return out
+
+
 def aggregate_depth_metrics(per_frame: list[dict[str, float]]) -> dict[str, Any]:
     """Mean over frames (frames without enough valid pixels are skipped)."""
     keys = ("abs_rel", "sq_rel", "rmse", "delta1")

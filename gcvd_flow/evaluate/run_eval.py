@@ -215,6 +215,10 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
     by confidence would see them) and ``confident_fraction`` (mean share of the frame's pixels
     with valid ground truth that are kept).
 
+    ``abs_rel_most_confident``: {"top25": AbsRel, "top50", "top75"} of the most confident quarter,
+    half, three quarters of each frame's pixels (``metrics.sparsification_abs_rel``): how well the
+    confidence ranks the error, independent of where its threshold lies.
+
     ``regions``: AbsRel split by region classes (``gcvd_flow.evaluate.regions``: confident,
     texture-less, depth edges, near / far, border, dynamic); the texture and dynamic classes need
     the run's frames and masks from the cache run.json records."""
@@ -224,7 +228,7 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
 
     frames, masks = _cached_maps(run, m.run_frames)
     breakdown = RegionBreakdown(max_depth=max_depth, min_confidence=min_confidence)
-    per_frame, confident, kept = [], [], []
+    per_frame, confident, kept, ranked = [], [], [], []
     from gcvd_flow.io.run_dir import read_cameras
 
     cams, lens_positions = read_cameras(run), None
@@ -251,6 +255,7 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
             confident.append(metrics.depth_metrics(np.where(ok, pred, 0.0), g, max_depth=max_depth))
             valid = (g > 0) & (g <= max_depth)
             kept.append(float((ok & valid).sum() / max(valid.sum(), 1)))
+            ranked.append(metrics.sparsification_abs_rel(pred, g, conf, max_depth=max_depth))
         gray, static = _frame_maps(frames, masks, k, pred.shape)
         breakdown.add(pred, g, gray=gray, confidence=conf, static=static)
     if not per_frame:
@@ -260,6 +265,7 @@ def depth_errors(run: Path, m: Matched, max_depth: float, min_confidence: float 
         agg = metrics.aggregate_depth_metrics(confident)
         out.update(abs_rel_confident=agg["abs_rel"], delta1_confident=agg["delta1"],
                    confident_fraction=float(np.mean(kept)), min_confidence=min_confidence)
+        out["abs_rel_most_confident"] = {k: float(np.nanmean([r[k] for r in ranked])) for k in ranked[0]}
     regions = breakdown.result()
     if regions:
         out["regions"] = regions
