@@ -135,6 +135,8 @@ def test_densify_equals_the_former_code():
     weights = np.where(rng.uniform(size=(72, 96)) < 0.05, rng.uniform(0.05, 1, size=(72, 96)), 0.0)
     got = priors_mod.densify(guide, values, weights)
     want = _former_densify(guide, values, weights)
+    known = values[weights > 0]  # since 2026-11-29 the fill stays within the known values' range
+    want = (np.clip(want[0], known.min(), known.max()), want[1])
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert np.array_equal(priors_mod.guided_filter(guide, values, 4, 1e-3),
                           _former_guided_filter(guide, values, 4, 1e-3))

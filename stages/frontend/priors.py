@@ -67,6 +67,11 @@ def densify(guide: np.ndarray, values: np.ndarray, weights: np.ndarray, radii: S
 
     guide (H, W) in [0, 1]; values, weights (H, W) (weights 0 where unknown).
     Returns (dense values (H, W), support (H, W) in [0, 1]).
+
+    The fill stays within the range of the known values: a normalised guided filter is a ratio of
+    two independently fitted linear models, so where the weights are sparse it can overshoot
+    without bound (a denominator just above its threshold: log-depth corrections of 40 and depth
+    10^17 on HoloLens frames without a confident pixel, before 2026-11-29).
     """
     out = np.zeros_like(values, dtype=np.float64)
     have = np.zeros(values.shape, bool)
@@ -84,8 +89,11 @@ def densify(guide: np.ndarray, values: np.ndarray, weights: np.ndarray, radii: S
         have |= ok
         if have.all():
             break
+    known = values[weights > 0]
     if not have.all():
-        out[~have] = np.median(values[weights > 0]) if (weights > 0).any() else 1.0
+        out[~have] = np.median(known) if known.size else 1.0
+    if known.size:
+        np.clip(out, known.min(), known.max(), out=out)
     return out, support
 
 
