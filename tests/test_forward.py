@@ -28,6 +28,12 @@ def test_wide_frames_keep_half_the_long_side_as_rows() -> None:
         assert working_size(*src, 256, frac) == work == working_size(*src, 256)
     assert working_size(300, 50, 256, frac) == (300, 50)  # never past the source
     assert build_config(GCVDConfig, PROFILES, profile="paper").ingest.min_short_frac == 0.0  # the paper's 384 px
+    # --profile quality: the paper's working size and nothing else changed (KITTI 634x192)
+    quality, default = build_config(GCVDConfig, PROFILES, profile="quality"), build_config(GCVDConfig, PROFILES)
+    assert quality.ingest.long_side == 384 and working_size(1241, 376, 384, frac) == (634, 192)
+    q, d = quality.model_dump(), default.model_dump()
+    q["ingest"].pop("long_side"), d["ingest"].pop("long_side")
+    assert q == d
 
 
 def _forward_flow(K: np.ndarray, depth: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
