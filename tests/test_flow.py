@@ -234,22 +234,3 @@ def test_chain_flows_channels_first_keeps_the_bits_of_the_pixel_layout():
     got, ok = chain_flows([(f0, v0), (f1, v1)])
     assert got.tobytes() == total.astype(np.float32).tobytes()
     assert np.array_equal(ok, valid)
-
-
-def test_dis_object_is_kept_per_preset_and_size_and_its_flows_do_not_depend_on_history(orbit):
-    from gcvd_flow.stages.frontend import flow as flow_mod
-
-    fr = orbit.frames
-    small = [np.ascontiguousarray(f[::2, ::2]) for f in fr[:4]]  # another size between the calls
-    fresh = {(i, p): flow_mod._new_dis(p).calc(flow_mod.to_gray(fr[i]), flow_mod.to_gray(fr[i + 2]), None)
-             for i in (1, 5) for p in ("fine", "medium")}
-    kept = flow_mod._dis_object("fine", fr[0].shape[:2])
-    assert flow_mod._dis_object("fine", fr[0].shape[:2]) is kept  # created once, then reused
-    assert flow_mod._dis_object("medium", fr[0].shape[:2]) is not kept
-    assert flow_mod._dis_object("fine", small[0].shape[:2]) is not kept
-    for i in (1, 5, 1):
-        for p in ("fine", "medium"):
-            flow_mod.dis_flow(small[0], small[1], p)
-            flow_mod.dis_flow(fr[i + 3], fr[i], p, init=np.ones(fr[0].shape[:2] + (2,), np.float32))
-            got = flow_mod.dis_flow(fr[i], fr[i + 2], p)
-            assert got.tobytes() == np.ascontiguousarray(fresh[(i, p)], np.float32).tobytes()

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import threading
 from typing import Any, Sequence
 
 import cv2
@@ -62,47 +61,19 @@ def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium", init:
     """DIS flow a -> b, float32 (H, W, 2) px; ``init`` (H, W, 2) px: DIS starts from it (at its
     coarsest level) instead of from zero.
 
-    Without ``init`` the DIS object is kept per thread, preset and image size (_dis_object):
-    creating one allocates every pyramid level's buffers, a fifth of a 256x192 call; its results
-    do not depend on call history (every buffer is rewritten by each call:
-    tests/test_flow.py checks a reused object against fresh ones, byte for byte). With ``init`` a
-    fresh object: cv2 5.0 crashed on a reused object given an initial flow after a call at another
-    size.
+    A fresh DIS object per call: the object keeps no state we rely on, and a new one guarantees
+    that results do not depend on call history (byte-identical across calls).
     """
     if preset not in DIS_PRESETS:
         raise ValueError(f"unknown DIS preset {preset!r}; choose one of {sorted(DIS_PRESETS)}")
-    if init is None:
-        flow = _dis_object(preset, img_a.shape[:2]).calc(to_gray(img_a), to_gray(img_b), None)
-    else:
-        start = np.array(init, dtype=np.float32, order="C")  # DIS writes into it
-        flow = _new_dis(preset).calc(to_gray(img_a), to_gray(img_b), start)
-    return np.ascontiguousarray(flow, dtype=np.float32)
-
-
-def _new_dis(preset: str) -> Any:
-    """A fresh cv2 DIS object configured for ``preset``."""
     dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])  # type: ignore[attr-defined]  # in cv2, not in its stubs
     if preset in FINEST_SCALE:
         dis.setFinestScale(FINEST_SCALE[preset])
     if preset in GRADIENT_DESCENT_ITERATIONS:
         dis.setGradientDescentIterations(GRADIENT_DESCENT_ITERATIONS[preset])
-    return dis
-
-
-_DIS_KEPT = threading.local()  # a cv2 object is not safe to share between threads
-
-
-def _dis_object(preset: str, shape: tuple[int, ...]) -> Any:
-    """This thread's DIS object for ``preset`` and image ``shape`` (h, w), created once."""
-    kept = getattr(_DIS_KEPT, "objects", None)
-    if kept is None:
-        kept = _DIS_KEPT.objects = {}
-    key = (preset, int(shape[0]), int(shape[1]))
-    if key not in kept:
-        if len(kept) >= 8:  # a bound: a process that sees many sizes keeps only the latest few
-            kept.pop(next(iter(kept)))
-        kept[key] = _new_dis(preset)
-    return kept[key]
+    start = None if init is None else np.array(init, dtype=np.float32, order="C")  # DIS writes into it
+    flow = dis.calc(to_gray(img_a), to_gray(img_b), start)
+    return np.ascontiguousarray(flow, dtype=np.float32)
 
 
 def homography_flows(img_a: np.ndarray, img_b: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
