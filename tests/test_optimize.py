@@ -622,3 +622,5 @@ def test_paper_profile_keeps_the_papers_sampling_and_step_count() -> None:
     assert default.optimize_keyframes.points_by_weight is False and default.optimize_keyframes.stop_rel == 0
     # the paper's per-pixel patch warp; the default shifts the patch with its centre (issue 38: cost)
     assert paper.optimize_keyframes.photo_warp == "pixel" and default.optimize_keyframes.photo_warp == "centre"
+    # the paper's 100 segment steps; the default's 50 (40 fails make regress: docs/log/2026-11-29-segstop.md)
+    assert paper.optimize_segments.steps == 100 and default.optimize_segments.steps == 50

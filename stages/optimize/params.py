@@ -149,7 +149,9 @@ class EdgeSettings:
 class SegmentSettings:
     """Segment optimisation: all frames, keyframe poses frozen."""
 
-    steps: int = _f(60, "Adam steps per window", ge=1)
+    # 50, not 60: every window's loss flattens at ~step 50-60; 50 held every ATE / AbsRel row and
+    # make regress, 40 failed make regress (ATE +6.1 %) (docs/log/2026-11-29-segstop.md)
+    steps: int = _f(50, "Adam steps per window", ge=1)
     lr: float = _f(1e-4, "depth head lr", ge=0)
     loss_scale: float = _f(0.25, "loss resolution, fraction of the working resolution", gt=0, le=1)
     pair_power: float = _f(0.5, "pair weight tau ** pair_power", ge=0)
