@@ -134,7 +134,7 @@ def _add_demo(sub) -> None:
     p.add_argument("--size", default="256x192", metavar="WxH", help="image size (default 256x192)")
     p.add_argument("--cache", metavar="DIR", help="cache directory (default: $GCVD_FLOW_CACHE, else DIR/cache)")
     p.add_argument("--profile", metavar="NAME", help="named parameter profile: quality (the paper's 384 px working "
-                                                     "size: more accurate, about twice the time), paper, fast")
+                                                     "size: more accurate, 1.6-2x the time), paper, fast")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter (repeatable)")
     p.add_argument("--json", dest="json_mode", action="store_true", help="machine-readable output on stdout")

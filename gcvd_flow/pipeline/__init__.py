@@ -198,7 +198,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     },
     # Accuracy first: the paper's working resolution, everything else the defaults (2026-11-29,
     # docs/benchmarks.md "Working resolution": ICL, HoloLens and KITTI ATE -14 / -16 / -33 %,
-    # AbsRel -17 / -7 % against 256, at about twice the time).
+    # AbsRel -17 / -7 % against 256; ICL 2.0x, HoloLens 1.65x the time).
     "quality": {
         "ingest": {"long_side": 384},
     },
