@@ -269,3 +269,55 @@ def test_helpers_in_other_adapter_modules_are_followed_function_by_function(tmp_
     (pkg / "algo.py").write_text("def solve(x):\n    return x + 2\n")
     assert fp()[0] != fp0, "what the moved helper uses from other project modules still counts"
     _forget("apkg")
+
+
+def test_a_changed_item_selection_rule_reruns_the_map_stage(tmp_path, monkeypatch):
+    """Which items a map stage has is its ``items`` function's doing: a changed rule (here the
+    helper it calls keeps fewer items, as a changed reference rule keeps fewer pairs) must not
+    find the old stage record and hand back the old item list, while the items themselves (keyed
+    by their inputs) stay cached. Before 2026-11-29 the stage key held only the stage function's
+    code: the old list came back with exit 0."""
+    from gcvd_flow.engine.dag import MapStage, Pipeline, Stage
+    from gcvd_flow.engine.runner import Runner
+    from gcvd_flow.engine.store import Store
+
+    pkg = _make_package(tmp_path, "spkg", {
+        "rule.py": "def chosen(n):\n    return [k for k in range(n) if k % 2 == 0]\n",
+        "stage.py": textwrap.dedent('''
+            from gcvd_flow.engine.dag import Const
+            from spkg import rule
+
+
+            def square(inputs, params, ctx):
+                return {"v": inputs["k"] ** 2}
+
+
+            def pick(view, params):
+                return [{"k": Const(k)} for k in rule.chosen(8)]
+
+
+            def total(inputs, params, ctx):
+                return {"sum": sum(int(it["v"]) for it in inputs["square"])}
+        '''),
+    }, monkeypatch)
+    del pkg
+
+    def run_once() -> tuple[dict, dict]:
+        _forget("spkg")
+        import spkg.stage as st
+
+        pipe = Pipeline([MapStage("square", st.square, items=st.pick), Stage("total", st.total, deps=("square",))],
+                        packages=("spkg",), adapters=("spkg",))
+        runner = Runner(pipe, Store(tmp_path / "cache"), config=None, log=lambda m: None)
+        reports = {r.name: r for r in runner.run()}
+        return reports, runner.value("total")
+
+    reports, total = run_once()
+    assert total["sum"] == sum(k * k for k in (0, 2, 4, 6)) and reports["square"].executed == 4
+    assert "spkg/rule.py" in reports["square"].fields["code_files"]  # `why` names the rule's file
+    (tmp_path / "spkg" / "rule.py").write_text("def chosen(n):\n    return [k for k in range(n) if k % 4 == 0]\n")
+    reports, total = run_once()
+    assert total["sum"] == sum(k * k for k in (0, 4)), "the old item list came back"
+    assert reports["square"].action == "run" and reports["square"].executed == 0  # the items are reused
+    reports, total = run_once()
+    assert reports["square"].action == "cached" and total["sum"] == 16

@@ -338,6 +338,25 @@ def _code_fingerprint_cached(fn: Callable, packages: Packages,
     return key_of([list(x) for x in items]), items
 
 
+def selection_fingerprint(fn: Callable, packages: Packages,
+                          adapters: Packages = ()) -> tuple[str, tuple[tuple[str, str], ...]]:
+    """code_fingerprint of a map stage's items or summary function. One whose source cannot be
+    parsed on its own (a lambda inside a longer expression) is fingerprinted by its compiled code
+    instead: its bytecode, constants and names (what it calls is then not followed)."""
+    try:
+        return code_fingerprint(fn, packages, adapters)
+    except EncodingError:
+        code = getattr(fn, "__code__", None)
+        if code is None:
+            raise
+        return key_of(_code_identity(code)), ((f"{fn.__module__}:{fn.__qualname__}", key_of(_code_identity(code))),)
+
+
+def _code_identity(code: types.CodeType) -> list[Any]:
+    consts = [_code_identity(c) if isinstance(c, types.CodeType) else repr(c) for c in code.co_consts]
+    return [code.co_code.hex(), consts, list(code.co_names)]
+
+
 def clear_caches() -> None:
     """Forget memoised fingerprints (tests edit source files within one process)."""
     _module_digest.cache_clear()

@@ -368,15 +368,29 @@ class Runner:
             rfp, rfiles = keys.code_fingerprint(opener, self.pipeline.packages, self.pipeline.adapters)
             fp, files = keys.key_of([fp, name, rfp]), tuple(sorted(set(files) | set(rfiles)))
         params = params_for_key(self.stage_params(stage))
-        return {"code": fp, "code_files": {k: v for k, v in files}, "version": stage.version,
-                "params": params, "seed": self.seed if stage.uses_seed else None,
-                "inputs": inputs, "env": self.pipeline.numeric_env()}
+        out = {"code": fp, "code_files": {k: v for k, v in files}, "version": stage.version,
+               "params": params, "seed": self.seed if stage.uses_seed else None,
+               "inputs": inputs, "env": self.pipeline.numeric_env()}
+        if isinstance(stage, MapStage):
+            # which items exist and the summary are the items / summary functions' doing: their
+            # code enters the *stage* key (a changed reference rule must not find the old stage
+            # record and reuse its item list), not the item keys (an item is its inputs' function)
+            sel = [(name, fn) for name, fn in (("items", stage.items), ("summary", stage.summary)) if fn is not None]
+            sel_fps: list[Any] = []
+            for name, fn in sel:
+                sfp, sfiles = keys.selection_fingerprint(fn, self.pipeline.packages, self.pipeline.adapters)
+                sel_fps += [name, sfp]
+                out["code_files"].update(sfiles)
+            out["item_code"] = fp
+            out["code"] = keys.key_of([fp, "selection", *sel_fps])
+        return out
 
     @staticmethod
     def _preimage(record_kind: str, stage: Stage, f: dict[str, Any], params: Any = None,
                   inputs: Any = None) -> list[Any]:
         p = f["params"] if params is None else params
-        return keys.key_preimage(record_kind, stage.name, f["code"],
+        code = f["item_code"] if record_kind == "item" and "item_code" in f else f["code"]
+        return keys.key_preimage(record_kind, stage.name, code,
                                  {"params": p, "seed": f["seed"], "version": f["version"]},
                                  f["inputs"] if inputs is None else inputs, f["env"])
 
