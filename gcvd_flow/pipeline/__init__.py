@@ -197,8 +197,9 @@ PROFILES: dict[str, dict[str, Any]] = {
         "optimize_segments": {"steps": 100, "lr": 1e-4, "loss_scale": 1.0, "coarse_points": 0},
     },
     # Accuracy first: the paper's working resolution, everything else the defaults (2026-11-29,
-    # docs/benchmarks.md "Working resolution": ICL, HoloLens and KITTI ATE -14 / -16 / -33 %,
-    # AbsRel -17 / -7 % against 256; ICL 2.0x, HoloLens 1.65x the time).
+    # docs/benchmarks.md "Working resolution": ICL and KITTI ATE -14 / -33 %, ICL AbsRel -17 %,
+    # HoloLens AbsRel -4 % and RPE -13 / -28 % over four turns of the clip, its ATE within its
+    # 2-3.5x spread; ICL 2.0x, HoloLens 1.65x the time).
     "quality": {
         "ingest": {"long_side": 384},
     },
