@@ -321,3 +321,42 @@ def test_a_changed_item_selection_rule_reruns_the_map_stage(tmp_path, monkeypatc
     assert reports["square"].action == "run" and reports["square"].executed == 0  # the items are reused
     reports, total = run_once()
     assert reports["square"].action == "cached" and total["sum"] == 16
+
+
+def test_a_constant_the_stage_function_reads_enters_its_fingerprint(tmp_path, monkeypatch):
+    """Modules followed function by function (the stage's own, the adapters) also give the
+    constants a function reads: its own assignment, or the project module it was imported from.
+    Before 2026-11-29 a changed module-level threshold in an adapter module kept the key."""
+    pkg = _make_package(tmp_path, "cpkg", {
+        "consts.py": "LIMIT = 3\n",
+        "step.py": textwrap.dedent('''
+            from cpkg.consts import LIMIT
+
+            SCALE = 2.0
+            TABLE = {"a": (1, 2)}
+            UNUSED = 5
+
+
+            def run(inputs, params, ctx):
+                return inputs * SCALE + TABLE["a"][0] + LIMIT
+        '''),
+    }, monkeypatch)
+
+    def fp():
+        _forget("cpkg")
+        return keys.code_fingerprint(importlib.import_module("cpkg.step").run, ("cpkg",), ("cpkg.step",))
+
+    fp0, files = fp()
+    assert {"cpkg.step:SCALE", "cpkg.step:TABLE", "cpkg/consts.py"} <= {f for f, _ in files}
+    src = (pkg / "step.py").read_text()
+    (pkg / "step.py").write_text(src.replace("UNUSED = 5", "UNUSED = 6"))
+    assert fp()[0] == fp0, "a constant the function does not read must not invalidate"
+    (pkg / "step.py").write_text(src.replace("SCALE = 2.0", "SCALE = 2.5"))
+    assert fp()[0] != fp0
+    (pkg / "step.py").write_text(src.replace('(1, 2)', '(4, 2)'))
+    assert fp()[0] != fp0
+    (pkg / "step.py").write_text(src)
+    assert fp()[0] == fp0
+    (pkg / "consts.py").write_text("LIMIT = 4\n")
+    assert fp()[0] != fp0
+    _forget("cpkg")

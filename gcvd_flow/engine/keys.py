@@ -228,13 +228,38 @@ def _imported_project_modules(name: str, tree: ast.AST, packages: Packages) -> s
 
 @functools.lru_cache(maxsize=None)
 def _module_digest(name: str, packages: Packages) -> tuple[str, str, frozenset[str]] | None:
+    info = _module_info(name, packages)
+    return None if info is None else info[:3]
+
+
+@functools.lru_cache(maxsize=None)
+def _module_info(name: str, packages: Packages
+                 ) -> tuple[str, str, frozenset[str], dict[str, tuple[str, str]]] | None:
+    """(AST digest, relative path, project modules it imports, its top-level data bindings): name ->
+    ("assign", digest of the assigning statement) or ("import", the project module it comes from)."""
     src = _module_source(name)
     if src is None:
         return None
     text, rel = src
-    tree = _parse(text)  # once: its imports first, then its digest (which strips its docstrings)
+    tree = _parse(text)  # once: its imports and bindings first, then its digest (which strips its docstrings)
     deps = frozenset(_imported_project_modules(name, tree, packages))
-    return _tree_digest(tree), rel, deps
+    package = name if rel.endswith("__init__.py") else name.rpartition(".")[0]
+    bindings: dict[str, tuple[str, str]] = {}
+    for node in getattr(tree, "body", []):
+        if isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names = [n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)]
+            dig = digest_bytes(ast.dump(node, annotate_fields=True, include_attributes=False).encode())
+            for n in names:  # a name assigned twice: both statements count
+                prev = bindings.get(n)
+                bindings[n] = ("assign", dig if prev is None or prev[0] != "assign" else key_of([prev[1], dig]))
+        elif isinstance(node, ast.ImportFrom):
+            mod = (_project_imports(ast.Module(body=[node], type_ignores=[]), package, packages) or {""})
+            src_mod = min(mod, key=len)  # the module named by the statement (not its submodules)
+            for a in node.names:
+                if src_mod:
+                    bindings[a.asname or a.name] = ("import", src_mod)
+    return _tree_digest(tree), rel, deps, bindings
 
 
 def module_closure(roots: Iterable[str], packages: Packages) -> dict[str, str]:
@@ -299,6 +324,12 @@ def code_fingerprint(fn: Callable, packages: Packages,
     return _code_fingerprint_cached(fn, tuple(packages), tuple(adapters))
 
 
+def _is_engine_object(obj: Any) -> bool:
+    """A declaration of the engine's own (a stage, a reference): which stage it names is the
+    inputs' part of a key, not code."""
+    return type(obj).__module__.startswith(__name__.rpartition(".")[0] + ".")
+
+
 @functools.lru_cache(maxsize=None)
 def _code_fingerprint_cached(fn: Callable, packages: Packages,
                              adapters: Packages) -> tuple[str, tuple[tuple[str, str], ...]]:
@@ -326,6 +357,19 @@ def _code_fingerprint_cached(fn: Callable, packages: Packages,
             for name in _code_names(f):
                 ref = g.get(name)
                 mod = _object_module(ref)
+                data = name in g and not (isinstance(ref, types.ModuleType) or inspect.isfunction(ref)
+                                          or inspect.isclass(ref) or _is_engine_object(ref))
+                if data and (obj_module == own_module or _is_project_module(obj_module, adapters)):
+                    # a data global (a constant, a table, a settings instance) of a module followed
+                    # function by function: its assignment, or the module it was imported from
+                    info = _module_info(obj_module, packages)
+                    how = None if info is None else info[3].get(name)
+                    if how is not None and how[0] == "assign":
+                        files[f"{obj_module}:{name}"] = how[1]
+                    elif how is not None and _is_project_module(how[1], packages):
+                        modules.add(how[1])
+                    if mod is None:
+                        continue
                 if mod is None or not _is_project_module(mod, packages):
                     continue
                 if (mod == own_module or _is_project_module(mod, adapters)) and not isinstance(ref, types.ModuleType):
@@ -360,6 +404,7 @@ def _code_identity(code: types.CodeType) -> list[Any]:
 def clear_caches() -> None:
     """Forget memoised fingerprints (tests edit source files within one process)."""
     _module_digest.cache_clear()
+    _module_info.cache_clear()
     _code_fingerprint_cached.cache_clear()
     importlib.invalidate_caches()
 
