@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib
+import os
+import subprocess
 import sys
 import textwrap
 
@@ -360,3 +362,16 @@ def test_a_constant_the_stage_function_reads_enters_its_fingerprint(tmp_path, mo
     (pkg / "consts.py").write_text("LIMIT = 4\n")
     assert fp()[0] != fp0
     _forget("cpkg")
+
+
+def test_a_lambda_items_function_has_the_same_fingerprint_in_every_process(tmp_path):
+    """A lambda whose source cannot be parsed alone is fingerprinted by its code object: the same
+    in a process with another string hash seed (a set literal compiles to a frozenset constant)."""
+    src = ("import json, sys\nfrom gcvd_flow.engine import keys\n"
+           "f = (None,\n     lambda v, p: [k for k in ('a', 'b', 'c', 'd') if k in {'a', 'c', 'd', 'x'}])[1]\n"
+           "print(keys.selection_fingerprint(f, ('nothing',))[0])\n")
+    script = tmp_path / "fp.py"
+    script.write_text(src)
+    outs = {subprocess.run([sys.executable, str(script)], capture_output=True, text=True, check=True,
+                           env={**os.environ, "PYTHONHASHSEED": seed}).stdout.strip() for seed in ("1", "2", "3")}
+    assert len(outs) == 1 and len(next(iter(outs))) == 64

@@ -397,8 +397,14 @@ def selection_fingerprint(fn: Callable, packages: Packages,
 
 
 def _code_identity(code: types.CodeType) -> list[Any]:
-    consts = [_code_identity(c) if isinstance(c, types.CodeType) else repr(c) for c in code.co_consts]
-    return [code.co_code.hex(), consts, list(code.co_names)]
+    """Bytecode, constants and names of a code object, the same in every process (a frozenset
+    constant, `x in {"a", "b"}`, listed sorted: its repr follows the string hash seed)."""
+    def const(c: Any) -> Any:
+        if isinstance(c, types.CodeType):
+            return _code_identity(c)
+        return sorted(map(repr, c)) if isinstance(c, frozenset) else repr(c)
+
+    return [code.co_code.hex(), [const(c) for c in code.co_consts], list(code.co_names)]
 
 
 def clear_caches() -> None:
