@@ -32,6 +32,8 @@ sys.path.insert(0, str(ROOT))
 
 import cv2  # noqa: E402
 
+from gcvd_flow.io.formats import read_tum_poses, write_tum_poses  # noqa: E402
+
 # cv2.rotate codes for 1, 2, 3 quarter turns clockwise
 _CODES = {1: cv2.ROTATE_90_CLOCKWISE, 2: cv2.ROTATE_180, 3: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
@@ -67,24 +69,12 @@ def camera_turn(turns: int) -> np.ndarray:
     return c[turns]
 
 
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_quat()  # x, y, z, w
-
-
 def turn_clip(src: Path, dst: Path, turns: int) -> Path:
     """Write ``src`` (generic layout with gt/) turned by ``turns`` quarter turns clockwise to ``dst``."""
     if turns % 4 == 0:
         return src
     code = _CODES[turns % 4]
+    size = None  # (h, w) of the source frames
     for sub in ("frames", "gt/depth"):
         if not (src / sub).is_dir():
             continue
@@ -93,22 +83,16 @@ def turn_clip(src: Path, dst: Path, turns: int) -> Path:
             img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
             if img is None:
                 raise SystemExit(f"bench_orientation: cannot read {f}")
+            size = size or img.shape[:2]
             cv2.imwrite(str(dst / sub / f.name), cv2.rotate(img, code))
-    first = cv2.imread(str(next(iter(sorted((src / "frames").glob("*.png"))))), cv2.IMREAD_UNCHANGED)
-    h, w = first.shape[:2]
+    if size is None:
+        raise SystemExit(f"bench_orientation: no frames in {src / 'frames'}")
+    h, w = size
     fx, fy, cx, cy = (float(x) for x in (src / "intrinsics.txt").read_text().split()[:4])
     (dst / "intrinsics.txt").write_text(" ".join(f"{x:.6f}" for x in turned_intrinsics(fx, fy, cx, cy, w, h, turns)) + "\n")
-    M = camera_turn(turns)
-    rows = []
-    for line in (src / "gt" / "poses.txt").read_text().splitlines():
-        parts = line.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        t, xyz, q = parts[0], parts[1:4], np.array([float(x) for x in parts[4:8]])
-        qn = _matrix_to_quat(_quat_to_matrix(q) @ M)
-        rows.append(" ".join([t, *xyz, *(f"{x:.9f}" for x in qn)]))
-    (dst / "gt").mkdir(parents=True, exist_ok=True)
-    (dst / "gt" / "poses.txt").write_text("\n".join(rows) + "\n")
+    stamps, poses = read_tum_poses(src / "gt" / "poses.txt")
+    poses[:, :3, :3] = poses[:, :3, :3] @ camera_turn(turns)
+    write_tum_poses(dst / "gt" / "poses.txt", stamps, poses)
     return dst
 
 

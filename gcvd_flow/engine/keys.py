@@ -227,12 +227,6 @@ def _imported_project_modules(name: str, tree: ast.AST, packages: Packages) -> s
 
 
 @functools.lru_cache(maxsize=None)
-def _module_digest(name: str, packages: Packages) -> tuple[str, str, frozenset[str]] | None:
-    info = _module_info(name, packages)
-    return None if info is None else info[:3]
-
-
-@functools.lru_cache(maxsize=None)
 def _module_info(name: str, packages: Packages
                  ) -> tuple[str, str, frozenset[str], dict[str, tuple[str, str]]] | None:
     """(AST digest, relative path, project modules it imports, its top-level data bindings): name ->
@@ -272,10 +266,10 @@ def module_closure(roots: Iterable[str], packages: Packages) -> dict[str, str]:
         if name in seen:
             continue
         seen.add(name)
-        info = _module_digest(name, packages)
+        info = _module_info(name, packages)
         if info is None:
             continue
-        digest, rel, deps = info
+        digest, rel, deps, _ = info
         out[rel] = digest
         todo.extend(sorted(deps))
     return out
@@ -409,7 +403,6 @@ def _code_identity(code: types.CodeType) -> list[Any]:
 
 def clear_caches() -> None:
     """Forget memoised fingerprints (tests edit source files within one process)."""
-    _module_digest.cache_clear()
     _module_info.cache_clear()
     _code_fingerprint_cached.cache_clear()
     importlib.invalidate_caches()
