@@ -228,6 +228,9 @@ def _sum_grads(grads: list[torch.Tensor | None], like: torch.Tensor) -> torch.Te
 
 _OFFS = torch.tensor([(dv, du) for dv in (-1, 0, 1) for du in (-1, 0, 1)])  # 3x3 patch (row, column) offsets
 _OFFS_UV = _OFFS.flip(-1).to(torch.float32)  # the same offsets as (u, v) pixel shifts
+# A point of frame a whose depth in camera b is below this (m) is behind b or on its image plane:
+# it enters no term of the pair (its projection, and the gradient of its projection, are unbounded)
+MIN_DEPTH_IN_B = 1e-3
 
 
 def _patch_index(idx: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -397,7 +400,8 @@ class Solver:
             img_b, inside = G.sample_bilinear(blk.img_pb, uv)
             ins_c = inside.reshape(npair, M, 9)[:, :, 4]
         d_b = G.sample_frames(depth, blk.pb, uvc)  # (npair, M)
-        wgt = blk.amask.gather(1, idx) * ins_c.float() * (zc > 1e-3).float()
+        in_front = (zc > MIN_DEPTH_IN_B).float()
+        wgt = blk.amask.gather(1, idx) * ins_c.float() * in_front
         if blk.keep_pb is not None:  # every sample of the point in b (its patch, its depth) mixes kept cells only
             wgt = wgt * G.footprint_kept(blk.keep_pb, uv.detach()).reshape(npair, M, 9).all(-1).float()
         pair_loss = torch.zeros(npair)
@@ -411,7 +415,11 @@ class Solver:
             assert blk.flows is not None  # set whenever flow_idx is not empty
             tgt = blk.flows.gather(1, fidx[..., None].expand(-1, -1, 2))
             base_uv = torch.stack([u0[fi], v0[fi]], -1).to(torch.float32)
-            fwgt = blk.amask[fi].gather(1, fidx)
+            # in front of b only, as the other terms: the flow loss of a point on b's image plane
+            # had gradients 10^5 times the window's (a blurred HoloLens frame whose prior put pixels
+            # at 1/14 of its median depth), which Adam turned into a full-rate collapse of that
+            # frame's depth scale (0.003 m after two windows; docs/log/2026-11-29-lead11.md)
+            fwgt = blk.amask[fi].gather(1, fidx) * in_front[fi]
             if blk.keep_pb is not None:  # the flow's target in b mixes kept cells only
                 fwgt = fwgt * G.footprint_kept(blk.keep_pb[fi], base_uv + tgt).float()
             fl = L.flow_loss(uvc[fi], base_uv + tgt, fwgt)
