@@ -106,3 +106,45 @@ def test_dense_photometric_matches_identity() -> None:
 
 def test_default_weights() -> None:
     assert L.DEFAULT_WEIGHTS == {"photo": 1.0, "flow": 10.0, "depth": 0.5, "grad": 0.1, "mesh": 0.5}
+
+
+def test_points_behind_camera_b_enter_no_term_of_the_pair() -> None:
+    """A window pair whose camera b stands 0.5 m ahead of a: the points of a at 0.4 m lie behind b.
+    They enter no term (photometric, depth consistency, and the flow loss, whose gradient of such
+    a point was 10^5x the window's and collapsed a real keyframe's depth scale): the pair's loss
+    does not change when their flow targets do, their depth gets no gradient, and the gradient of
+    the pixels in front stays bounded."""
+    from gcvd_flow.stages.models.depth_net import DepthNet, Encoded
+    from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
+    from gcvd_flow.stages.optimize.solver import Pair, Solver, Window
+
+    n, h, w = 2, 12, 16
+    K = np.array([[20.0, 0, (w - 1) / 2], [0, 20.0, (h - 1) / 2], [0, 0, 1]])
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[1, 2, 3] = 0.5  # camera b 0.5 m ahead along a's optical axis
+    depth = np.full((n, h, w), 2.0, np.float32)
+    behind = np.zeros((h, w), bool)
+    behind[3:7, 4:9] = True
+    depth[0][behind] = 0.4
+    rng = np.random.default_rng(0)
+    imgs = torch.as_tensor(rng.random((n, 3, h, w)).astype(np.float32))
+
+    def pair_loss(flow: np.ndarray) -> tuple[float, torch.Tensor]:
+        pairs = [Pair(0, 1, 1, 1.0, torch.as_tensor(flow), torch.ones(h, w))]
+        win = Window(imgs, Encoded(torch.zeros(n, 4, h, w), torch.zeros(n, 1, h, w)), torch.ones(n, h, w),
+                     torch.zeros(n, 2, 3), torch.as_tensor(K), pairs, torch.as_tensor(poses),
+                     torch.ones(n, dtype=torch.float64), torch.zeros(n, 2, 3), torch.ones(n))
+        solver = Solver(win, DepthNet(seed=0), None, 1e-4, DepthModel(), LossWeights(), KeyframeSettings())
+        d = torch.as_tensor(depth).clone().requires_grad_(True)
+        idx = torch.arange(h * w)[None]
+        total = sum(solver._block_loss(b, d, torch.as_tensor(poses), idx[b.sel]) for t in solver.blocks for b in t)
+        total.backward()
+        return float(total.detach()), d.grad
+
+    flow = rng.normal(0, 1, (h, w, 2)).astype(np.float32)
+    scrambled = flow.copy()
+    scrambled[behind] = rng.normal(0, 50, (int(behind.sum()), 2))
+    (loss, grad), (loss2, _) = pair_loss(flow), pair_loss(scrambled)
+    assert np.isfinite(loss) and loss > 0 and loss == loss2
+    assert float(grad[0][torch.as_tensor(behind)].abs().max()) == 0
+    assert float(grad.abs().max()) < 10 and np.isfinite(grad.numpy()).all()
