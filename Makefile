@@ -44,7 +44,7 @@ demo: $(STAMP)
 	$(BIN)/python -m gcvd_flow demo
 
 test: $(STAMP) testdeps lint
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 # ruff (pyflakes, import order, bugbear, numpy rules) and mypy (pyproject.toml [tool.mypy]) on the whole package
 lint: $(STAMP)
