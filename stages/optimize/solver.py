@@ -52,6 +52,7 @@ from gcvd_flow.stages.geometry import torch_ops as G
 from gcvd_flow.stages.models.depth_net import DepthNet, Encoded
 from gcvd_flow.stages.models.pose_net import PoseNet
 from gcvd_flow.stages.optimize import losses as L
+from gcvd_flow.stages.optimize.adam import Adam
 from gcvd_flow.stages.optimize.params import DepthModel, KeyframeSettings, LossWeights
 
 __all__ = [
@@ -108,13 +109,25 @@ def deterministic(seed: int) -> Iterator[torch.Generator]:
     """Deterministic torch algorithms, torch / OpenCV global seeds set, and the generator that
     drives all point sampling."""
     prev = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+    set_deterministic_algorithms(True)
     torch.manual_seed(seed)
     cv2.setRNGSeed(seed)
     try:
         yield torch.Generator().manual_seed(seed)
     finally:
-        torch.use_deterministic_algorithms(prev)
+        set_deterministic_algorithms(prev)
+
+
+def set_deterministic_algorithms(mode: bool) -> None:
+    """torch's deterministic-algorithms flag, as ``torch.use_deterministic_algorithms(mode)`` sets
+    it for eager code. Why not that function: it also imports ``torch._inductor.config`` (and with it
+    torch._dynamo: 2 s per process, every worker's and every tiny run's largest fixed cost) to set
+    Inductor's own flag, and nothing here compiles with Inductor."""
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None:  # a torch without the private setter: the public function
+        torch.use_deterministic_algorithms(mode)
+    else:
+        setter(mode, warn_only=False)
 
 
 def window_seed(seed: int, index: int) -> int:
@@ -288,7 +301,7 @@ class Solver:
             groups.append({"params": list(posenet.decoder.parameters()), "lr": kf.pose_lr})
         groups.append({"params": [self.mesh], "lr": lr * kf.mesh_lr_mult * kf.mesh_shape_lr_frac})
         groups.append({"params": [self.lscale], "lr": lr * kf.mesh_lr_mult})
-        self.opt = torch.optim.Adam(groups)
+        self.opt = Adam(groups)  # torch.optim.Adam's arithmetic without its 2-s torch._dynamo import
         self.schedule = schedule or LrSchedule()
         self.coarse = coarse or Coarse()
         if self.schedule.kind not in LR_SCHEDULES:
