@@ -92,7 +92,8 @@ def _pp_fields(res: calibrate.FocalEstimate, s: float, src: tuple[int, int], tru
     if res.pp_estimate is not None:
         out["pp_estimate_source"] = source(res.pp_estimate)
         out["pp_sigma_source"] = [float(v) / s for v in res.pp_sigma]
-        out["pp_sigma_blocks_source"] = [float(v) / s for v in res.pp_sigma_blocks]
+        out["pp_sigma_blocks_source"] = (None if res.pp_sigma_blocks is None  # not computed: formal std too large
+                                         else [float(v) / s for v in res.pp_sigma_blocks])
         out["pp_sigma_formal_source"] = [float(v) / s for v in res.pp_sigma_formal]
     if true_pp:
         t = np.asarray([float(v) for v in true_pp.split(",")])

@@ -25,6 +25,9 @@ def test_focal_recovered_at_other_fields_of_view(trajectory, n, scale):
     assert err <= 2 * res.rel_sigma and 0.005 < res.rel_sigma < 0.05, res
     assert res.forward_share < 0.5
     assert res.points > res.tracks  # the final adjustment used every track, the SfM the capped set
+    if scale == 1.2:  # the motion leaves the principal point open (formal std inf): that decides it,
+        # without the 5 block adjustments of 60 LM iterations each (17 of this test's 50 s)
+        assert not res.pp_estimated and np.all(np.isinf(res.pp_sigma_formal)) and res.pp_sigma_blocks is None, res
 
 
 @pytest.mark.slow

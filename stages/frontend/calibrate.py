@@ -542,13 +542,14 @@ def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tu
     to the estimate's std)."""
     tracks, ba = ba_tracks
     c0 = K[:2, 2]
-    res = principal_point(tracks, ba, K, size, robust_px=robust_px, blocks=blocks, prior_frac=prior_frac)
+    res = principal_point(tracks, ba, K, size, robust_px=robust_px, blocks=blocks, prior_frac=prior_frac,
+                          max_sigma=max_sigma)
     out["iterations"] = out.get("iterations", 0) + res["iterations"]
     sig = np.asarray(res["sigma"], np.float64)
     est = np.asarray(res["pp"], np.float64)
     z = float(np.hypot(*((est - c0) / np.maximum(sig, 1e-9)))) if np.all(np.isfinite(sig)) else 0.0
     out.update(pp_estimate=[float(v) for v in est], pp_sigma=[float(v) for v in sig], pp_z=z,
-               pp_sigma_blocks=[float(v) for v in res.get("sigma_blocks", sig)],
+               pp_sigma_blocks=None if res.get("sigma_blocks", sig) is None else [float(v) for v in res.get("sigma_blocks", sig)],
                pp_sigma_formal=[float(v) for v in res.get("sigma_formal", sig)])
     rel = sig / np.asarray(size, np.float64)
     desc = (f"estimate ({est[0]:.1f}, {est[1]:.1f}) px +- ({sig[0]:.1f}, {sig[1]:.1f}) px, "
@@ -747,7 +748,7 @@ def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bloc
 
 def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, int], *, robust_px: float = 1.0,
                     blocks: int = 5, prior_frac: float = 0.05, iterations: int = 300,
-                    block_iterations: int = 60) -> dict[str, Any]:
+                    block_iterations: int = 60, max_sigma: float | None = None) -> dict[str, Any]:
     """The principal point (with one shared focal length, square pixels) from a focal-only bundle
     adjustment's solution ``ba`` (T, pts of ``tracks``) at K: the adjustment repeated with the
     principal point free, pulled towards K's (the image centre) by a prior of ``prior_frac`` x the
@@ -759,7 +760,10 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     cost decrease of 1e-9 (at most ``iterations``), the block adjustments at most ``block_iterations``:
     the principal point moves with f and the rotations along a flat valley, where LM's default
     tolerance (1e-5) stopped the off-centre loop with cy 1.5 px short of the minimum it reaches from
-    the true point (at a lower residual)."""
+    the true point (at a lower residual). With ``max_sigma`` (a fraction of the image size): when the
+    formal std alone exceeds it on an axis, the block adjustments are skipped (sigma_blocks None,
+    sigma = the formal std): the std is at least the formal one, so the principal point is not
+    determined whatever they give (30-frame loop at 160x120: 5 x 60 LM iterations, 17 of 50 s)."""
     c0 = np.asarray(K, np.float64)[:2, 2]
     ba = largest_model(tracks, ba, K)
     # the adjustment weighs every observation as 1 px of noise: the prior is widened by the residuals'
@@ -773,6 +777,11 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     iters = joint["iterations"]
     if not joint["T"]:
         return {"pp": c0, "focal": float(K[0, 0]), "sigma": np.full(2, np.inf), "iterations": iters}
+    formal = np.asarray(joint.get("pp_sigma_formal", np.full(2, np.inf)), np.float64)
+    if max_sigma is not None and not np.all(formal <= max_sigma * np.asarray(size, np.float64)):
+        return {"pp": joint["pp"], "focal": joint["focal"], "sigma": formal, "sigma_blocks": None,
+                "sigma_formal": formal, "rel_sigma_blocks": float("inf"), "rel_sigma_formal": joint["rel_sigma_formal"],
+                "block_estimates": [], "iterations": iters}
     Kj = focal_K(joint["focal"], joint["pp"])
     est, it = _jackknife(tracks, joint, Kj, robust_px, blocks, pp_prior=prior, iterations=block_iterations,
                          rel_tol=PP_REL_TOL)
@@ -784,7 +793,6 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
         rel_b = _jackknife_rel(e[:, 0].tolist())
     else:
         spread, rel_b = np.full(2, np.inf), float("inf")
-    formal = np.asarray(joint.get("pp_sigma_formal", np.full(2, np.inf)), np.float64)
     return {"pp": joint["pp"], "focal": joint["focal"], "sigma": np.hypot(spread, formal), "sigma_blocks": spread,
             "sigma_formal": formal, "rel_sigma_blocks": rel_b, "rel_sigma_formal": joint["rel_sigma_formal"],
             "block_estimates": [list(x) for x in est], "iterations": iters}
