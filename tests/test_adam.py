@@ -31,7 +31,10 @@ def _run(opt_cls, params, steps: range, opt=None):
     opt = opt or opt_cls([{"params": params[:2], "lr": 0.05}, {"params": params[2:], "lr": 0.2}])
     for s in steps:
         opt.param_groups[0]["lr"] = 0.05 * (1 - s / 40)  # a schedule, as the solver's
-        opt.zero_grad(set_to_none=True)
+        if isinstance(opt, Adam):
+            opt.zero_grad()
+        else:
+            opt.zero_grad(set_to_none=True)
         _loss(params, s).backward()
         opt.step()
     return opt

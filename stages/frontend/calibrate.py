@@ -549,7 +549,7 @@ def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tu
     est = np.asarray(res["pp"], np.float64)
     z = float(np.hypot(*((est - c0) / np.maximum(sig, 1e-9)))) if np.all(np.isfinite(sig)) else 0.0
     out.update(pp_estimate=[float(v) for v in est], pp_sigma=[float(v) for v in sig], pp_z=z,
-               pp_sigma_blocks=None if res.get("sigma_blocks", sig) is None else [float(v) for v in res.get("sigma_blocks", sig)],
+               pp_sigma_blocks=None if res.get("sigma_blocks", sig) is None else [float(v) for v in res["sigma_blocks"]],
                pp_sigma_formal=[float(v) for v in res.get("sigma_formal", sig)])
     rel = sig / np.asarray(size, np.float64)
     desc = (f"estimate ({est[0]:.1f}, {est[1]:.1f}) px +- ({sig[0]:.1f}, {sig[1]:.1f}) px, "
@@ -778,14 +778,12 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     if not joint["T"]:
         return {"pp": c0, "focal": float(K[0, 0]), "sigma": np.full(2, np.inf), "iterations": iters}
     formal = np.asarray(joint.get("pp_sigma_formal", np.full(2, np.inf)), np.float64)
-    if max_sigma is not None and not np.all(formal <= max_sigma * np.asarray(size, np.float64)):
-        return {"pp": joint["pp"], "focal": joint["focal"], "sigma": formal, "sigma_blocks": None,
-                "sigma_formal": formal, "rel_sigma_blocks": float("inf"), "rel_sigma_formal": joint["rel_sigma_formal"],
-                "block_estimates": [], "iterations": iters}
-    Kj = focal_K(joint["focal"], joint["pp"])
-    est, it = _jackknife(tracks, joint, Kj, robust_px, blocks, pp_prior=prior, iterations=block_iterations,
-                         rel_tol=PP_REL_TOL)
-    iters += it
+    decided = max_sigma is not None and not np.all(formal <= max_sigma * np.asarray(size, np.float64))
+    est: list[Any] = []
+    if not decided:
+        est, it = _jackknife(tracks, joint, focal_K(joint["focal"], joint["pp"]), robust_px, blocks, pp_prior=prior,
+                             iterations=block_iterations, rel_tol=PP_REL_TOL)
+        iters += it
     if len(est) >= 3:
         e = np.asarray(est, np.float64)
         b = len(e)
@@ -793,7 +791,8 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
         rel_b = _jackknife_rel(e[:, 0].tolist())
     else:
         spread, rel_b = np.full(2, np.inf), float("inf")
-    return {"pp": joint["pp"], "focal": joint["focal"], "sigma": np.hypot(spread, formal), "sigma_blocks": spread,
+    return {"pp": joint["pp"], "focal": joint["focal"], "sigma": formal if decided else np.hypot(spread, formal),
+            "sigma_blocks": None if decided else spread,
             "sigma_formal": formal, "rel_sigma_blocks": rel_b, "rel_sigma_formal": joint["rel_sigma_formal"],
             "block_estimates": [list(x) for x in est], "iterations": iters}
 

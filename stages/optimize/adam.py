@@ -8,8 +8,8 @@ in the same order, so the results are bit-identical to torch's (``tests/test_ada
 
 Interface: the part of ``torch.optim.Optimizer`` the solver uses: ``param_groups`` (a list of
 {"params": [tensor, ...], "lr": float}; a group's "lr" may be changed between steps),
-``zero_grad(set_to_none=True)``, ``step()``, and ``state_dict`` / ``load_state_dict`` with the
-same layout as torch's ("state": {global parameter index: {"step", "exp_avg", "exp_avg_sq"}}).
+``zero_grad()`` (to None), ``step()``, and ``state_dict`` / ``load_state_dict`` with torch's
+"state" layout ({"state": {global parameter index: {"step", "exp_avg", "exp_avg_sq"}}}).
 """
 
 from __future__ import annotations
@@ -34,12 +34,10 @@ class Adam:
                 yield i, p, float(g["lr"])
                 i += 1
 
-    def zero_grad(self, set_to_none: bool = True) -> None:
+    def zero_grad(self) -> None:
+        """Gradients to None (torch's ``zero_grad(set_to_none=True)``)."""
         for _, p, _ in self._params():
-            if set_to_none:
-                p.grad = None
-            elif p.grad is not None:
-                p.grad.zero_()
+            p.grad = None
 
     @torch.no_grad()
     def step(self) -> None:
@@ -63,8 +61,7 @@ class Adam:
             p.addcdiv_(exp_avg, denom, value=-step_size)
 
     def state_dict(self) -> dict[str, Any]:
-        return {"state": {i: dict(st) for i, st in self.state.items()},
-                "param_groups": [{"lr": g["lr"], "params": list(range(len(g["params"])))} for g in self.param_groups]}
+        return {"state": {i: dict(st) for i, st in self.state.items()}}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         """Moments by global parameter index (checked against the parameters' shapes; copies)."""

@@ -519,7 +519,7 @@ class Solver:
             g["lr"] = start * f
 
     def step(self, gen: torch.Generator) -> float:
-        self.opt.zero_grad(set_to_none=True)
+        self.opt.zero_grad()
         if len(self.blocks) > 1:
             loss = self._split_backward(gen)
         else:
