@@ -40,7 +40,7 @@ TOTALS: dict[str, dict[str, float]] = {}
 def _timed_step(s: S.Solver, gen: torch.Generator) -> None:
     """One Solver.step (one block), its parts timed (the same arithmetic as ``Solver.step``)."""
     pt = time.process_time
-    s.opt.zero_grad(set_to_none=True)
+    s.opt.zero_grad()
     t0 = pt()
     depth, T_w_c = s._depth(), s.poses()
     t1 = pt()

@@ -48,7 +48,7 @@ def _timed_step(self, gen):
         TOTALS["split_step"] += time.perf_counter() - t
         TOTALS["steps"] += 1
         return loss
-    self.opt.zero_grad(set_to_none=True)
+    self.opt.zero_grad()
     t0 = time.perf_counter()
     loss = self.loss(gen)
     t1 = time.perf_counter()
