@@ -38,17 +38,82 @@ def toy_input(tmp_path: Path) -> Path:
     return make_toy_input(tmp_path / "input")
 
 
-def cli(*args: str, check: bool = False, timeout: float = 600, env: dict | None = None):
-    """Run `python -m gcvd_flow ARGS`; returns the CompletedProcess (text mode)."""
+def cli(*args: str, check: bool = False, timeout: float = 600, env: dict | None = None, fresh: bool = False):
+    """Run `python -m gcvd_flow ARGS`; returns the CompletedProcess (text mode). The process is
+    forked from a warm parent (tests/cli_fork.py: the same command without ~4.5 s of imports)
+    unless ``fresh`` or ``env`` sets a variable that is read when an interpreter starts."""
     e = dict(os.environ)
     e.setdefault("OMP_NUM_THREADS", "1")
     if env:
         e.update(env)
-    p = subprocess.run([sys.executable, "-m", "gcvd_flow", *args], capture_output=True, text=True,
-                       timeout=timeout, cwd=ROOT, env=e)
+    cmd = [sys.executable, "-m", "gcvd_flow", *args]
+    if fresh or _FRESH_ALWAYS or _ForkServer.differs(e):
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=e)
+    else:
+        p = _ForkServer.run(cmd, e, timeout)
     if check and p.returncode != 0:
         raise AssertionError(f"gcvd-flow {' '.join(args)} failed ({p.returncode}):\n{p.stderr}")
     return p
+
+
+# GCVD_TEST_FRESH_CLI=1: every command in a fresh interpreter (to compare, or to rule the fork server out)
+_FRESH_ALWAYS = os.environ.get("GCVD_TEST_FRESH_CLI") == "1"
+# the fork server's environment: the worker's at start, with cli()'s OMP_NUM_THREADS default
+_SERVER_ENV = {"OMP_NUM_THREADS": "1", **os.environ}
+
+
+class _ForkServer:
+    """This worker's ``python tests/cli_fork.py`` (started on first use, ends with the worker)."""
+
+    proc: subprocess.Popen | None = None
+    defaults: dict[str, str] = {}  # variables the server's imports set by default (a fresh command sets them too)
+
+    @classmethod
+    def start(cls) -> subprocess.Popen:
+        if cls.proc is None or cls.proc.poll() is not None:
+            cls.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "cli_fork.py")], stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, bufsize=0, cwd=ROOT, env=_SERVER_ENV)
+            assert cls.proc.stdout is not None
+            cls.defaults = json.loads(cls.proc.stdout.readline())["defaults"]
+        return cls.proc
+
+    @classmethod
+    def differs(cls, env: dict) -> bool:
+        """Whether a command with ``env`` would start differently from the server: a variable that
+        an interpreter or a numeric library reads at start has another value."""
+        from cli_fork import FRESH_ENV_PREFIXES
+
+        cls.start()
+        ours, theirs = {**cls.defaults, **env}, {**cls.defaults, **_SERVER_ENV}
+        return any(ours.get(k) != theirs.get(k) for k in set(ours) | set(theirs) if k.startswith(FRESH_ENV_PREFIXES))
+
+    @classmethod
+    def run(cls, cmd: list[str], env: dict, timeout: float) -> subprocess.CompletedProcess:
+        import select
+        import tempfile
+        import time
+
+        proc = cls.start()
+        assert proc.stdin is not None and proc.stdout is not None
+        with tempfile.TemporaryDirectory(prefix="gcvd-cli-") as tmp:
+            out, err = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
+            proc.stdin.write(json.dumps({"args": cmd[3:], "env": env, "cwd": str(ROOT), "stdout": out,
+                                         "stderr": err}).encode() + b"\n")
+            pid = json.loads(proc.stdout.readline())["pid"]
+            deadline = time.monotonic() + timeout
+            while not select.select([proc.stdout], [], [], max(0.0, deadline - time.monotonic()))[0]:
+                if time.monotonic() >= deadline:
+                    os.kill(pid, signal.SIGKILL)
+                    json.loads(proc.stdout.readline())
+                    raise subprocess.TimeoutExpired(cmd, timeout)
+            end = json.loads(proc.stdout.readline())
+            code = end["returncode"]
+            return subprocess.CompletedProcess(cmd, code, _read_text(out), _read_text(err))
+
+
+def _read_text(path: str) -> str:
+    with open(path, encoding="utf-8", errors="replace", newline=None) as f:
+        return f.read()
 
 
 def cli_json(*args: str, **kw) -> dict:
