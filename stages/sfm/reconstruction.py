@@ -203,8 +203,11 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
     ``pp_prior``, pp_sigma_formal (2,) px}."""
     import gtsam
 
-    C = lambda k: gtsam.symbol("c", k)  # noqa: E731
-    P = lambda k: gtsam.symbol("p", k)  # noqa: E731
+    # gtsam.symbol(ch, j) is (ord(ch) << 56) | j, computed here: the loop over ~10^4 observations per
+    # adjustment called it (and gtsam.Point2) per factor (an off-centre loop's estimate_focal 0.91x, same bits)
+    c_key, p_key = ord("c") << 56, ord("p") << 56
+    C = lambda k: c_key + k  # noqa: E731
+    P = lambda k: p_key + k  # noqa: E731
     KEY = gtsam.symbol("k", 0)
     graph = gtsam.NonlinearFactorGraph()
     vals = gtsam.Values()
@@ -227,9 +230,10 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
     n_obs = 0
     ids = sorted(obs)
     for i in ids:
-        vals.insert(P(i), gtsam.Point3(*pts[i]))
-        for fr, uv in obs[i]:
-            graph.add(factor(gtsam.Point2(*uv), noise, C(fr), P(i), KEY))
+        pk = p_key + i
+        vals.insert(pk, np.asarray(pts[i], np.float64))  # a Point3 (gtsam's is a float64 3-vector)
+        for fr, uv in obs[i]:  # uv: float64 (2,) rows of observations()' arrays, as Point2 is
+            graph.add(factor(uv, noise, c_key + fr, pk, KEY))
             n_obs += 1
     model_frames: dict[int, set[int]] = {}
     for i in ids:
