@@ -40,8 +40,9 @@ def toy_input(tmp_path: Path) -> Path:
 
 def cli(*args: str, check: bool = False, timeout: float = 600, env: dict | None = None, fresh: bool = False):
     """Run `python -m gcvd_flow ARGS`; returns the CompletedProcess (text mode). The process is
-    forked from a warm parent (tests/cli_fork.py: the same command without ~4.5 s of imports)
-    unless ``fresh`` or ``env`` sets a variable that is read when an interpreter starts."""
+    forked from a warm parent (tests/cli_fork.py: the same command without ~5 s of imports and
+    fingerprints) unless ``fresh``, GCVD_TEST_FRESH_CLI=1, or ``env`` sets a variable that is read
+    when an interpreter starts."""
     e = dict(os.environ)
     e.setdefault("OMP_NUM_THREADS", "1")
     if env:
@@ -89,11 +90,24 @@ class _ForkServer:
 
     @classmethod
     def run(cls, cmd: list[str], env: dict, timeout: float) -> subprocess.CompletedProcess:
+        proc = cls.start()
+        assert proc.stdin is not None and proc.stdout is not None
+        try:
+            return cls._exchange(proc, cmd, env, timeout)
+        except BaseException as exc:
+            if not isinstance(exc, subprocess.TimeoutExpired):  # the answers are out of step: a new server
+                proc.kill()
+                proc.wait()
+                cls.proc = None
+            raise
+
+    @staticmethod
+    def _exchange(proc: subprocess.Popen, cmd: list[str], env: dict, timeout: float) -> subprocess.CompletedProcess:
+        import contextlib
         import select
         import tempfile
         import time
 
-        proc = cls.start()
         assert proc.stdin is not None and proc.stdout is not None
         with tempfile.TemporaryDirectory(prefix="gcvd-cli-") as tmp:
             out, err = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
@@ -101,11 +115,17 @@ class _ForkServer:
                                          "stderr": err}).encode() + b"\n")
             pid = json.loads(proc.stdout.readline())["pid"]
             deadline = time.monotonic() + timeout
-            while not select.select([proc.stdout], [], [], max(0.0, deadline - time.monotonic()))[0]:
-                if time.monotonic() >= deadline:
-                    os.kill(pid, signal.SIGKILL)
-                    json.loads(proc.stdout.readline())
-                    raise subprocess.TimeoutExpired(cmd, timeout)
+            try:
+                while not select.select([proc.stdout], [], [], max(0.0, deadline - time.monotonic()))[0]:
+                    if time.monotonic() >= deadline:
+                        os.kill(pid, signal.SIGKILL)
+                        json.loads(proc.stdout.readline())  # its end: the server stays in step
+                        raise subprocess.TimeoutExpired(cmd, timeout)
+            except BaseException as exc:  # e.g. Ctrl-C of the suite: the command does not outlive the test
+                if not isinstance(exc, subprocess.TimeoutExpired):
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, signal.SIGKILL)
+                raise
             end = json.loads(proc.stdout.readline())
             code = end["returncode"]
             return subprocess.CompletedProcess(cmd, code, _read_text(out), _read_text(err))

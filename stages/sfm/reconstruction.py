@@ -203,9 +203,7 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
     ``pp_prior``, pp_sigma_formal (2,) px}."""
     import gtsam
 
-    # gtsam.symbol(ch, j) is (ord(ch) << 56) | j, computed here: the loop over ~10^4 observations per
-    # adjustment called it (and gtsam.Point2) per factor (an off-centre loop's estimate_focal 0.91x, same bits)
-    c_key, p_key = ord("c") << 56, ord("p") << 56
+    c_key, p_key = ord("c") << 56, ord("p") << 56  # gtsam.symbol(ch, j) = these + j, no call per factor
     C = lambda k: c_key + k  # noqa: E731
     P = lambda k: p_key + k  # noqa: E731
     KEY = gtsam.symbol("k", 0)
