@@ -1,7 +1,7 @@
 """`gcvd-flow ARGS` in a process forked from a warm parent, for tests/conftest.py's ``cli``.
 
-A fresh ``python -m gcvd_flow run`` spends ~4.5 s before its first stage: importing torch, OpenCV,
-gtsam and the package. The suite starts ~300 such processes. Here each pytest worker starts one
+A fresh ``python -m gcvd_flow run`` spends ~5.5 s before its first stage: importing torch, OpenCV,
+gtsam and the package, fingerprinting the stages. The suite starts ~300 such processes. Here each pytest worker starts one
 server process (``python cli_fork.py``) that imports them once (``preload``); every command is a
 child forked from it: a new process (its own exit code, stdout, stderr, signals, environment,
 working directory, atexit handlers), minus the imports. The server runs nothing but imports, so
