@@ -198,12 +198,10 @@ def run_calibrate(inputs: dict[str, Any], p: frontend_params.CalibrateSettings, 
            "unsolvable": _unsolvable(_SampledImages(frames), keep, list(cam["frame_indices"]))}
     if not cam["guessed"] or p.mode == "off":
         return out
-    from gcvd_flow.io.native_output import native_stdout_silenced
     from gcvd_flow.stages.frontend import calibrate as calibrate_mod
 
-    with native_stdout_silenced():  # gtsam prints cheirality exceptions to stdout
-        # pixels are square at the source: the working resize (sx, sy) makes fy / fx = sy / sx
-        res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep, aspect=sy / sx)
+    # pixels are square at the source: the working resize (sx, sy) makes fy / fx = sy / sx
+    res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep, aspect=sy / sx)
     out.update(pairs=int(res.pairs), rotation_pairs=int(res.rotation_pairs), method=res.method,
                median_px=float(res.median_px), frames=int(res.frames), points=int(res.points),
                iterations=int(res.iterations))

@@ -18,8 +18,8 @@ focal length from the frames (principal point fixed, at the image centre unless 
    bucketed, the longest first: :func:`select_tracks`; a richly textured clip has thousands), a
    small incremental structure from motion at the current f (two-view start, PnP, triangulation;
    bundle adjustments with f free whenever the registered frames grew by half, and a new
-   reconstruction where the track chain breaks), then a gtsam bundle adjustment of all
-   reconstructions with one shared focal length (``Cal3f``; two rounds, the second on the
+   reconstruction where the track chain breaks), then a bundle adjustment (stages.sfm.focal_ba) of all
+   reconstructions with one shared focal length (two rounds, the second on the
    observations within 2 px); repeated from its f while that moves > 1 % (``pass_tol``, at most ``passes``); finally one adjustment
    over all tracks from that solution (the capped set alone left the synthetic loop's f 1-2 %
    towards the guess). Two-view geometry alone was 8-10 % off on handheld footage (near the
@@ -34,7 +34,7 @@ focal length from the frames (principal point fixed, at the image centre unless 
    (:func:`forward_share`: f and the principal point trade off), or an estimate outside 0.3-3 x
    the guess.
 
-Pure: arrays in, a dict out; deterministic (OpenCV's RANSAC seeded; SIFT, gtsam, scipy are).
+Pure: arrays in, a dict out; deterministic (OpenCV's RANSAC seeded; SIFT and the solver, on one BLAS thread, are).
 Units: pixels at the frames' (working) resolution.
 """
 

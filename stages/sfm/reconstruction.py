@@ -1,5 +1,5 @@
 """A small incremental structure from motion with one shared focal length (stages.sfm):
-two-view start, PnP, triangulation of feature tracks, and gtsam bundle adjustments with the focal
+two-view start, PnP, triangulation of feature tracks, and bundle adjustments with the focal
 length (and optionally the principal point) free. Poses are T_c_w (world to camera, (4, 4)),
 points (3,) in the world frame, pixels at the frames' working resolution."""
 
@@ -186,38 +186,133 @@ def observations(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
 
 
 def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K: np.ndarray,
-            robust_px: float, iterations: int, max_px: float, marginal: bool = False,
-            pp_prior: tuple[np.ndarray, np.ndarray] | None = None, rel_tol: float | None = None) -> dict[str, Any]:
-    """gtsam bundle adjustment with one shared focal length (Cal3f: fx = fy, principal point fixed):
-    poses, points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected
-    reconstructions (models) of one camera share the focal length. Gauge of each model: its first
-    pose and its first point are held by tight priors (the point fixes the scale). With
-    ``pp_prior`` = (centre (2,), sigma (2,) px) the principal point is free too (Cal3_S2 with square
-    pixels: fx = fy and no skew held by tight factors), pulled towards ``centre`` by a Gaussian
+                 robust_px: float, iterations: int, max_px: float, marginal: bool = False,
+                 pp_prior: tuple[np.ndarray, np.ndarray] | None = None, rel_tol: float | None = None,
+                 solver: str = "schur") -> dict[str, Any]:
+    """Bundle adjustment with one shared focal length (fx = fy, principal point fixed): poses,
+    points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected reconstructions
+    (models) of one camera share the focal length. Gauge of each model: its first pose and its
+    first point are held (the point fixes the scale). With ``pp_prior`` = (centre (2,), sigma (2,)
+    px) the principal point is free too (square pixels), pulled towards ``centre`` by a Gaussian
     prior of ``sigma``; it starts at K's. Its gauge is minimal (the first pose and its distance to
     the model's furthest camera): a point held in place fixes its bearing, which held the principal
     point of a planar-motion clip where it started (orbit: cy 5.3 px off at a formal std of 0.03 px).
-    Returns {focal, pp (2,), median_px, observations, points,
+    ``solver``: "schur" (:mod:`stages.sfm.focal_ba`, the default) or "gtsam" (the same factor graph
+    in gtsam: the reference the tests hold it to). LM stops at ``iterations`` or a relative cost
+    decrease of ``rel_tol`` (default 1e-5). Returns {focal, pp (2,), median_px, observations, points,
     frames, iterations (LM), T (world-to-camera (4, 4) per frame), pts, errors (reprojection error
     per observation, px), with ``marginal`` rel_sigma_formal (:func:`formal_cov`) and, with
     ``pp_prior``, pp_sigma_formal (2,) px}."""
-    import gtsam
-
-    c_key, p_key = ord("c") << 56, ord("p") << 56  # gtsam.symbol(ch, j) = these + j, no call per factor
-    C = lambda k: c_key + k  # noqa: E731
-    P = lambda k: p_key + k  # noqa: E731
-    KEY = gtsam.symbol("k", 0)
-    graph = gtsam.NonlinearFactorGraph()
-    vals = gtsam.Values()
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_px),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     obs, count = observations(tracks, T, pts, K, max_px)
     frames = sorted(count)
     if len(frames) < 3 or not obs:
         return {"focal": float(K[0, 0]), "pp": np.asarray(K)[:2, 2].copy(), "median_px": 0.0, "observations": 0,
                 "points": 0, "frames": len(frames), "iterations": 0, "T": {}, "pts": {}, "errors": np.zeros(0)}
+    ids = sorted(obs)
+    gauge = _gauge(obs, ids, T, pp_prior is not None)
+    run = _adjust_gtsam if solver == "gtsam" else _adjust_schur
+    f, pp, poses, points, n_iter, cov = run(obs, ids, frames, T, pts, K, robust_px, iterations, pp_prior,
+                                            rel_tol, gauge, marginal)
+    err = observation_errors(focal_K(f, pp), poses, points, obs)
+    out = {"focal": f, "pp": pp, "median_px": float(np.median(err)), "observations": sum(map(len, obs.values())),
+           "points": len(ids), "frames": len(frames), "iterations": n_iter, "T": poses, "pts": points, "errors": err}
+    if marginal:
+        var = cov(err) if cov is not None else None  # (f, cx, cy) variances px^2, None: not computable
+        out["rel_sigma_formal"] = float(np.sqrt(var[0]) / f) if var is not None else float("inf")
+        if pp_prior is not None:
+            out["pp_sigma_formal"] = np.sqrt(var[1:3]) if var is not None else np.full(2, np.inf)
+    return out
+
+
+def _gauge(obs, ids: list[int], T: dict[int, np.ndarray], ranged: bool
+           ) -> list[tuple[int, set[int], int, tuple[int, float] | None, int | None]]:
+    """Per model: (its id, its frames, its first frame (held), (its furthest frame, their centres' distance)
+    held where ``ranged`` and that distance is not 0, else its first point (held))."""
+    model_frames: dict[int, set[int]] = {}
+    for i in ids:
+        model_frames.setdefault(i // TRACK_KEY, set()).update(f for f, _ in obs[i])
+    out: list[tuple[int, set[int], int, tuple[int, float] | None, int | None]] = []
+    for m, fs in model_frames.items():
+        f0 = min(fs)
+        if ranged:
+            far = max(fs, key=lambda fr: float(np.linalg.norm(camera_centre(T[fr]) - camera_centre(T[f0]))))
+            dist = float(np.linalg.norm(camera_centre(T[far]) - camera_centre(T[f0])))
+            if dist > 1e-9:
+                out.append((m, fs, f0, (far, dist), None))
+                continue
+        out.append((m, fs, f0, None, next(i for i in ids if i // TRACK_KEY == m)))
+    return out
+
+
+def _noise_scale(err: np.ndarray) -> float:
+    """Observation noise (px) from the reprojection errors' median (|r| of a 2-D Gaussian: median =
+    1.1774 sigma), at least 1e-3: the adjustment weighs every observation as 1 px."""
+    return max(1.4826 * float(np.median(err)) / 1.1774, 1e-3)
+
+
+def _scene_size(poses: dict[int, np.ndarray], points: dict[int, np.ndarray], first: int) -> float:
+    origin = camera_centre(poses[first])
+    return float(np.median([np.linalg.norm(X - origin) for X in points.values()]))
+
+
+def _adjust_schur(obs, ids, frames, T, pts, K, robust_px, iterations, pp_prior, rel_tol, gauge, marginal):
+    from threadpoolctl import threadpool_limits
+
+    from gcvd_flow.stages.sfm import focal_ba
+
+    fi = {fr: n for n, fr in enumerate(frames)}
+    pi = {i: n for n, i in enumerate(ids)}
+    rows = [(pi[i], fi[fr], uv) for i in ids for fr, uv in obs[i]]
+    fixed_cam, fixed_pt = np.zeros(len(frames), bool), np.zeros(len(ids), bool)
+    ranges = []
+    for m, fs, f0, rng, i0 in gauge:
+        fixed_cam[fi[f0]] = True
+        if rng is not None:
+            ranges.append(focal_ba.Range(fi[f0], fi[rng[0]], rng[1], np.array(sorted(fi[fr] for fr in fs)),
+                                         np.array([pi[i] for i in ids if i // TRACK_KEY == m])))
+        else:
+            fixed_pt[pi[i0]] = True
+    f = float(K[0, 0])
+    prob = focal_ba.Problem(
+        obs_pt=np.array([r[0] for r in rows]), obs_cam=np.array([r[1] for r in rows]),
+        uv=np.array([r[2] for r in rows], np.float64), robust_px=robust_px, fixed_cam=fixed_cam, fixed_pt=fixed_pt,
+        pp_prior=None if pp_prior is None else (np.asarray(pp_prior[0], np.float64), np.asarray(pp_prior[1], np.float64)),
+        f_prior_sigma=10 * f if pp_prior is not None else float("inf"), ranges=tuple(ranges))
+    Ts = np.array([T[fr] for fr in frames], np.float64)
+    state = focal_ba.State(Ts[:, :3, :3].copy(), Ts[:, :3, 3].copy(), np.array([pts[i] for i in ids], np.float64),
+                           np.array([f, K[0, 2], K[1, 2]], np.float64), f)
+    # numpy's OpenBLAS on one thread: results independent of the core count, and no idle threads
+    # spinning against a second process (as the bundle_adjustment stage)
+    with threadpool_limits(limits=1, user_api="blas"):
+        res = focal_ba.solve(prob, state, iterations, rel_tol=1e-5 if rel_tol is None else rel_tol)
+    s = res.state
+    poses = {}
+    for n, fr in enumerate(frames):
+        P = np.eye(4)
+        P[:3, :3], P[:3, 3] = s.R[n], s.t[n]
+        poses[fr] = P
+    points = {i: s.X[n].copy() for n, i in enumerate(ids)}
+    f, pp = float(s.intr[0]), s.intr[1:].copy()
+
+    def cov(err):
+        with threadpool_limits(limits=1, user_api="blas"):
+            c = focal_ba.intrinsics_cov(prob, s, 10.0 * max(_scene_size(poses, points, frames[0]), 1e-9))
+        return None if c is None else np.pad(np.diag(c), (0, 3 - len(c))) * _noise_scale(err) ** 2
+
+    return f, pp, poses, points, res.iterations, cov if marginal else None
+
+
+def _adjust_gtsam(obs, ids, frames, T, pts, K, robust_px, iterations, pp_prior, rel_tol, gauge, marginal):
+    import gtsam
+
+    c_key, p_key = ord("c") << 56, ord("p") << 56  # gtsam.symbol(ch, j) = these + j, no call per factor
+    KEY = gtsam.symbol("k", 0)
+    graph = gtsam.NonlinearFactorGraph()
+    vals = gtsam.Values()
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_px),
+                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     for fr in frames:
-        vals.insert(C(fr), gtsam.Pose3(np.linalg.inv(T[fr])))
+        vals.insert(c_key + fr, gtsam.Pose3(np.linalg.inv(T[fr])))
     if pp_prior is None:
         vals.insert(KEY, gtsam.Cal3f(float(K[0, 0]), float(K[0, 2]), float(K[1, 2])))
         factor: Any = gtsam.GeneralSFMFactor2Cal3f
@@ -225,28 +320,19 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
         vals.insert(KEY, gtsam.Cal3_S2(float(K[0, 0]), float(K[0, 0]), 0.0, float(K[0, 2]), float(K[1, 2])))
         factor = gtsam.GeneralSFMFactor2Cal3_S2
         add_pp_factors(graph, KEY, float(K[0, 0]), pp_prior)
-    n_obs = 0
-    ids = sorted(obs)
     for i in ids:
         pk = p_key + i
         vals.insert(pk, np.asarray(pts[i], np.float64))  # a Point3 (gtsam's is a float64 3-vector)
         for fr, uv in obs[i]:  # uv: float64 (2,) rows of observations()' arrays, as Point2 is
             graph.add(factor(uv, noise, c_key + fr, pk, KEY))
-            n_obs += 1
-    model_frames: dict[int, set[int]] = {}
-    for i in ids:
-        model_frames.setdefault(i // TRACK_KEY, set()).update(f for f, _ in obs[i])
-    for m, fs in model_frames.items():
-        f0 = min(fs)
-        graph.add(gtsam.PriorFactorPose3(C(f0), gtsam.Pose3(np.linalg.inv(T[f0])), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-        if pp_prior is not None:  # a minimal gauge: a point held fixed would also hold the principal point
-            far = max(fs, key=lambda fr: float(np.linalg.norm(camera_centre(T[fr]) - camera_centre(T[f0]))))
-            dist = float(np.linalg.norm(camera_centre(T[far]) - camera_centre(T[f0])))
-            if dist > 1e-9:
-                graph.add(gtsam.RangeFactorPose3(C(f0), C(far), dist, gtsam.noiseModel.Isotropic.Sigma(1, 1e-6 * dist)))
-                continue
-        i0 = next(i for i in ids if i // TRACK_KEY == m)
-        graph.add(gtsam.PriorFactorPoint3(P(i0), gtsam.Point3(*pts[i0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    for _, _, f0, rng, i0 in gauge:
+        graph.add(gtsam.PriorFactorPose3(c_key + f0, gtsam.Pose3(np.linalg.inv(T[f0])),
+                                         gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        if rng is not None:
+            graph.add(gtsam.RangeFactorPose3(c_key + f0, c_key + rng[0], rng[1],
+                                             gtsam.noiseModel.Isotropic.Sigma(1, 1e-6 * rng[1])))
+        else:
+            graph.add(gtsam.PriorFactorPoint3(p_key + i0, gtsam.Point3(*pts[i0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
     opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, _lm_params(iterations, rel_tol))
     res = opt.optimize()
     if pp_prior is None:
@@ -254,17 +340,14 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
     else:
         cal = res.atCal3_S2(KEY)
         f, pp = 0.5 * float(cal.fx() + cal.fy()), np.array([cal.px(), cal.py()], np.float64)
-    poses = {fr: np.linalg.inv(res.atPose3(C(fr)).matrix()) for fr in frames}
-    points = {i: np.asarray(res.atPoint3(P(i))) for i in ids}
-    err = observation_errors(focal_K(f, pp), poses, points, obs)
-    out = {"focal": f, "pp": pp, "median_px": float(np.median(err)), "observations": n_obs, "points": len(ids),
-           "frames": len(frames), "iterations": int(opt.iterations()), "T": poses, "pts": points, "errors": err}
-    if marginal:
-        cov = formal_cov(graph, res, KEY, [P(i) for i in ids], C(frames[0]), err)
-        out["rel_sigma_formal"] = float(np.sqrt(cov[0, 0]) / f) if cov is not None else float("inf")
-        if pp_prior is not None:
-            out["pp_sigma_formal"] = np.sqrt(np.diag(cov)[3:5]) if cov is not None else np.full(2, np.inf)
-    return out
+    poses = {fr: np.linalg.inv(res.atPose3(c_key + fr).matrix()) for fr in frames}
+    points = {i: np.asarray(res.atPoint3(p_key + i)) for i in ids}
+
+    def cov(err):
+        c = formal_cov(graph, res, KEY, [p_key + i for i in ids], c_key + frames[0], err)
+        return None if c is None else (np.array([c[0, 0], 0.0, 0.0]) if pp_prior is None else np.diag(c)[[0, 3, 4]])
+
+    return f, pp, poses, points, int(opt.iterations()), cov if marginal else None
 
 
 def _lm_params(iterations: int, rel_tol: float | None):
@@ -310,7 +393,7 @@ def formal_cov(graph, res, key: int, point_keys: list[int], first_pose: int, err
     indeterminate. None when it cannot be computed."""
     import gtsam
 
-    s = max(1.4826 * float(np.median(err)) / 1.1774, 1e-3)  # |r| of a 2-D Gaussian: median = 1.1774 sigma
+    s = _noise_scale(err)
     origin = res.atPose3(first_pose).translation()
     size = float(np.median([np.linalg.norm(res.atPoint3(k) - origin) for k in point_keys]))
     g = gtsam.NonlinearFactorGraph(graph)
