@@ -34,7 +34,7 @@ def preload() -> None:
     from gcvd_flow.runtime import quiet_openmp
 
     quiet_openmp()  # as gcvd_flow.cli.main does before anything imports torch or OpenCV
-    for name in ("torch", "cv2", "gtsam"):
+    for name in ("torch", "cv2", "gtsam", "threadpoolctl"):  # threadpoolctl sets KMP_DUPLICATE_LIB_OK on import
         try:
             importlib.import_module(name)
         except ImportError:
