@@ -8,8 +8,10 @@ The cost is the factor graph that function gave gtsam, term for term:
   fx = fy = f and the principal point (cx, cy); residual r = projection - (u, v) px under a Huber
   loss of scale ``robust_px`` on |r| (gtsam's Robust Huber over an isotropic 1 px sigma): cost
   |r|^2 / 2 within it, k |r| - k^2 / 2 beyond; IRLS weight min(1, k / |r|). A point at or behind
-  the camera contributes nothing (gtsam's GeneralSFMFactor2 returns a zero error there, and prints a
-  line to stdout per factor, which this solver does not);
+  the camera costs the constant residual (2 f, 2 f) with zero Jacobians, as gtsam's projection
+  factors: a zero residual there (what the calibrate stage's first version of this solver had)
+  rewarded steps that flipped part of an early reconstruction behind its cameras. Nothing is
+  printed (gtsam printed a line per such factor and linearisation);
 * with the principal point free: a Gaussian prior pulling it to ``centre`` (sigma px per axis) and
   a weak one on f (10 f wide), as gtsam's Cal3_S2 prior; fx = fy exactly (gtsam needed a tight
   factor for that);
