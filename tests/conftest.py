@@ -24,6 +24,20 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
+# The files whose tests run whole pipelines, heaviest first (worker seconds in the suite's
+# --durations of 2026-11-29: 207, 130, 82, 75, ...). `--dist loadfile` hands the files to the two
+# workers in collection order: alphabetically, test_sweep_gcvd.py (~80 s) came among the last, and
+# the other worker could sit idle for as long; this way the last files handed out are short ones.
+HEAVY_FIRST = ("test_calibrate.py", "test_gcvd_e2e.py", "test_report.py", "test_jobs.py", "test_hostile.py",
+               "test_remote_s3.py", "test_sweep_gcvd.py", "test_compare.py", "test_remote_gcvd.py",
+               "test_fusion_references.py", "test_remote_kill.py", "test_pipeline.py", "test_fuzz_inputs.py",
+               "test_dask.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's own order is kept
+
 
 def make_toy_input(folder: Path, n: int = 40, size: int = 2000, seed: int = 0) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
