@@ -34,6 +34,21 @@ HEAVY_FIRST = ("test_calibrate.py", "test_gcvd_e2e.py", "test_report.py", "test_
                "test_dask.py")
 
 
+@pytest.fixture(autouse=True)
+def _no_leaked_start_variables():
+    """Put back the variables an interpreter reads at start (cli_fork.FRESH_ENV_PREFIXES) that a
+    test changed in this process: a Dask cluster started in-process sets OMP_ / MKL_ /
+    OPENBLAS_NUM_THREADS and PYTHONHASHSEED here, after which every later command of this worker
+    went to a fresh interpreter (tests/test_cli_fork.py checks that they are forked)."""
+    from cli_fork import FRESH_ENV_PREFIXES
+
+    before = {k: v for k, v in os.environ.items() if k.startswith(FRESH_ENV_PREFIXES)}
+    yield
+    for k in [k for k in os.environ if k.startswith(FRESH_ENV_PREFIXES) and k not in before]:
+        del os.environ[k]
+    os.environ.update(before)
+
+
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's own order is kept
@@ -125,6 +140,9 @@ class _ForkServer:
         assert proc.stdin is not None and proc.stdout is not None
         with tempfile.TemporaryDirectory(prefix="gcvd-cli-") as tmp:
             out, err = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
+            # the imports' defaults where the command's environment has none: a fresh interpreter's
+            # imports would set them (os.environ.setdefault), the server's ran before this command
+            env = {**_ForkServer.defaults, **env}
             proc.stdin.write(json.dumps({"args": cmd[3:], "env": env, "cwd": str(ROOT), "stdout": out,
                                          "stderr": err}).encode() + b"\n")
             pid = json.loads(proc.stdout.readline())["pid"]

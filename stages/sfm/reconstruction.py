@@ -199,8 +199,9 @@ def adjust_focal(tracks, T: dict[int, np.ndarray], pts: dict[int, np.ndarray], K
     in gtsam: the reference the tests hold it to). LM stops at ``iterations`` or a relative cost
     decrease of ``rel_tol`` (default 1e-5). Returns {focal, pp (2,), median_px, observations, points,
     frames, iterations (LM), T (world-to-camera (4, 4) per frame), pts, errors (reprojection error
-    per observation, px), with ``marginal`` rel_sigma_formal (:func:`formal_cov`) and, with
-    ``pp_prior``, pp_sigma_formal (2,) px}."""
+    per observation, px), with ``marginal`` rel_sigma_formal (the marginal std of f:
+    :func:`stages.sfm.focal_ba.intrinsics_cov`, gtsam's :func:`formal_cov`) and, with ``pp_prior``,
+    pp_sigma_formal (2,) px}."""
     obs, count = observations(tracks, T, pts, K, max_px)
     frames = sorted(count)
     if len(frames) < 3 or not obs:
