@@ -37,9 +37,9 @@ HEAVY_FIRST = ("test_calibrate.py", "test_gcvd_e2e.py", "test_report.py", "test_
 @pytest.fixture(autouse=True)
 def _no_leaked_start_variables():
     """Put back the variables an interpreter reads at start (cli_fork.FRESH_ENV_PREFIXES) that a
-    test changed in this process: a Dask cluster started in-process sets OMP_ / MKL_ /
-    OPENBLAS_NUM_THREADS and PYTHONHASHSEED here, after which every later command of this worker
-    went to a fresh interpreter (tests/test_cli_fork.py checks that they are forked)."""
+    test changed in this process, after which every later command of this worker would go to a
+    fresh interpreter (tests/test_cli_fork.py checks that they are forked). distributed's own
+    nannies did this until the executor's kept them from it (test_dask checks that it does)."""
     from cli_fork import FRESH_ENV_PREFIXES
 
     before = {k: v for k, v in os.environ.items() if k.startswith(FRESH_ENV_PREFIXES)}

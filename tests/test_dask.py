@@ -161,3 +161,34 @@ def test_stage_map_calls_as_dask_tasks_come_back_in_order():
         assert list(ex.map_calls(_square, range(MIN_CALLS - 1))) == [i * i for i in range(MIN_CALLS - 1)]
     finally:
         ex.close()
+
+
+def _worker_environ() -> dict[str, str | None]:
+    import os
+
+    return {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "PYTHONHASHSEED")}
+
+
+def test_a_local_cluster_leaves_the_callers_environment_alone():
+    """distributed's nannies set OMP_ / MKL_ / OPENBLAS_NUM_THREADS and PYTHONHASHSEED in the
+    process that starts the cluster, at its start and at every worker restart: an API user's
+    later subprocesses and torch threads would inherit them. The executor's nannies leave the
+    caller's environment as it was, and the workers still get the variables."""
+    import os
+
+    from gcvd_flow.engine.executors import DaskItemExecutor
+
+    before = dict(os.environ)
+    ex = DaskItemExecutor(2)
+    try:
+        assert dict(os.environ) == before
+        assert list(ex.map_calls(_square, iter(range(11)))) == [i * i for i in range(11)]
+        ex._client.restart()  # the nannies start their workers again
+        assert dict(os.environ) == before
+        seen = ex._client.run(_worker_environ)
+        assert len(seen) == 2
+        assert all(v == {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "6640"}
+                   for v in seen.values()), seen
+    finally:
+        ex.close()
+    assert dict(os.environ) == before

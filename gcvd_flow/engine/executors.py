@@ -645,6 +645,7 @@ class DaskItemExecutor:
                     dask_utils._forkserver_preload_set = True
                 with dask.config.set({"temporary-directory": tmp}):  # the scheduler's scratch space
                     self._cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
+                                                 worker_class=_nanny_keeping_environ(),
                                                  dashboard_address=None, silence_logs=logging.CRITICAL,
                                                  env={"OMP_NUM_THREADS": "1"}, local_directory=tmp,
                                                  # its HTTP routes (no dashboard) on a free port: on
@@ -708,6 +709,24 @@ class DaskItemExecutor:
                 self._cluster.close()
             except Exception:  # noqa: BLE001 - workers already gone (Ctrl-C reaches them too):
                 self._cluster.shutdown_on_close = False  # no second attempt (and traceback) at exit
+
+
+def _nanny_keeping_environ() -> type:
+    """distributed's ``Nanny`` that leaves this process's environment alone. A nanny sets its
+    pre-spawn variables (OMP_ / MKL_ / OPENBLAS_NUM_THREADS, MALLOC_TRIM_THRESHOLD_ and
+    PYTHONHASHSEED) in the calling process before it starts a worker, at the cluster's start and
+    at every restart, and never takes them back: a library user's later subprocesses and torch
+    would inherit them. Our workers are forked by the run's forkserver, started before the
+    cluster, so the caller's environment never reached them anyway; each worker still gets the
+    variables, as the nanny applies its ``env`` (which holds them) in the worker itself."""
+    from distributed import Nanny
+
+    class NannyKeepingEnviron(Nanny):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.pre_spawn_env = {}
+
+    return NannyKeepingEnviron
 
 
 def _dask_lost_types() -> tuple[type[BaseException], ...]:
