@@ -256,8 +256,10 @@ def _principal_point_outcome(res: FocalEstimate, K: np.ndarray, scale: tuple[flo
            "estimated": bool(res.pp_estimated),
            "estimate": [float(v) for v in res.pp_estimate] if res.pp_estimate is not None else None}
     if doc["estimated"]:
-        doc["detail"] = (f"estimated from the video: ({cx:.1f}, {cy:.1f}) px +- ({sig[0]:.1f}, {sig[1]:.1f}) px, "
-                         f"{res.pp_z:.1f} std from the image centre")
+        est, w = res.pp_estimate or [cx, cy], res.pp_weight or [1.0, 1.0]
+        doc["detail"] = (f"estimated from the video: ({cx:.1f}, {cy:.1f}) px, the estimate ({est[0]:.1f}, {est[1]:.1f}) "
+                         f"+- ({sig[0]:.1f}, {sig[1]:.1f}) px ({res.pp_z:.1f} std from the image centre) moved "
+                         f"towards the centre by its uncertainty (weight {w[0]:.2f}, {w[1]:.2f})")
         ctx.log(f"principal point {doc['detail']} (focal length {res.focal_centre:.1f} px with the centre)")
     elif res.pp_reason:
         doc["detail"] = f"assumed at the image centre: {res.pp_reason}"

@@ -97,6 +97,7 @@ class FocalEstimate:
     pp_sigma_blocks: list[float] | None = None
     pp_sigma_formal: list[float] | None = None
     pp_note: str = ""  # why the centre was kept although the principal point was estimated
+    pp_weight: list[float] | None = None  # the estimate's weight against the centre per axis (used: centre + weight x offset)
     pp_sensitivity: list[float] | None = None  # d log f per pp_frac x image size, (x, y)
     focal_centre: float | None = None  # px: the focal length with the principal point at the centre
     estimate: float | None = None  # px: the estimate when it was not determined (for the warning)
@@ -508,7 +509,7 @@ def _principal_point_step(ba: Any, f: float, c: np.ndarray, size: Any, cfg: Cali
     """With the focal length determined: the principal point per ``cfg.principal_point``
     (:func:`_estimate_pp` from the adjustment ``ba``; none from a rotating camera's homographies)."""
     if cfg.principal_point == "auto" and ba is not None:
-        _estimate_pp(ba, focal_K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, pp_prior, out)
+        _estimate_pp(ba, focal_K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, cfg.pp_spread, pp_prior, out)
     elif cfg.principal_point == "auto":
         out["pp_reason"] = (f"not estimated from a rotating camera's homographies (method {out['method']}); "
                             "assumed at the image centre")
@@ -529,15 +530,21 @@ def _not_determined(f: float, rel: float, out: dict[str, Any], max_forward_share
 
 
 def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tuple[int, int], robust_px: float,
-                 blocks: int, max_sigma: float, prior_frac: float, out: dict[str, Any], min_z: float = 3.0) -> None:
-    """The principal point decision of :func:`estimate_focal` (the focal length is determined): the
-    estimate of :func:`principal_point` is used (with its focal length) when its std per axis is
-    within ``max_sigma`` x the image size and it lies more than ``min_z`` std from the centre;
-    within ``min_z`` std the centre is kept (the motion confirms it, no warning); a larger std keeps
-    the centre with a reason (pp_reason: the caller warns). Fills out's principal_point,
-    pp_estimate, pp_sigma (px), pp_sigma_blocks / _formal, pp_z, pp_estimated, pp_reason and, when
-    used, focal and rel_sigma (the joint adjustment's spreads and the principal-point term scaled
-    to the estimate's std)."""
+                 blocks: int, max_sigma: float, spread: float, prior_frac: float, out: dict[str, Any],
+                 min_z: float = 2.0) -> None:
+    """The principal point decision of :func:`estimate_focal` (the focal length is determined).
+    The estimate of :func:`principal_point` (offset o from the centre, std s per axis) is used
+    when s is within ``max_sigma`` x the image size and it lies more than ``min_z`` std from the
+    centre (within, the centre is kept: the motion confirms it, no warning; synthetic and
+    software-centred cameras sit exactly there), moved towards the centre by its uncertainty:
+    centre + w o with w = p^2 / (p^2 + s^2), p = ``spread`` x the image size, how far real cameras'
+    principal points lie from the centre (the most probable point under that spread: a well
+    determined estimate is used as it is, an uncertain one only as far as the motion supports it);
+    the focal length is then adjusted again with it. A larger std keeps the centre with a reason
+    (pp_reason: the caller warns). Fills out's principal_point, pp_estimate, pp_sigma (px, of the
+    estimate), pp_sigma_blocks / _formal, pp_z, pp_weight, pp_estimated, pp_reason and, when used,
+    focal, focal_centre and rel_sigma (the joint adjustment's spreads and the principal-point term
+    scaled to the used point's std, s sqrt(w))."""
     tracks, ba = ba_tracks
     c0 = K[:2, 2]
     res = principal_point(tracks, ba, K, size, robust_px=robust_px, blocks=blocks, prior_frac=prior_frac,
@@ -560,12 +567,22 @@ def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tu
         out["pp_reason"] = ""
         out["pp_note"] = f"the image centre is kept: the {desc} is within {z:.1f} std of it"
         return
+    p2 = (spread * np.asarray(size, np.float64)) ** 2
+    w = p2 / (p2 + sig ** 2)
+    used = c0 + w * (est - c0)
+    focal = float(res["focal"])
+    if res.get("T"):  # f with the point used (f and the principal point trade off along a valley)
+        refit = adjust_focal(tracks, res["T"], res["pts"], focal_K(focal, used), robust_px=robust_px, iterations=100,
+                             max_px=2.0, rel_tol=PP_REL_TOL)
+        out["iterations"] += refit["iterations"]
+        focal = float(refit["focal"]) if refit["T"] else focal
     sens = np.asarray(out.get("pp_sensitivity", [0.0, 0.0]), np.float64)  # d log f per pp_frac x size
-    pp_term = float(np.hypot(*(sens * sig / np.maximum(out.get("pp_frac", 0.02) * np.asarray(size), 1e-9))))
+    sig_used = sig * np.sqrt(w)
+    pp_term = float(np.hypot(*(sens * sig_used / np.maximum(out.get("pp_frac", 0.02) * np.asarray(size), 1e-9))))
     rel_f = float(np.sqrt(res["rel_sigma_blocks"] ** 2 + res["rel_sigma_formal"] ** 2 + pp_term ** 2))
-    out.update(principal_point=[float(v) for v in est], pp_estimated=True, pp_reason="", focal=float(res["focal"]),
-               focal_centre=float(out["focal"]), rel_sigma=rel_f, rel_sigma_blocks=res["rel_sigma_blocks"],
-               rel_sigma_formal=res["rel_sigma_formal"], rel_sigma_pp=pp_term)
+    out.update(principal_point=[float(v) for v in used], pp_estimated=True, pp_reason="", focal=focal,
+               pp_weight=[float(v) for v in w], focal_centre=float(out["focal"]), rel_sigma=rel_f,
+               rel_sigma_blocks=res["rel_sigma_blocks"], rel_sigma_formal=res["rel_sigma_formal"], rel_sigma_pp=pp_term)
 
 
 def _rotation_focal(rot: list[PairGeometry], c: np.ndarray, f_guess: float, blocks: int, pp_frac: float,
@@ -754,7 +771,7 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     ``blocks`` contiguous frame blocks left out (:func:`_jackknife`) and the formal marginal std
     (:func:`formal_cov`, which holds the prior: where the motion says nothing it stays ~ the
     prior's width). Returns {pp (2,), focal, sigma (2,), sigma_blocks, sigma_formal (px),
-    rel_sigma_blocks, rel_sigma_formal (of f), iterations}. The joint adjustment runs to a relative
+    rel_sigma_blocks, rel_sigma_formal (of f), T, pts (the joint solution), iterations}. The joint adjustment runs to a relative
     cost decrease of 1e-9 (at most ``iterations``), the block adjustments at most ``block_iterations``:
     the principal point moves with f and the rotations along a flat valley, where LM's default
     tolerance (1e-5) stopped the off-centre loop with cy 1.5 px short of the minimum it reaches from
@@ -789,7 +806,8 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
         rel_b = _jackknife_rel(e[:, 0].tolist())
     else:
         spread, rel_b = np.full(2, np.inf), float("inf")
-    return {"pp": joint["pp"], "focal": joint["focal"], "sigma": formal if decided else np.hypot(spread, formal),
+    return {"pp": joint["pp"], "focal": joint["focal"], "T": joint["T"], "pts": joint["pts"],
+            "sigma": formal if decided else np.hypot(spread, formal),
             "sigma_blocks": None if decided else spread,
             "sigma_formal": formal, "rel_sigma_blocks": rel_b, "rel_sigma_formal": joint["rel_sigma_formal"],
             "block_estimates": [list(x) for x in est], "iterations": iters}
