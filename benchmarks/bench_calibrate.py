@@ -9,7 +9,7 @@ JSON line is printed: the estimate at the source resolution, its error against T
 and its terms (blocks / principal point / formal), forward_share, whether it is determined, the
 work proxies (frames, points, tracks, LM iterations) and the seconds (contaminated on a shared
 machine). ``--set`` passes estimate_focal keyword arguments (e.g. ``tracks_per_frame=100``,
-``pp_mode=centre``). The principal point the stage ends with (``pp_source``: estimated or the centre)
+``principal_point=centre``, ``starts=1.0,``). The principal point the stage ends with (``pp_source``: estimated or the centre)
 and its estimate (``pp_estimate_source``, std ``pp_sigma_source``) at the source resolution; with
 ``--true-pp`` (source px) their errors in px and in % of the image size (``pp_error_pct``: the
 larger of x / width and y / height).
@@ -66,6 +66,7 @@ def main() -> None:
     res = calibrate.estimate_focal(ims, K, aspect=aspect, **kw)
     f = (res.estimate if res.estimate is not None else res.focal) / s
     out = {k: v for k, v in asdict(res).items() if isinstance(v, (int, float, str, bool))}
+    out["start_focals"] = [[st, f_s / s, px, n] for st, f_s, px, n in res.start_focals]  # source px
     out.update(f_source=f, error_pct=100 * (f / a.true_fx - 1), seconds=round(time.time() - t, 1),
                n=len(ims), size=[W, H])
     out.update(_pp_fields(res, s, (w, h), a.true_pp))
@@ -73,6 +74,8 @@ def main() -> None:
 
 
 def _value(v: str) -> Any:
+    if "," in v:  # a tuple setting: starts=1.0,0.8 (one value: starts=1.0,)
+        return tuple(float(x) for x in v.split(",") if x)
     try:
         return int(v)
     except ValueError:

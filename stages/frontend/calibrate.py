@@ -65,6 +65,7 @@ from gcvd_flow.stages.sfm.tracks import RANSAC_SEED, UnionFind, feature_tracks, 
 log = logging.getLogger(__name__)
 
 SIFT_RATIO = 0.8
+START_FIT_TOL = 0.02  # a later SfM start is kept over an earlier one when its median reprojection error is this much lower
 PP_REL_TOL = 1e-9  # LM relative cost decrease at which the free-principal-point adjustments stop
 
 
@@ -104,6 +105,7 @@ class FocalEstimate:
     forward_share: float | None = None  # share of forward steps (forward-only motion: f undetermined)
     block_focals: list[float] = field(default_factory=list)  # px: the jackknife's, one per block left out
     pp_focals: list[float] = field(default_factory=list)  # px: with the principal point moved by pp_frac
+    start_focals: list[list[float]] = field(default_factory=list)  # [start x guess, focal px, median px, frames] per run
     rel_sigma_blocks: float | None = None  # the terms of rel_sigma: jackknife over frame blocks,
     rel_sigma_pp: float | None = None  # ... the principal-point allowance,
     rel_sigma_formal: float | None = None  # ... and the adjustment's formal std
@@ -481,10 +483,47 @@ def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, s
     all_tracks = feature_tracks(feats, ransac_px=ransac_px, knn=knn)
     tracks = select_tracks(all_tracks, size, cfg.tracks_per_frame)
     out["tracks"] = len(tracks)
-    f, rel = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), blocks,
-                        cfg.pp_frac, size, out, pass_tol=cfg.pass_tol)
+    runs = []
+    for start in cfg.starts:
+        run: dict[str, Any] = dict(out)
+        f = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), blocks,
+                       cfg.pp_frac, size, run, pass_tol=cfg.pass_tol, f_start=start * f_guess, uncertainty=False)
+        runs.append((f, run))
+    f, rel = _best_start(runs, cfg.starts, tracks, c, robust_px, blocks, cfg.pp_frac, size, out)
     if out["frames"] < max(3, 0.25 * n_sel):
         rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
+    return f, rel
+
+
+def _best_start(runs: list[tuple[float, dict[str, Any]]], starts: Sequence[float], tracks, c: np.ndarray,
+                robust_px: float, blocks: int, pp_frac: float, size: Any, out: dict[str, Any]) -> tuple[float, float]:
+    """Of the structure-from-motion runs started from the guess x ``starts`` (focal, their working
+    records), the one whose final adjustment fits best: the most registered frames, then the lowest
+    median reprojection error, lower by more than START_FIT_TOL (runs that end at the same solution
+    differ in their last digits: the first start's is kept). A reconstruction that depends on where
+    it starts ends in a worse fit where it is wrong (HoloLens frames 33-66: 232.6 px at a median
+    0.221 px from 0.8 x the guess, 267.0 px / 0.245 px from the guess; true 234.9). Its record goes into ``out`` (iterations summed over the runs,
+    start_focals = [start, focal, median px, frames] per run), then its uncertainty
+    (:func:`_uncertainty`). Returns (focal, rel_sigma); rel_sigma inf when no run reconstructed."""
+    ok = [k for k, (_, r) in enumerate(runs) if "_ba" in r]
+    iterations = sum(r["iterations"] for _, r in runs)
+    out["start_focals"] = [[float(st), float(f), float(r.get("median_px", 0.0)), int(r.get("frames", 0))]
+                           for st, (f, r) in zip(starts, runs)]
+    if not ok:
+        out.update({k: v for k, v in runs[0][1].items() if k not in ("start_focals", "iterations")})
+        out["iterations"] = iterations
+        return runs[0][0], float("inf")
+    best = ok[0]
+    for k in ok[1:]:  # a later start replaces the earlier only if it registers more frames or fits clearly better
+        more = runs[k][1]["frames"] > runs[best][1]["frames"]
+        same = runs[k][1]["frames"] == runs[best][1]["frames"]
+        if more or (same and runs[k][1]["median_px"] < (1 - START_FIT_TOL) * runs[best][1]["median_px"]):
+            best = k
+    f, run = runs[best]
+    out.update({k: v for k, v in run.items() if k not in ("start_focals", "iterations")})
+    tracks_b, final = out["_ba"]
+    rel, it = _uncertainty(tracks_b, final, focal_K(f, c), robust_px, blocks, pp_frac, size, out)
+    out["iterations"] = iterations + it
     return f, rel
 
 
@@ -622,13 +661,15 @@ def _jackknife_rel(fs: Sequence[float]) -> float:
 
 def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust_px: float, passes: int,
                parallax: float, blocks: int, pp_frac: float, size: tuple[int, int], out: dict[str, Any],
-               pass_tol: float = 0.01) -> tuple[float, float]:
+               pass_tol: float = 0.01, f_start: float | None = None, uncertainty: bool = True) -> Any:
     """Focal length (px) from reconstructions of ``tracks`` (the capped set, :func:`select_tracks`)
     over ``n`` frames, polished by one bundle adjustment over ``all_tracks`` (the cap alone biased
     the synthetic loop's f by 1-2 % towards the guess), and its relative uncertainty
     (:func:`_uncertainty`). Fills out's method, median_px, frames, points, iterations, block_focals,
-    pp_focals."""
-    f, iters = f_guess, [0]
+    pp_focals. The first reconstruction is made at ``f_start`` (default the guess; the guess bounds
+    every adjustment's f to 0.3-3 x itself); without ``uncertainty`` only the focal length is
+    returned (the caller estimates the chosen run's uncertainty)."""
+    f, iters = f_guess if f_start is None else f_start, [0]
 
     def refine(T, pts, K):
         ba = bundle_adjust_focal(tracks, T, pts, K, robust_px=robust_px, max_px=(10.0,))
@@ -653,7 +694,7 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
             break
     if final is None:
         out["iterations"] = iters[0]
-        return f, float("inf")
+        return f if not uncertainty else (f, float("inf"))
     if len(all_tracks) > len(tracks):
         pts_all = _retriangulate(all_tracks, tracks, final, focal_K(f, c))
         pol = bundle_adjust_focal(all_tracks, final["T"], pts_all, focal_K(f, c),
@@ -665,6 +706,9 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
             out["_polish"] = (all_tracks, pol)
     out["_ba"] = (tracks, final)  # for the principal point (estimate_focal pops it)
     out["forward_share"] = forward_share(final["T"])
+    if not uncertainty:
+        out["iterations"] = iters[0]
+        return f
     rel, it = _uncertainty(tracks, final, focal_K(f, c), robust_px, blocks, pp_frac, size, out)
     out["iterations"] = iters[0] + it
     return f, rel

@@ -19,6 +19,12 @@ def _valid_intrinsics(v: str | None) -> str | None:
     return v
 
 
+def _positive_starts(v: tuple[float, ...]) -> tuple[float, ...]:
+    if not v or any(not 0.3 < x < 3.0 for x in v):
+        raise ValueError("starts are one or more multiples of the guessed focal length, each within 0.3-3")
+    return v
+
+
 @dataclass(frozen=True)
 class IngestSettings:
     """Which source frames, at which working resolution, with which intrinsics."""
@@ -51,6 +57,10 @@ class CalibrateSettings:
     tracks_per_frame: int = param(150, "SIFT tracks per frame for the structure from motion (spatially bucketed; "
                                   "one final adjustment uses all): bounds the work on richly textured clips", ge=0)
     passes: int = param(4, "structure-from-motion passes at most, each restarted from the last focal length", ge=1)
+    starts: tuple[float, ...] = param((1.0, 0.8, 1.25), "the structure from motion is made from the guess x each of "
+                                      "these; the run whose final adjustment fits best (most frames, then the lowest "
+                                      "median reprojection error) is kept: where the reconstruction depends on where it "
+                                      "starts, the wrong ones fit worse", validator=_positive_starts)
     pass_tol: float = param(0.01, "the passes stop when f moves less than this (relative); the lens-free synthetic "
                             "loop ends at the same f from guesses 8 % apart", gt=0)
     pp_frac: float = param(0.02, "the principal point is assumed at the centre; the uncertainty includes how far f "
