@@ -201,7 +201,8 @@ def run_calibrate(inputs: dict[str, Any], p: frontend_params.CalibrateSettings, 
     from gcvd_flow.stages.frontend import calibrate as calibrate_mod
 
     # pixels are square at the source: the working resize (sx, sy) makes fy / fx = sy / sx
-    res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep, aspect=sy / sx)
+    res = calibrate_mod.estimate_focal(_SampledImages(frames), K, p, keep=keep, aspect=sy / sx,
+                                       start_map=getattr(ctx, "map", map))  # the starts side by side on the workers
     out.update(pairs=int(res.pairs), rotation_pairs=int(res.rotation_pairs), method=res.method,
                median_px=float(res.median_px), frames=int(res.frames), points=int(res.points),
                iterations=int(res.iterations))

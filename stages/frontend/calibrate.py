@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import cv2
 import numpy as np
@@ -388,7 +388,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
                    min_pairs: int = 6, robust_px: float = 1.0, ransac_px: float = 1.0, rotation_share: float = 0.7,
                    motion_frac: float = 0.05, blocks: int = 5, max_forward_share: float = 0.8,
                    keep: Sequence[np.ndarray] | None = None, pp_prior: float = 0.05, pp_use_all: bool = False, aspect: float = 1.0,
-                   **overrides: Any) -> FocalEstimate:
+                   start_map: Callable[..., Any] = map, **overrides: Any) -> FocalEstimate:
     """Frames (N x uint8 (H, W, 3) RGB, working resolution) + the guessed K (3, 3) ->
     :class:`FocalEstimate` (focal, its relative std rel_sigma from the jackknife over frame blocks
     (:func:`_jackknife`), the principal-point allowance and the formal std; the principal point).
@@ -410,6 +410,9 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     ``aspect``: fy / fx of the frames' pixels (the working resize's sy / sx: the source's pixels are
     square, a 540x360 frame at 256x170 is not); the estimate is made in square pixels (keypoint rows
     divided by it) and returned for the frames' pixels: ``focal`` is fx, fy = aspect x fx.
+
+    ``start_map``: how the structure-from-motion starts (``cfg.starts``) are run: ``map`` here, or a
+    caller's parallel map of the same contract (the engine's ``ctx.map``); the result does not depend on it.
 
     ``settings``: the calibrate stage's :class:`CalibrateSettings` (None: its defaults), with
     ``overrides`` by field name; ``mode`` is the caller's (whether to estimate at all)."""
@@ -438,7 +441,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
         out.update(frames=len(sel))
     else:
         f, rel = _tracks_focal(feats, len(sel), c, f_guess, size, cfg, out, ransac_px=ransac_px, knn=knn,
-                               robust_px=robust_px, blocks=blocks)
+                               robust_px=robust_px, blocks=blocks, start_map=start_map)
     out["rel_sigma"] = rel
     ba, polish = out.pop("_ba", None), out.pop("_polish", None)
     if _focal_determined(f, rel, f_guess, out, cfg.max_rel_sigma, max_forward_share):
@@ -476,23 +479,32 @@ def _frame_pairs(sel: list[int], feats: list[Any], knn: Any, ransac_px: float) -
 
 
 def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, size: Any, cfg: CalibrateSettings,
-                  out: dict[str, Any], *, ransac_px: float, knn: Any, robust_px: float, blocks: int) -> tuple[float, float]:
+                  out: dict[str, Any], *, ransac_px: float, knn: Any, robust_px: float, blocks: int,
+                  start_map: Callable[..., Any] = map) -> tuple[float, float]:
     """(focal, rel_sigma) from tracks over the selected frames: a small structure from motion and
-    a bundle adjustment with the focal length free (:func:`_sfm_focal`); rel_sigma inf when it
+    a bundle adjustment with the focal length free (:func:`_sfm_focal`), from each of ``cfg.starts``
+    (through ``start_map``: the builtin map, or the engine's ``ctx.map`` to run them side by side;
+    the same result either way), the best-fitting kept (:func:`_best_start`); rel_sigma inf when it
     registered fewer than max(3, a quarter of) the frames."""
     all_tracks = feature_tracks(feats, ransac_px=ransac_px, knn=knn)
     tracks = select_tracks(all_tracks, size, cfg.tracks_per_frame)
     out["tracks"] = len(tracks)
-    runs = []
-    for start in cfg.starts:
-        run: dict[str, Any] = dict(out)
-        f = _sfm_focal(tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), blocks,
-                       cfg.pp_frac, size, run, pass_tol=cfg.pass_tol, f_start=start * f_guess, uncertainty=False)
-        runs.append((f, run))
+    calls = ((tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), blocks, cfg.pp_frac,
+              size, dict(out), cfg.pass_tol, start * f_guess) for start in cfg.starts)
+    runs = list(start_map(_sfm_start, calls))
     f, rel = _best_start(runs, cfg.starts, tracks, c, robust_px, blocks, cfg.pp_frac, size, out)
     if out["frames"] < max(3, 0.25 * n_sel):
         rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
     return f, rel
+
+
+def _sfm_start(args: tuple) -> tuple[float, dict[str, Any]]:
+    """One structure-from-motion start of :func:`_tracks_focal` (a module-level function of picklable
+    arguments, for ``start_map``): (focal, its working record)."""
+    tracks, all_tracks, n, c, f_guess, robust_px, passes, parallax, blocks, pp_frac, size, out, pass_tol, f_start = args
+    f = _sfm_focal(tracks, all_tracks, n, c, f_guess, robust_px, passes, parallax, blocks, pp_frac, size, out,
+                   pass_tol=pass_tol, f_start=f_start, uncertainty=False)
+    return f, out
 
 
 def _best_start(runs: list[tuple[float, dict[str, Any]]], starts: Sequence[float], tracks, c: np.ndarray,
@@ -502,9 +514,9 @@ def _best_start(runs: list[tuple[float, dict[str, Any]]], starts: Sequence[float
     median reprojection error, lower by more than START_FIT_TOL (runs that end at the same solution
     differ in their last digits: the first start's is kept). A reconstruction that depends on where
     it starts ends in a worse fit where it is wrong (HoloLens frames 33-66: 232.6 px at a median
-    0.221 px from 0.8 x the guess, 267.0 px / 0.245 px from the guess; true 234.9). Its record goes into ``out`` (iterations summed over the runs,
-    start_focals = [start, focal, median px, frames] per run), then its uncertainty
-    (:func:`_uncertainty`). Returns (focal, rel_sigma); rel_sigma inf when no run reconstructed."""
+    0.221 px from 0.8 x the guess, 267.0 px / 0.245 px from the guess; true 234.9). Its record
+    goes into ``out`` (iterations summed over the runs, start_focals = [start, focal, median px,
+    frames] per run), then its uncertainty (:func:`_uncertainty`). Returns (focal, rel_sigma); rel_sigma inf when no run reconstructed."""
     ok = [k for k, (_, r) in enumerate(runs) if "_ba" in r]
     iterations = sum(r["iterations"] for _, r in runs)
     out["start_focals"] = [[float(st), float(f), float(r.get("median_px", 0.0)), int(r.get("frames", 0))]
