@@ -15,12 +15,20 @@ SIZE = (160, 120)
 ONE_START = {"starts": (1.0,)}
 
 
+def _through_pickle(fn, calls):
+    """A start_map that sends each call and its result through pickle, as the run's worker
+    processes do (the calibrate stage passes ctx.map)."""
+    import pickle
+
+    return [pickle.loads(pickle.dumps(fn(pickle.loads(pickle.dumps(a))))) for a in calls]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("trajectory,n,scale", [("loop", 30, 1.2), ("loop", 30, 0.8)])
 def test_focal_recovered_at_other_fields_of_view(trajectory, n, scale):
     K_guess = default_intrinsics(SIZE)
     clip = render_clip(n, trajectory, size=SIZE, seed=0, focal=K_guess[0, 0] * scale)
-    res = estimate_focal(list(clip.frames), K_guess, **ONE_START)
+    res = estimate_focal(list(clip.frames), K_guess, start_map=_through_pickle, **ONE_START)
     assert res.determined, res
     assert res.method == "bundle adjustment"
     err = abs(res.focal / clip.K[0, 0] - 1)
