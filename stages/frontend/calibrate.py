@@ -489,8 +489,8 @@ def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, s
     all_tracks = feature_tracks(feats, ransac_px=ransac_px, knn=knn)
     tracks = select_tracks(all_tracks, size, cfg.tracks_per_frame)
     out["tracks"] = len(tracks)
-    calls = ((tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), blocks, cfg.pp_frac,
-              size, dict(out), cfg.pass_tol, start * f_guess) for start in cfg.starts)
+    calls = ((tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), dict(out), cfg.pass_tol,
+              start * f_guess) for start in cfg.starts)
     runs = list(start_map(_sfm_start, calls))
     f, rel = _best_start(runs, cfg.starts, tracks, c, robust_px, blocks, cfg.pp_frac, size, out)
     if out["frames"] < max(3, 0.25 * n_sel):
@@ -501,9 +501,9 @@ def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, s
 def _sfm_start(args: tuple) -> tuple[float, dict[str, Any]]:
     """One structure-from-motion start of :func:`_tracks_focal` (a module-level function of picklable
     arguments, for ``start_map``): (focal, its working record)."""
-    tracks, all_tracks, n, c, f_guess, robust_px, passes, parallax, blocks, pp_frac, size, out, pass_tol, f_start = args
-    f = _sfm_focal(tracks, all_tracks, n, c, f_guess, robust_px, passes, parallax, blocks, pp_frac, size, out,
-                   pass_tol=pass_tol, f_start=f_start, uncertainty=False)
+    tracks, all_tracks, n, c, f_guess, robust_px, passes, parallax, out, pass_tol, f_start = args
+    f = _sfm_focal(tracks, all_tracks, n, c, f_guess, robust_px, passes, parallax, out, pass_tol=pass_tol,
+                   f_start=f_start)
     return f, out
 
 
@@ -516,7 +516,8 @@ def _best_start(runs: list[tuple[float, dict[str, Any]]], starts: Sequence[float
     it starts ends in a worse fit where it is wrong (HoloLens frames 33-66: 232.6 px at a median
     0.221 px from 0.8 x the guess, 267.0 px / 0.245 px from the guess; true 234.9). Its record
     goes into ``out`` (iterations summed over the runs, start_focals = [start, focal, median px,
-    frames] per run), then its uncertainty (:func:`_uncertainty`). Returns (focal, rel_sigma); rel_sigma inf when no run reconstructed."""
+    frames] per run), then its uncertainty (:func:`_uncertainty`). Returns (focal, rel_sigma);
+    rel_sigma inf when no run reconstructed."""
     ok = [k for k, (_, r) in enumerate(runs) if "_ba" in r]
     iterations = sum(r["iterations"] for _, r in runs)
     out["start_focals"] = [[float(st), float(f), float(r.get("median_px", 0.0)), int(r.get("frames", 0))]
@@ -672,15 +673,15 @@ def _jackknife_rel(fs: Sequence[float]) -> float:
 
 
 def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust_px: float, passes: int,
-               parallax: float, blocks: int, pp_frac: float, size: tuple[int, int], out: dict[str, Any],
-               pass_tol: float = 0.01, f_start: float | None = None, uncertainty: bool = True) -> Any:
+               parallax: float, out: dict[str, Any],
+               pass_tol: float = 0.01, f_start: float | None = None) -> float:
     """Focal length (px) from reconstructions of ``tracks`` (the capped set, :func:`select_tracks`)
     over ``n`` frames, polished by one bundle adjustment over ``all_tracks`` (the cap alone biased
-    the synthetic loop's f by 1-2 % towards the guess), and its relative uncertainty
-    (:func:`_uncertainty`). Fills out's method, median_px, frames, points, iterations, block_focals,
-    pp_focals. The first reconstruction is made at ``f_start`` (default the guess; the guess bounds
-    every adjustment's f to 0.3-3 x itself); without ``uncertainty`` only the focal length is
-    returned (the caller estimates the chosen run's uncertainty)."""
+    the synthetic loop's f by 1-2 % towards the guess). The first reconstruction is made at
+    ``f_start`` (default the guess; the guess bounds every adjustment's f to 0.3-3 x itself). Fills
+    out's method, median_px, frames, points, iterations, forward_share and the solutions ``_ba``
+    (capped tracks) and ``_polish`` (all tracks) when it reconstructed; its uncertainty is the
+    caller's (:func:`_best_start`, for the start it keeps)."""
     f, iters = f_guess if f_start is None else f_start, [0]
 
     def refine(T, pts, K):
@@ -706,7 +707,7 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
             break
     if final is None:
         out["iterations"] = iters[0]
-        return f if not uncertainty else (f, float("inf"))
+        return f
     if len(all_tracks) > len(tracks):
         pts_all = _retriangulate(all_tracks, tracks, final, focal_K(f, c))
         pol = bundle_adjust_focal(all_tracks, final["T"], pts_all, focal_K(f, c),
@@ -718,12 +719,8 @@ def _sfm_focal(tracks, all_tracks, n: int, c: np.ndarray, f_guess: float, robust
             out["_polish"] = (all_tracks, pol)
     out["_ba"] = (tracks, final)  # for the principal point (estimate_focal pops it)
     out["forward_share"] = forward_share(final["T"])
-    if not uncertainty:
-        out["iterations"] = iters[0]
-        return f
-    rel, it = _uncertainty(tracks, final, focal_K(f, c), robust_px, blocks, pp_frac, size, out)
-    out["iterations"] = iters[0] + it
-    return f, rel
+    out["iterations"] = iters[0]
+    return f
 
 
 def forward_share(T: dict[int, np.ndarray], max_deg: float = 30.0) -> float:
@@ -827,8 +824,9 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     ``blocks`` contiguous frame blocks left out (:func:`_jackknife`) and the formal marginal std
     (:func:`formal_cov`, which holds the prior: where the motion says nothing it stays ~ the
     prior's width). Returns {pp (2,), focal, sigma (2,), sigma_blocks, sigma_formal (px),
-    rel_sigma_blocks, rel_sigma_formal (of f), T, pts (the joint solution), iterations}. The joint adjustment runs to a relative
-    cost decrease of 1e-9 (at most ``iterations``), the block adjustments at most ``block_iterations``:
+    rel_sigma_blocks, rel_sigma_formal (of f), T, pts (the joint solution), iterations}. The joint
+    adjustment runs to a relative cost decrease of 1e-9 (at most ``iterations``), the block
+    adjustments at most ``block_iterations``:
     the principal point moves with f and the rotations along a flat valley, where LM's default
     tolerance (1e-5) stopped the off-centre loop with cy 1.5 px short of the minimum it reaches from
     the true point (at a lower residual). With ``max_sigma`` (a fraction of the image size): when the
