@@ -16,11 +16,19 @@ ONE_START = {"starts": (1.0,)}
 
 
 def _through_pickle(fn, calls):
-    """A start_map that sends each call and its result through pickle, as the run's worker
-    processes do (the calibrate stage passes ctx.map)."""
+    """A start_map that checks each call and its result serialise as the run's worker processes
+    need (the calibrate stage passes ctx.map; pickle.dumps raises on what cannot travel) and runs
+    the call on a deep copy, as a worker gets its own. Nothing is unpickled."""
+    import copy
     import pickle
 
-    return [pickle.loads(pickle.dumps(fn(pickle.loads(pickle.dumps(a))))) for a in calls]
+    out = []
+    for a in calls:
+        pickle.dumps(a)
+        res = fn(copy.deepcopy(a))
+        pickle.dumps(res)
+        out.append(res)
+    return out
 
 
 @pytest.mark.slow
