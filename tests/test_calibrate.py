@@ -15,20 +15,42 @@ SIZE = (160, 120)
 ONE_START = {"starts": (1.0,)}
 
 
-def _through_pickle(fn, calls):
+def _through_pickle(fn, calls, seen=None):
     """A start_map that checks each call and its result serialise as the run's worker processes
     need (the calibrate stage passes ctx.map; pickle.dumps raises on what cannot travel) and runs
-    the call on a deep copy, as a worker gets its own. Nothing is unpickled."""
+    the call on a deep copy, as a worker gets its own, last call first (workers finish in any
+    order); the results come back in the calls' order. Nothing is unpickled. ``seen``: a list the
+    mapped function's name is appended to, once per call."""
     import copy
     import pickle
 
-    out = []
-    for a in calls:
-        pickle.dumps(a)
-        res = fn(copy.deepcopy(a))
-        pickle.dumps(res)
-        out.append(res)
+    calls = list(calls)
+    out = [None] * len(calls)
+    for k in reversed(range(len(calls))):
+        pickle.dumps(calls[k])
+        out[k] = fn(copy.deepcopy(calls[k]))
+        pickle.dumps(out[k])
+        if seen is not None:
+            seen.append(fn.__name__)
     return out
+
+
+@pytest.mark.slow
+def test_the_uncertainty_adjustments_go_through_the_map_with_the_same_result():
+    """The jackknife blocks, the principal-point moves, the formal std and the principal point's
+    own blocks are independent adjustments: the stage runs them on its workers (ctx.map). Run
+    through a map that pickles them and runs them last first, the estimate is the builtin map's to
+    the last bit."""
+    K_guess = default_intrinsics(SIZE)
+    clip = render_clip(20, "loop", size=SIZE, seed=0, focal=K_guess[0, 0] * 1.2)
+    seen: list[str] = []
+    mapped = estimate_focal(list(clip.frames), K_guess, start_map=lambda fn, calls: _through_pickle(fn, calls, seen),
+                            **ONE_START)
+    direct = estimate_focal(list(clip.frames), K_guess, **ONE_START)
+    assert mapped.determined and mapped.pp_reason == "", mapped  # both steps ran, the centre confirmed
+    assert mapped == direct
+    # one start; 5 blocks + 4 principal-point moves + the formal std; the principal point's 5 blocks
+    assert seen.count("_sfm_start") == 1 and seen.count("_adjust_job") == 15, seen
 
 
 @pytest.mark.slow

@@ -411,8 +411,10 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     square, a 540x360 frame at 256x170 is not); the estimate is made in square pixels (keypoint rows
     divided by it) and returned for the frames' pixels: ``focal`` is fx, fy = aspect x fx.
 
-    ``start_map``: how the structure-from-motion starts (``cfg.starts``) are run: ``map`` here, or a
-    caller's parallel map of the same contract (the engine's ``ctx.map``); the result does not depend on it.
+    ``start_map``: how the structure-from-motion starts (``cfg.starts``) and the independent bundle
+    adjustments of the uncertainty and principal-point steps (:func:`_adjust_job`) are run: ``map``
+    here, or a caller's parallel map of the same contract (the engine's ``ctx.map``); the result does
+    not depend on it.
 
     ``settings``: the calibrate stage's :class:`CalibrateSettings` (None: its defaults), with
     ``overrides`` by field name; ``mode`` is the caller's (whether to estimate at all)."""
@@ -447,7 +449,7 @@ def estimate_focal(images: Sequence[np.ndarray], K_guess: np.ndarray, settings: 
     if _focal_determined(f, rel, f_guess, out, cfg.max_rel_sigma, max_forward_share):
         out.update(focal=float(f), determined=True, reason="")
         _principal_point_step(polish if pp_use_all and polish is not None else ba, f, c, size, cfg, out,
-                              robust_px=robust_px, blocks=blocks, pp_prior=pp_prior)
+                              robust_px=robust_px, blocks=blocks, pp_prior=pp_prior, job_map=start_map)
     else:
         _not_determined(f, rel, out, max_forward_share)
     return _frames_pixels(out, aspect)
@@ -492,7 +494,7 @@ def _tracks_focal(feats: list[Any], n_sel: int, c: np.ndarray, f_guess: float, s
     calls = ((tracks, all_tracks, n_sel, c, f_guess, robust_px, cfg.passes, 0.04 * max(size), dict(out), cfg.pass_tol,
               start * f_guess) for start in cfg.starts)
     runs = list(start_map(_sfm_start, calls))
-    f, rel = _best_start(runs, cfg.starts, tracks, c, robust_px, blocks, cfg.pp_frac, size, out)
+    f, rel = _best_start(runs, cfg.starts, tracks, c, robust_px, blocks, cfg.pp_frac, size, out, job_map=start_map)
     if out["frames"] < max(3, 0.25 * n_sel):
         rel = float("inf")  # a reconstruction of a few frames says nothing about the clip's camera
     return f, rel
@@ -508,7 +510,8 @@ def _sfm_start(args: tuple) -> tuple[float, dict[str, Any]]:
 
 
 def _best_start(runs: list[tuple[float, dict[str, Any]]], starts: Sequence[float], tracks, c: np.ndarray,
-                robust_px: float, blocks: int, pp_frac: float, size: Any, out: dict[str, Any]) -> tuple[float, float]:
+                robust_px: float, blocks: int, pp_frac: float, size: Any, out: dict[str, Any],
+                job_map: Callable[..., Any] = map) -> tuple[float, float]:
     """Of the structure-from-motion runs started from the guess x ``starts`` (focal, their working
     records), the one whose final adjustment fits best: the most registered frames, then the lowest
     median reprojection error, lower by more than START_FIT_TOL (runs that end at the same solution
@@ -535,7 +538,7 @@ def _best_start(runs: list[tuple[float, dict[str, Any]]], starts: Sequence[float
     f, run = runs[best]
     out.update({k: v for k, v in run.items() if k not in ("start_focals", "iterations")})
     tracks_b, final = out["_ba"]
-    rel, it = _uncertainty(tracks_b, final, focal_K(f, c), robust_px, blocks, pp_frac, size, out)
+    rel, it = _uncertainty(tracks_b, final, focal_K(f, c), robust_px, blocks, pp_frac, size, out, job_map=job_map)
     out["iterations"] = iterations + it
     return f, rel
 
@@ -557,11 +560,12 @@ def _focal_determined(f: float, rel: float, f_guess: float, out: dict[str, Any],
 
 
 def _principal_point_step(ba: Any, f: float, c: np.ndarray, size: Any, cfg: CalibrateSettings, out: dict[str, Any],
-                          *, robust_px: float, blocks: int, pp_prior: float) -> None:
+                          *, robust_px: float, blocks: int, pp_prior: float, job_map: Callable[..., Any] = map) -> None:
     """With the focal length determined: the principal point per ``cfg.principal_point``
     (:func:`_estimate_pp` from the adjustment ``ba``; none from a rotating camera's homographies)."""
     if cfg.principal_point == "auto" and ba is not None:
-        _estimate_pp(ba, focal_K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, cfg.pp_spread, pp_prior, out)
+        _estimate_pp(ba, focal_K(f, c), size, robust_px, blocks, cfg.pp_max_sigma, cfg.pp_spread, pp_prior, out,
+                     job_map=job_map)
     elif cfg.principal_point == "auto":
         out["pp_reason"] = (f"not estimated from a rotating camera's homographies (method {out['method']}); "
                             "assumed at the image centre")
@@ -583,7 +587,7 @@ def _not_determined(f: float, rel: float, out: dict[str, Any], max_forward_share
 
 def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tuple[int, int], robust_px: float,
                  blocks: int, max_sigma: float, spread: float, prior_frac: float, out: dict[str, Any],
-                 min_z: float = 2.0) -> None:
+                 min_z: float = 2.0, job_map: Callable[..., Any] = map) -> None:
     """The principal point decision of :func:`estimate_focal` (the focal length is determined).
     The estimate of :func:`principal_point` (offset o from the centre, std s per axis) is used
     when s is within ``max_sigma`` x the image size and it lies more than ``min_z`` std from the
@@ -600,7 +604,7 @@ def _estimate_pp(ba_tracks: tuple[list, dict[str, Any]], K: np.ndarray, size: tu
     tracks, ba = ba_tracks
     c0 = K[:2, 2]
     res = principal_point(tracks, ba, K, size, robust_px=robust_px, blocks=blocks, prior_frac=prior_frac,
-                          max_sigma=max_sigma)
+                          max_sigma=max_sigma, job_map=job_map)
     out["iterations"] = out.get("iterations", 0) + res["iterations"]
     sig = np.asarray(res["sigma"], np.float64)
     est = np.asarray(res["pp"], np.float64)
@@ -757,66 +761,91 @@ def _retriangulate(tracks, ba_tracks, ba: dict[str, Any], K: np.ndarray) -> dict
 
 
 def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, blocks: int, pp_frac: float,
-                 size: tuple[int, int], out: dict[str, Any]) -> tuple[float, int]:
+                 size: tuple[int, int], out: dict[str, Any], job_map: Callable[..., Any] = map) -> tuple[float, int]:
     """Relative std of f: the jackknife spread over frame blocks (:func:`_jackknife`) combined with
     how far f moves when the principal point (assumed at the centre) is off by ``pp_frac`` x the
     image's width (x) and height (y) (the bundle adjustment repeated from ``ba`` with it moved). The
     second term is what forward motion cannot separate (KITTI: a principal point 10 px off at
     1226 px moved f 11 %); and the formal std (:func:`_formal_rel_sigma`: where f is unobservable,
-    the perturbed adjustments stay where they start). Returns (rel sigma, LM iterations); fills
+    the perturbed adjustments stay where they start). The adjustments are independent: they go
+    through ``job_map`` together (:func:`_adjust_job`). Returns (rel sigma, LM iterations); fills
     out's block_focals, pp_focals, rel_sigma_blocks, rel_sigma_pp, rel_sigma_formal."""
-    fs, iters = _jackknife(tracks, ba, K, robust_px, blocks)
+    calls = _block_calls(tracks, ba, K, robust_px, blocks, max_px=2.0, iterations=10)
+    moves = [sign * d for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]]))
+             for sign in (1.0, -1.0)]  # central differences: both runs gated and converged alike
+    calls += [(tracks, ba["T"], ba["pts"], focal_K(ba["focal"], K[:2, 2] + d),  # from the capped adjustment's solution
+               dict(robust_px=robust_px, iterations=30, max_px=2.0 + float(np.abs(d).sum())), False) for d in moves]
+    calls.append((tracks, ba["T"], ba["pts"], focal_K(ba["focal"], K[:2, 2]),
+                  dict(robust_px=robust_px, iterations=1, max_px=2.0, marginal=True), False))
+    res = list(job_map(_adjust_job, calls))
+    iters = sum(r["iterations"] for r in res[:-1])  # the formal std's one evaluation is not counted (as before)
+    fs = [r["focal"] for r in res[:-5] if r["frames"] >= 3]
     rel_b = _jackknife_rel(fs)
-    pp_fs: list[float] = []
-    sens: list[float] = []
-    for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]])):
-        pair = []
-        for sign in (1.0, -1.0):  # central difference: both runs gated and converged alike
-            Kd = focal_K(ba["focal"], K[:2, 2] + sign * d)  # from the capped adjustment's own solution
-            res = adjust_focal(tracks, ba["T"], ba["pts"], Kd, robust_px=robust_px, iterations=30,
-                          max_px=2.0 + float(np.abs(d).sum()))
-            iters += res["iterations"]
-            pair.append(float(res["focal"]) if res["T"] else float("nan"))
-        pp_fs += pair
-        sens.append(abs(np.log(pair[0] / pair[1])) / 2 if all(np.isfinite(pair)) else float("inf"))
+    pp_fs = [r["focal"] if r["solved"] else float("nan") for r in res[-5:-1]]
+    sens = [abs(np.log(a / b)) / 2 if np.isfinite(a) and np.isfinite(b) else float("inf")
+            for a, b in (pp_fs[0:2], pp_fs[2:4])]
     rel_pp = float(np.hypot(sens[0], sens[1]))  # x, y
-    formal = adjust_focal(tracks, ba["T"], ba["pts"], focal_K(ba["focal"], K[:2, 2]), robust_px=robust_px, iterations=1, max_px=2.0,
-                     marginal=True)
-    rel_f = float(formal.get("rel_sigma_formal", float("inf")))
+    rel_f = float(res[-1].get("rel_sigma_formal", float("inf")))
     out.update(block_focals=fs, pp_focals=pp_fs, rel_sigma_blocks=rel_b, rel_sigma_pp=rel_pp, rel_sigma_formal=rel_f,
                pp_sensitivity=[float(x) for x in sens])
     return float(np.sqrt(rel_b ** 2 + rel_pp ** 2 + rel_f ** 2)), iters
 
 
+def _adjust_job(args: tuple) -> dict[str, Any]:
+    """One independent bundle adjustment of the uncertainty and principal-point steps (a module-level
+    function of picklable arguments, for the job map): (tracks, T, pts, K, adjust_focal's keyword
+    arguments, split) -> its summary {focal, pp (2,), frames, iterations, solved, and
+    rel_sigma_formal when asked}. ``split``: T leaves a block of frames out, so the points are
+    first split where that parts a reconstruction (:func:`_split_models`)."""
+    tracks, T, pts, K, kw, split = args
+    if split:
+        pts = _split_models(tracks, T, pts, K, kw["max_px"])
+    res = adjust_focal(tracks, T, pts, K, **kw)
+    keep = {"focal": float(res["focal"]), "pp": [float(v) for v in res["pp"]], "frames": int(res["frames"]),
+            "iterations": int(res["iterations"]), "solved": bool(res["T"])}
+    if "rel_sigma_formal" in res:
+        keep["rel_sigma_formal"] = float(res["rel_sigma_formal"])
+    return keep
+
+
+def _block_calls(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, blocks: int, max_px: float,
+                 iterations: int, pp_prior: tuple[np.ndarray, np.ndarray] | None = None,
+                 rel_tol: float | None = None) -> list[tuple]:
+    """The :func:`_adjust_job` calls of :func:`_jackknife`: ``ba``'s adjustment without each of
+    ``blocks`` contiguous blocks of its registered frames."""
+    frames = sorted(ba["T"])
+    calls = []
+    for part in np.array_split(np.asarray(frames), blocks):
+        drop = set(part.tolist())
+        T = {f: v for f, v in ba["T"].items() if f not in drop}
+        calls.append((tracks, T, ba["pts"], K, dict(robust_px=robust_px, iterations=iterations, max_px=max_px,
+                                                    pp_prior=pp_prior, rel_tol=rel_tol), True))
+    return calls
+
+
 def _jackknife(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, blocks: int,
                max_px: float = 2.0, iterations: int = 10,
-               pp_prior: tuple[np.ndarray, np.ndarray] | None = None, rel_tol: float | None = None
-               ) -> tuple[list[Any], int]:
+               pp_prior: tuple[np.ndarray, np.ndarray] | None = None, rel_tol: float | None = None,
+               job_map: Callable[..., Any] = map) -> tuple[list[Any], int]:
     """The final bundle adjustment repeated ``blocks`` times (from its solution), each time without
-    one contiguous block of the registered frames. The spread of these focal lengths is the
+    one contiguous block of the registered frames (through ``job_map``: :func:`_adjust_job`). The
+    spread of these focal lengths is the
     estimate's uncertainty: it reflects how much f depends on which motion the clip happens to have
     (near-degenerate stretches, lens and principal-point model error, rolling shutter), which the
     formal covariance (0.01-0.1 % on real clips whose errors were 1-3 %) does not. Where leaving a
     block out splits a reconstruction, each part gets its own gauge. Returns (focal per block that
     kept >= 3 frames, LM iterations); with ``pp_prior`` (the principal point free, :func:`adjust_focal`)
     the focal lengths are (f, cx, cy) triples."""
-    frames = sorted(ba["T"])
-    fs, iters = [], 0
-    for part in np.array_split(np.asarray(frames), blocks):
-        drop = set(part.tolist())
-        T = {f: v for f, v in ba["T"].items() if f not in drop}
-        pts = _split_models(tracks, T, ba["pts"], K, max_px)
-        res = adjust_focal(tracks, T, pts, K, robust_px=robust_px, iterations=iterations, max_px=max_px, pp_prior=pp_prior,
-                           rel_tol=rel_tol)
-        iters += res["iterations"]
-        if res["frames"] >= 3:
-            fs.append(float(res["focal"]) if pp_prior is None else (float(res["focal"]), *map(float, res["pp"])))
-    return fs, iters
+    res = list(job_map(_adjust_job, _block_calls(tracks, ba, K, robust_px, blocks, max_px, iterations, pp_prior,
+                                                 rel_tol)))
+    fs = [r["focal"] if pp_prior is None else (r["focal"], *r["pp"]) for r in res if r["frames"] >= 3]
+    return fs, sum(r["iterations"] for r in res)
 
 
 def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, int], *, robust_px: float = 1.0,
                     blocks: int = 5, prior_frac: float = 0.05, iterations: int = 300,
-                    block_iterations: int = 60, max_sigma: float | None = None) -> dict[str, Any]:
+                    block_iterations: int = 60, max_sigma: float | None = None,
+                    job_map: Callable[..., Any] = map) -> dict[str, Any]:
     """The principal point (with one shared focal length, square pixels) from a focal-only bundle
     adjustment's solution ``ba`` (T, pts of ``tracks``) at K: the adjustment repeated with the
     principal point free, pulled towards K's (the image centre) by a prior of ``prior_frac`` x the
@@ -851,7 +880,7 @@ def principal_point(tracks, ba: dict[str, Any], K: np.ndarray, size: tuple[int, 
     est: list[Any] = []
     if not decided:
         est, it = _jackknife(tracks, joint, focal_K(joint["focal"], joint["pp"]), robust_px, blocks, pp_prior=prior,
-                             iterations=block_iterations, rel_tol=PP_REL_TOL)
+                             iterations=block_iterations, rel_tol=PP_REL_TOL, job_map=job_map)
         iters += it
     if len(est) >= 3:
         e = np.asarray(est, np.float64)
