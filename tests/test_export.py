@@ -526,3 +526,41 @@ def test_voxel_accumulator_matches_global_downsampling():
     np.testing.assert_allclose(got[order], ref, atol=1e-12)
     ref_c = np.stack([np.bincount(inv, cols[:, k].astype(float)) / np.bincount(inv) for k in range(3)], 1)
     np.testing.assert_array_equal(got_c[order], np.round(ref_c).astype(np.uint8))
+
+
+# benchmarks/ba_probe.py on this module's finished run (the run is costly; the probe reads its cache)
+def _ba_probe():
+    import importlib.util
+
+    from conftest import ROOT
+
+    spec = importlib.util.spec_from_file_location("ba_probe", ROOT / "benchmarks" / "ba_probe.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_ba_probe_reproduces_the_bundle_adjustment_stage_and_parses_its_settings(run):
+    """The probe re-adjusts from what the stage read: at the default settings it ends where the
+    stage ended (else it reads other inputs, and what it says about a setting is about another
+    problem). Its key=value settings take their field's type; an unknown key is exit 2."""
+    from gcvd_flow.engine.store import Store
+    from gcvd_flow.report.collect import recorded_part
+
+    bp = _ba_probe()
+    doc = json.loads((run["run"] / "run.json").read_text())
+    store = Store(Path(doc["cache"]), verify=False)
+    kfs = [int(i) for i in recorded_part(doc, store, "optimize_keyframes", ("keyframes",))]
+    stage = np.asarray(recorded_part(doc, store, "bundle_adjustment", ("poses",)), np.float64)
+    from gcvd_flow.evaluate.run_eval import load_gt
+
+    gt_kf = np.asarray(load_gt(run["clip"])["poses"])[kfs]
+    out = bp.probe(run["run"], run["clip"], {})
+    assert out["after"] == bp.summary(stage, gt_kf, kfs)
+    one = bp.probe(run["run"], run["clip"], {"max_iterations": 1})
+    assert one["iterations"] == 1 and one["after"] != out["after"]  # the settings reach the adjustment
+    assert bp.overrides(["robust_px=1", "enabled=false", "solver=gtsam", "stride=8"]) == \
+        {"robust_px": 1.0, "enabled": False, "solver": "gtsam", "stride": 8}
+    with pytest.raises(SystemExit) as e:
+        bp.overrides(["no_such_key=1"])
+    assert e.value.code == 2
