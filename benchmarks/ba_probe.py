@@ -26,14 +26,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from scale_probe import window_scales  # noqa: E402
+from scale_probe import recorded_run, window_scales  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from gcvd_flow.engine.store import Store  # noqa: E402
 from gcvd_flow.evaluate import metrics as M  # noqa: E402
 from gcvd_flow.evaluate.run_eval import load_gt  # noqa: E402
 from gcvd_flow.pipeline.optimize import _flow_dict  # noqa: E402
-from gcvd_flow.report.collect import recorded_part  # noqa: E402
 from gcvd_flow.stages.optimize import bundle_adjustment as ba_mod  # noqa: E402
 from gcvd_flow.stages.optimize.params import BundleAdjustmentSettings  # noqa: E402
 
@@ -52,22 +50,14 @@ def overrides(pairs: list[str]) -> dict[str, Any]:
     return out
 
 
-def summary(poses: np.ndarray, gt: np.ndarray, frames: list[int]) -> dict[str, object]:
+def summary(poses: np.ndarray, gt: np.ndarray, frames: list[int]) -> dict[str, Any]:
     """Keyframe ATE (m, Sim(3)-aligned) and window scales of poses (K, 4, 4) T_w_c against gt."""
-    s, R, t = M.umeyama_alignment(poses[:, :3, 3], gt[:, :3, 3])
-    aligned = (s * (R @ poses[:, :3, 3].T)).T + t
-    ate = float(np.sqrt(np.mean(np.sum((aligned - gt[:, :3, 3]) ** 2, axis=1))))
-    return {"keyframe_ate": ate, "window_scales": [round(float(x), 3) for x in window_scales(poses, gt, frames)]}
+    return {"keyframe_ate": float(M.ate(poses, gt)["ate_rmse"]),
+            "window_scales": [round(float(x), 3) for x in window_scales(poses, gt, frames)]}
 
 
 def probe(run_dir: Path, gt_dir: Path, settings: dict[str, Any]) -> dict[str, Any]:
-    doc = json.loads((run_dir / "run.json").read_text())
-    store = Store(Path(doc["cache"]), verify=False)
-    part = lambda stage, *path: recorded_part(doc, store, stage, path)  # noqa: E731
-    kfs = [int(i) for i in part("optimize_keyframes", "keyframes")]
-    idx = [int(i) for i in json.loads((run_dir / "cameras.json").read_text())["frame_indices"]] \
-        if (run_dir / "cameras.json").exists() else None
-    src = [idx[k] for k in kfs] if idx else kfs
+    part, kfs, src = recorded_run(run_dir)
     depths = [np.asarray(d) for d in part("optimize_keyframes", "depths")]
     poses = np.asarray(part("pose_graph", "poses"), np.float64)
     edges = {(int(e["i"]), int(e["j"])): _flow_dict(e) for e in part("association", "edge_flows")}

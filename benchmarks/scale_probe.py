@@ -17,6 +17,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -49,14 +50,20 @@ def window_scales(est: np.ndarray, gt: np.ndarray, frames: list[int], window: in
     return np.asarray(out)
 
 
-def probe(run_dir: Path, gt_dir: Path, window: int = WINDOW) -> dict:
+def recorded_run(run_dir: Path) -> tuple[Callable[..., Any], list[int], list[int]]:
+    """A finished run read from its cache: (part(stage, *path): a stage's recorded output,
+    optimize_keyframes' keyframes (positions in the run's frames), the same as source frame indices)."""
     doc = json.loads((run_dir / "run.json").read_text())
     store = Store(Path(doc["cache"]), verify=False)
     part = lambda stage, *path: recorded_part(doc, store, stage, path)  # noqa: E731
     okf_frames = [int(i) for i in part("optimize_keyframes", "keyframes")]
     idx = [int(i) for i in json.loads((run_dir / "cameras.json").read_text())["frame_indices"]] \
         if (run_dir / "cameras.json").exists() else None
-    src = [idx[k] for k in okf_frames] if idx else okf_frames
+    return part, okf_frames, [idx[k] for k in okf_frames] if idx else okf_frames
+
+
+def probe(run_dir: Path, gt_dir: Path, window: int = WINDOW) -> dict:
+    part, okf_frames, src = recorded_run(run_dir)
     gt_all = np.asarray(load_gt(gt_dir)["poses"])
     gt = gt_all[src]
     out: dict = {"keyframes": len(src)}

@@ -771,6 +771,7 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
     through ``job_map`` together (:func:`_adjust_job`). Returns (rel sigma, LM iterations); fills
     out's block_focals, pp_focals, rel_sigma_blocks, rel_sigma_pp, rel_sigma_formal."""
     calls = _block_calls(tracks, ba, K, robust_px, blocks, max_px=2.0, iterations=10)
+    nb = len(calls)  # then the 4 principal-point moves, then the formal std
     moves = [sign * d for d in (np.array([pp_frac * size[0], 0.0]), np.array([0.0, pp_frac * size[1]]))
              for sign in (1.0, -1.0)]  # central differences: both runs gated and converged alike
     calls += [(tracks, ba["T"], ba["pts"], focal_K(ba["focal"], K[:2, 2] + d),  # from the capped adjustment's solution
@@ -779,9 +780,9 @@ def _uncertainty(tracks, ba: dict[str, Any], K: np.ndarray, robust_px: float, bl
                   dict(robust_px=robust_px, iterations=1, max_px=2.0, marginal=True), False))
     res = list(job_map(_adjust_job, calls))
     iters = sum(r["iterations"] for r in res[:-1])  # the formal std's one evaluation is not counted (as before)
-    fs = [r["focal"] for r in res[:-5] if r["frames"] >= 3]
+    fs = [r["focal"] for r in res[:nb] if r["frames"] >= 3]
     rel_b = _jackknife_rel(fs)
-    pp_fs = [r["focal"] if r["solved"] else float("nan") for r in res[-5:-1]]
+    pp_fs = [r["focal"] if r["solved"] else float("nan") for r in res[nb:nb + 4]]
     sens = [abs(np.log(a / b)) / 2 if np.isfinite(a) and np.isfinite(b) else float("inf")
             for a, b in (pp_fs[0:2], pp_fs[2:4])]
     rel_pp = float(np.hypot(sens[0], sens[1]))  # x, y
