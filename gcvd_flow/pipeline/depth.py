@@ -156,7 +156,8 @@ def run_depth_fusion(inputs: dict[str, Any], p: depth_params.DepthFusionSettings
         flows = [(f, v & keep[0] & user_masks.flow_target_kept(f, k), T) for (f, v, T), k in zip(flows, keep[1:])]
     fused, measured, confidence = depth_fusion.fuse_depth_flows(
         depth, poses[i], flows, np.asarray(inputs["K"]), min_angle_deg=p.min_angle_deg,
-        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev, coverage_refs=p.coverage_refs)
+        max_log_dev=p.max_log_dev, agree_log_dev=p.agree_log_dev, coverage_refs=p.coverage_refs,
+        spread_log_sigma=p.spread_log_sigma)
     return {"depth": fused, "measured": measured, "confidence": confidence}
 
 

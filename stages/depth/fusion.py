@@ -18,9 +18,10 @@ objects, textureless areas); the rest are fused in inverse depth with weights = 
 (inverse-depth noise ~ 1 / angle). Pixels without a measurement keep the optimised depth.
 
 Confidence per pixel, in [0, 1] (what NeRF / Gaussian-splatting users weight or mask with):
-agreement x coverage x angle = (measurements agreeing / measurements made at the pixel) x
-min(1, measurements agreeing / ``coverage_refs`` (2)) x (1 - exp(-rms angle / ``ANGLE_SCALE_DEG``)), agreeing =
-within ``agree_log_dev`` (0.3) of the optimised depth; 0 where no
+agreement x coverage x angle x spread = (measurements agreeing / measurements made at the pixel) x
+min(1, measurements agreeing / ``coverage_refs`` (2)) x (1 - exp(-rms angle / ``ANGLE_SCALE_DEG``))
+x exp(-(s / ``spread_log_sigma``)^2 / 2), agreeing = within ``agree_log_dev`` (0.3) of the optimised
+depth, s = the angle^2-weighted std of the agreeing measurements' log depth; 0 where no
 reference gave a forward-backward-consistent, triangulable measurement.
 
 Shapes: images uint8 (H, W, 3) RGB; depth float32 (H, W) metres (pose scale); K (3, 3);
@@ -90,6 +91,24 @@ def _measure(fwd: np.ndarray, fwd_valid: np.ndarray, depth: np.ndarray, T: np.nd
     return vs[ok], us[ok], z[ok], ang[ok] ** 2
 
 
+def _agreeing_log_variance(meas: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                           ratios: Sequence[np.ndarray], shift: float, agree_log_dev: float,
+                           shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) per pixel: the angle^2-weighted variance of the log depth of the measurements within
+    ``agree_log_dev`` of the optimised depth (0 where fewer than two); meas [(v, u, z, weight)],
+    ratios [log(z / optimised depth)] per reference, as ``fuse_depth_flows`` has them."""
+    h, w = shape
+    s_w, s_l, s_l2 = np.zeros(h * w), np.zeros(h * w), np.zeros(h * w)
+    for (v, u, _, wgt), ratio in zip(meas, ratios):
+        agree = np.abs(ratio - shift) < agree_log_dev
+        idx, wa, lz = v[agree] * w + u[agree], wgt[agree], ratio[agree]
+        s_w += np.bincount(idx, weights=wa, minlength=h * w)
+        s_l += np.bincount(idx, weights=wa * lz, minlength=h * w)
+        s_l2 += np.bincount(idx, weights=wa * lz * lz, minlength=h * w)
+    mean = s_l / np.maximum(s_w, 1e-12)
+    return np.maximum(s_l2 / np.maximum(s_w, 1e-12) - mean * mean, 0.0).reshape(h, w)
+
+
 def fuse_depth_flows(
     depth: np.ndarray,
     pose: np.ndarray,
@@ -99,6 +118,7 @@ def fuse_depth_flows(
     max_log_dev: float = _DEFAULTS.max_log_dev,
     agree_log_dev: float = _DEFAULTS.agree_log_dev,
     coverage_refs: int = _DEFAULTS.coverage_refs,
+    spread_log_sigma: float = _DEFAULTS.spread_log_sigma,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """``fuse_depth`` with the flows given: flows [(fwd float32 (H, W, 2) this frame -> j,
     fwd_valid bool (H, W) its forward-backward consistency, pose_j (4, 4) camera-to-world), ...]
@@ -157,4 +177,7 @@ def fuse_depth_flows(
     full = max(1, min(len(flows), int(coverage_refs)))  # agreeing measurements for full coverage
     confidence = ((agreeing / np.maximum(made, 1.0)) * np.minimum(agreeing / full, 1.0)
                   * (1.0 - np.exp(-rms_angle / ANGLE_SCALE_DEG)))
+    if spread_log_sigma > 0:  # views that agree with the optimised depth but not with each other: one is wrong
+        var = _agreeing_log_variance(meas, ratios, shift, agree_log_dev, (h, w))
+        confidence = confidence * np.exp(-0.5 * var / spread_log_sigma ** 2)
     return fused, float(have.mean()), confidence.astype(np.float32)

@@ -44,6 +44,9 @@ class DepthFusionSettings:
                                  "the confidence", gt=0)
     coverage_refs: int = param(2, "agreeing references that give a pixel full coverage in the confidence (with "
                                "two offsets: agreeing / references)", ge=1)
+    spread_log_sigma: float = param(0.1, "the confidence is scaled by exp(-(s / sigma)^2 / 2), s = the spread (std of "
+                                    "log depth, weighted by angle^2) of a pixel's agreeing measurements (0 = off)",
+                                    ge=0)
 
 
 @dataclass(frozen=True)
