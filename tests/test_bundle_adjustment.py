@@ -159,6 +159,21 @@ def test_depth_scale_follows_the_adjusted_landmarks():
 
 
 
+def test_depth_scale_of_every_keyframe_comes_from_what_it_observes():
+    """A keyframe's depth map 30x too far (a jump of the keyframe windows' chain: the synthetic
+    scan's keyframe 17) and the last keyframe's 2x too far (no landmark is anchored in the last
+    keyframe): each gets the scale that brings its depth map onto the adjusted landmarks it
+    observes, not 1 (segments between them otherwise fit depth and poses at scales 2-30x apart;
+    the scan's frames 12-16 ended 0.7-1.6 m off)."""
+    K, T_gt, depths, edges, kf = _keyframe_problem()
+    wrong = {5: 30.0, len(kf) - 1: 2.0}
+    depths = [d * wrong.get(m, 1.0) for m, d in enumerate(depths)]
+    scale = bundle_adjust(T_gt, depths, edges, kf, K, consistent_px=0.0)["depth_scale"]
+    for m, c in wrong.items():
+        assert abs(scale[m] * c - 1) < 0.05, (m, scale)
+    assert np.all(np.abs(np.delete(scale, list(wrong)) - 1) < 0.05), scale
+
+
 def _shrunk_start(c: float = 16.0):
     """The walk's first third of keyframes ``c`` times too small (poses about the first keyframe
     and their depths with them, the rest following rigidly): the HoloLens walk's turning start as
@@ -180,9 +195,9 @@ def test_a_restart_adjusts_again_from_the_rescaled_depths():
     kw = dict(stride=12, track_length=16, min_views=3, consistent_px=0.0, max_iterations=3)
     one = bundle_adjust(T0, d0, edges, kf, K, **kw)
     two = bundle_adjust(T0, d0, edges, kf, K, restarts=1, **kw)
-    again = bundle_adjust(one["poses"], [d * np.float32(s) for d, s in zip(d0, one["depth_scale"])], edges, kf, K, **kw)
+    again = bundle_adjust(one["poses"], [d * np.float32(s) for d, s in zip(d0, one["landmark_scale"])], edges, kf, K, **kw)
     np.testing.assert_array_equal(two["poses"], again["poses"])
-    np.testing.assert_array_equal(two["depth_scale"], one["depth_scale"] * again["depth_scale"])
+    np.testing.assert_array_equal(two["depth_scale"], one["landmark_scale"] * again["depth_scale"])
     assert two["iterations"] == one["iterations"] + again["iterations"]
     assert two["initial_median_px"] == one["initial_median_px"]
 

@@ -54,7 +54,9 @@ class BundleResult(TypedDict):
     final_median_px: float
     iterations: int
     skipped: bool  # poses returned unchanged (already consistent with the tracks, or no tracks)
-    depth_scale: np.ndarray  # (K,) float64: median new / old distance of the landmarks anchored in each keyframe
+    depth_scale: np.ndarray  # (K,) float64: what each keyframe's depth map is multiplied by to meet the adjusted
+    # landmarks it observes (``_observed_depth_scale``; where too few, ``landmark_scale``)
+    landmark_scale: np.ndarray  # (K,) float64: median new / old distance of the landmarks anchored in each keyframe
 
 
 def _bilinear(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -229,7 +231,8 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
     tracks = [t for t in flow_tracks(edge_flows, keyframes, (h, w), stride, track_length, keep=keep)
               if len(t) >= min_views]
     none: BundleResult = {"poses": T_w_k, "landmarks": 0, "observations": 0, "initial_median_px": 0.0,
-                          "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
+                          "final_median_px": 0.0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n),
+                          "landmark_scale": np.ones(n)}
     if n < 3 or not tracks:
         return none
     res = _adjust_once(T_w_k, depths, tracks, K, robust_px, solve)
@@ -237,14 +240,17 @@ def bundle_adjust(T_w_k: np.ndarray, depths: Sequence[np.ndarray],
         return none
     for _ in range(restarts if not res["skipped"] else 0):
         # restart from the adjusted poses with each keyframe's depth rescaled as its landmarks moved:
-        # the landmarks start consistent with the new poses (a stuck first adjustment gets out)
-        scaled = [np.asarray(d) * np.float32(sc) for d, sc in zip(depths, res["depth_scale"])]
+        # the landmarks start consistent with the new poses (a stuck first adjustment gets out).
+        # Rescaled by the anchored landmarks: on the shrunk start of tests/test_bundle_adjustment.py
+        # the observed scale sent the restart the wrong way (start 17x -> 27x too small)
+        scaled = [np.asarray(d) * np.float32(sc) for d, sc in zip(depths, res["landmark_scale"])]
         again = _adjust_once(res["poses"], scaled, tracks, K, robust_px, solve)
         if again is None or again["skipped"]:
             break
         res = {**again, "initial_median_px": res["initial_median_px"],
                "iterations": res["iterations"] + again["iterations"],
-               "depth_scale": res["depth_scale"] * again["depth_scale"]}
+               "depth_scale": res["landmark_scale"] * again["depth_scale"],
+               "landmark_scale": res["landmark_scale"] * again["landmark_scale"]}
     return res
 
 
@@ -273,17 +279,53 @@ def _adjust_once(T_w_k: np.ndarray, depths: Sequence[np.ndarray], tracks: list[T
     e0 = _median_error(problem, T_w_k, lm0)
     if e0 < opt.consistent_px:
         return {"poses": T_w_k, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
-                "final_median_px": e0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n)}
+                "final_median_px": e0, "iterations": 0, "skipped": True, "depth_scale": np.ones(n),
+                "landmark_scale": np.ones(n)}
     if opt.solver == "schur":
         res = ba_solver.solve(problem, T_w_k, lm0, max_iterations=opt.max_iterations)
     else:
         res = solve_gtsam(problem, T_w_k, lm0, weak, max_iterations=opt.max_iterations)
     e1 = _median_error(problem, res.poses, res.landmarks)
+    anchored = _depth_scale(lm0[:, 2], res.landmarks[:, 2], problem.anchor, n)
+    observed = _observed_depth_scale(problem, res.poses, res.landmarks, depths, n)
     log.debug("bundle adjustment (%s): %d landmarks, %d observations, median %.3f -> %.3f px, %d iterations",
               opt.solver, n_lm, n_obs, e0, e1, res.iterations)
     return {"poses": res.poses, "landmarks": n_lm, "observations": n_obs, "initial_median_px": e0,
             "final_median_px": e1, "iterations": int(res.iterations), "skipped": False,
-            "depth_scale": _depth_scale(lm0[:, 2], res.landmarks[:, 2], problem.anchor, n)}
+            "depth_scale": np.where(np.isnan(observed), anchored, observed), "landmark_scale": anchored}
+
+
+def _observed_depth_scale(problem: ba_solver.Problem, poses: np.ndarray, landmarks: np.ndarray,
+                          depths: Sequence[np.ndarray], n: int, min_observations: int = 20) -> np.ndarray:
+    """(n,) per keyframe k: median over k's observations of (the adjusted landmark's depth in the
+    adjusted camera k) / (k's depth map at the observed pixel, as the anchors read it); NaN where
+    fewer than ``min_observations`` have both. Unlike the anchored landmarks' ratio
+    (``_depth_scale``) this also scales the last keyframe (no landmark is anchored there) and a
+    keyframe whose own landmarks are stuck behind a camera (no gradient: the synthetic scan's
+    keyframe 17, its depth 30x too far, kept scale 1 and the frames beside it ended 0.7-1.6 m off).
+    poses (K, 4, 4) T_w_k; landmarks (L, 3) (theta, phi, rho) in their anchor's camera."""
+    th, ph, rho = landmarks[:, 0], landmarks[:, 1], landmarks[:, 2]
+    ray = np.stack([np.cos(ph) * np.sin(th), np.sin(ph), np.cos(ph) * np.cos(th)], 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X_a = ray / rho[:, None]
+    a = problem.anchor
+    X_w = np.einsum("lij,lj->li", poses[a, :3, :3], X_a) + poses[a, :3, 3]
+    lm, cam = problem.obs_lm, problem.obs_cam
+    z_new = np.einsum("mji,mj->mi", poses[cam, :3, :3], X_w[lm] - poses[cam, :3, 3])[:, 2]  # in camera k
+    h, w = np.asarray(depths[0]).shape
+    ui = np.clip(np.rint(problem.uv[:, 0]).astype(np.int64), 0, w - 1)
+    vi = np.clip(np.rint(problem.uv[:, 1]).astype(np.int64), 0, h - 1)
+    out = np.full(n, np.nan)
+    for k in range(n):
+        sel = cam == k
+        if not sel.any():
+            continue
+        d = np.asarray(depths[k])[vi[sel], ui[sel]]
+        z = z_new[sel]
+        ok = (d > 0) & np.isfinite(z) & (z > 0) & (rho[lm[sel]] > 0)
+        if ok.sum() >= min_observations:
+            out[k] = float(np.median(z[ok] / d[ok]))
+    return out
 
 
 def _depth_scale(rho0: np.ndarray, rho1: np.ndarray, anchor: np.ndarray, n: int,
