@@ -170,6 +170,13 @@ def print_clip(name: str, trees: dict[str, Path], rows: dict[str, dict]) -> None
               f"{len(rows['this']['wall_all'])})")
 
 
+def round_order(trees: dict[str, Path], r: int) -> list[tuple[str, Path]]:
+    """The checkouts in round r's order: as given in even rounds, reversed in odd ones (ABC, CBA):
+    with one fixed order "this" always ran last, and a machine drifting over a round fell on it."""
+    items = list(trees.items())
+    return items if r % 2 == 0 else items[::-1]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ref", type=Path, default=Path("/work/wt/ref-5261f0f"),
@@ -199,7 +206,7 @@ def main() -> None:
             clip, extra = CLIPS[name]
             runs: dict[str, list[dict]] = {t: [] for t in trees}
             for r in range(a.repeat):
-                for t, d in trees.items():
+                for t, d in round_order(trees, r):
                     sets = a.sets + (a.this_sets if t == "this" else [])
                     x = extra + [v for s in sets for v in ("--set", s)]
                     runs[t].append(cold_run(d, clip, x, Path(tmp) / f"{name}-{t}-{r}"))
