@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from geometry_ref import rigid_flow
 
 from gcvd_flow.evaluate.synth import render_clip
 from gcvd_flow.stages.depth.fusion import fuse_depth, fuse_depth_flows
@@ -105,17 +106,6 @@ def test_confident_share_on_a_fast_pan_with_near_and_far_references():
 
 
 
-def _flow_from_depth(depth: np.ndarray, pose_i: np.ndarray, pose_j: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """The exact flow i -> j (H, W, 2) float32 of the points at ``depth`` (H, W) seen from frame i."""
-    h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
-    pts = rays * depth[..., None]
-    T = np.linalg.inv(pose_j) @ pose_i
-    pj = (pts @ T[:3, :3].T + T[:3, 3]) @ K.T
-    return np.stack([pj[..., 0] / pj[..., 2] - u, pj[..., 1] / pj[..., 2] - v], -1).astype(np.float32)
-
-
 def test_spread_of_the_agreeing_measurements_lowers_the_confidence():
     """Two references that see a region 20 % apart (both within agree_log_dev of the optimised
     depth) count as agreeing; with ``spread_log_sigma`` the region's confidence falls by
@@ -128,8 +118,8 @@ def test_spread_of_the_agreeing_measurements_lowers_the_confidence():
     off[region] *= 1.2  # reference i + 3 sees the region's surface 20 % further away
     flows = []
     for j, d in ((i - 3, gt), (i + 3, off)):
-        f = _flow_from_depth(d, clip.poses[i], clip.poses[j], clip.K)
-        flows.append((f, np.ones(gt.shape, bool), clip.poses[j]))
+        f = rigid_flow(d, clip.K, clip.poses[i], clip.poses[j])
+        flows.append((np.nan_to_num(f), np.isfinite(f).all(-1), clip.poses[j]))
     plain = fuse_depth_flows(gt, clip.poses[i], flows, clip.K, spread_log_sigma=0.0)[2]
     spread = fuse_depth_flows(gt, clip.poses[i], flows, clip.K, spread_log_sigma=0.1)[2]
     inner = (slice(34, 56), slice(44, 76))
